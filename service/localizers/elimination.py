@@ -1,0 +1,162 @@
+"""Algorithm III, process of elimination (paper §3.3, §4.1-4.2).
+
+Every start pose in a discrete table is a candidate; each measurement removes the ones
+whose predicted relative height cannot match. Two ways of testing, as the paper has them:
+
+* ``sweep="paper"`` (default): a cheap band test on every candidate (the centre must sit
+  between 0.9 R and 3 R above the raw map point below it; on steep maps the upper bound is
+  raised to the largest gap the map has, computed once, as the paper suggests), then the
+  exact contact-surface test on the `exact_per_step` candidates most likely to fail it.
+* ``sweep="full"``: the exact test on every candidate. With the contact surface
+  precomputed it is one interpolated lookup; noise-free, one reading then pins the pose.
+
+The tolerance comes from the sensor model's gate (tight when noise-free).
+"""
+
+from __future__ import annotations
+
+from typing import ClassVar
+
+import numpy as np
+
+from service.errors import ConfigError
+from service.localizers.base import (
+    Budget,
+    Estimate,
+    Hypotheses,
+    LocalizerContext,
+    Measurement,
+    wrap_angle,
+)
+from service.localizers.pose_table import pose_table
+from service.localizers.spread import pose_spread
+
+CHUNK = 8192
+
+
+class Elimination:
+    """Algorithm III over a discrete pose table."""
+
+    name: ClassVar[str] = "elimination"
+
+    def __init__(self, ctx: LocalizerContext, *, pitch: float | None = None, headings: int = 11,
+                 sweep: str = "paper", exact_per_step: int = 5,
+                 poses: np.ndarray | None = None) -> None:
+        if sweep not in ("full", "paper"):
+            raise ConfigError(f"elimination sweep must be 'full' or 'paper', got '{sweep}'")
+        self.ctx = ctx
+        self.sweep = sweep
+        self.exact_per_step = exact_per_step
+        table = poses if poses is not None else pose_table(
+            ctx.surface.map, pitch or ctx.step_length, headings)
+        self.poses = np.asarray(table, dtype=np.float64)
+        surface = ctx.surface
+        self.band_max = max(3 * surface.radius,
+                            float(np.max(surface.centre_heights - surface.map.heights)))
+        self.alive = np.ones(len(self.poses), dtype=bool)
+        self.sse = np.zeros(len(self.poses))
+        self.z0 = np.zeros(len(self.poses))
+        self._pending: Measurement | None = None
+        self._todo = np.empty(0, dtype=np.intp)
+        self._cursor = 0
+
+    # -- updates ---------------------------------------------------------------------------
+    def start(self, first: Measurement) -> None:
+        """Reference heights at each candidate start; candidates off the map are dropped."""
+        z0, inside = self.ctx.surface.lookup(self.poses[:, 0], self.poses[:, 1])
+        self.z0 = z0
+        self.alive &= inside
+
+    def begin_update(self, measurement: Measurement) -> None:
+        self._pending = measurement
+        self._todo = np.flatnonzero(self.alive)
+        self._cursor = 0
+
+    def work(self, budget: Budget) -> bool:
+        m = self._pending
+        if m is None:
+            return True
+        while self._cursor < len(self._todo):
+            stop = self._cursor + budget.items(CHUNK)
+            self._test(self._todo[self._cursor:stop], m)
+            self._cursor = min(stop, len(self._todo))
+            if budget.expired():
+                break
+        if self._cursor >= len(self._todo):
+            self._pending = None
+            return True
+        return False
+
+    def _test(self, idx: np.ndarray, m: Measurement) -> None:
+        poses = self.poses[idx]
+        x, y = self.ctx.motion.positions(poses, m.displacement[:2])
+        surface = self.ctx.surface
+        margin = 5 * self.ctx.motion.position_sigma
+        ok = _inside_with_margin(surface.map, x, y, margin)
+        if self.sweep == "full":
+            predicted, _ = surface.lookup(x, y)
+            residual = predicted - self.z0[idx] - m.displacement[2]
+            ok &= self.ctx.sensor.consistent(residual)
+            self.sse[idx] += residual**2
+        else:
+            ok &= self._paper_tests(idx, x, y, m)
+        self.alive[idx[~ok]] = False
+
+    def _paper_tests(self, idx: np.ndarray, x: np.ndarray, y: np.ndarray, m: Measurement
+                     ) -> np.ndarray:
+        surface = self.ctx.surface
+        r = surface.radius
+        tol = self.ctx.sensor.tolerance
+        raw, _ = surface.map.lookup(x, y)
+        centre = self.z0[idx] + m.displacement[2]
+        gap = centre - raw
+        ok = (gap >= 0.9 * r - tol) & (gap <= self.band_max + tol)
+        # Exact test on the few the band passes that look most likely to fail it.
+        suspicion = np.where(ok, np.abs(gap - r), -np.inf)
+        k = min(self.exact_per_step, int(ok.sum()))
+        if k:
+            few = np.argpartition(-suspicion, k - 1)[:k]
+            predicted, _ = surface.lookup(x[few], y[few])
+            residual = predicted - centre[few]
+            ok[few] &= self.ctx.sensor.consistent(residual)
+            self.sse[idx[few]] += residual**2
+        return ok
+
+    # -- belief ----------------------------------------------------------------------------
+    def estimate(self) -> Estimate:
+        idx = np.flatnonzero(self.alive)
+        if idx.size == 0:
+            return Estimate(pose=None, candidates=0, converged=False)
+        order = idx[np.argsort(self.sse[idx], kind="stable")]
+        best = tuple(float(v) for v in self.poses[order[0]])
+        runner = tuple(float(v) for v in self.poses[order[1]]) if idx.size > 1 else None
+        pos_sd, head_sd = pose_spread(self.poses[idx])
+        return Estimate(pose=best, candidates=int(idx.size), converged=idx.size == 1,
+                        position_sd=pos_sd, heading_sd=head_sd, mode_mass=1.0 / idx.size,
+                        runner_up=runner, runner_up_mass=1.0 / idx.size if runner else 0.0)
+
+    def retains(self, pose: tuple[float, float, float], position_tol: float,
+                heading_tol: float) -> bool | None:
+        """Whether `pose` is a live table entry; None if it is not in the table at all."""
+        d_pos = np.hypot(self.poses[:, 0] - pose[0], self.poses[:, 1] - pose[1])
+        d_head = np.abs(wrap_angle(self.poses[:, 2] - pose[2]))
+        match = (d_pos <= position_tol) & (d_head <= heading_tol)
+        if not match.any():
+            return None
+        return bool(self.alive[match].any())
+
+    def hypotheses(self, limit: int | None = None) -> Hypotheses:
+        idx = np.flatnonzero(self.alive)
+        if limit is not None and idx.size > limit:
+            idx = idx[np.argsort(self.sse[idx], kind="stable")[:limit]]
+        weights = np.full(idx.size, 1.0 / max(idx.size, 1))
+        return Hypotheses(poses=self.poses[idx], weights=weights)
+
+
+def _inside_with_margin(height_map, x: np.ndarray, y: np.ndarray, margin: float) -> np.ndarray:
+    """Inside the map, allowing `margin` metres of position noise at its edge."""
+    x_max, y_max = height_map.extent
+    ok = (x >= -margin) & (x <= x_max + margin)
+    if not height_map.is_profile:
+        ok &= (y >= -margin) & (y <= y_max + margin)
+    return ok

@@ -1,0 +1,55 @@
+"""Named implementations chosen at run time (localizers, policies, backends).
+
+Entries are "module:attribute" strings imported on first use, so `service` never imports a
+concrete backend at module level and the CLI can list everything without loading it.
+"""
+
+from __future__ import annotations
+
+import importlib
+from dataclasses import dataclass
+from typing import Any
+
+from service.errors import ConfigError
+
+
+@dataclass(frozen=True)
+class Entry:
+    target: str
+    summary: str
+
+
+class Registry:
+    def __init__(self, kind: str, entries: dict[str, Entry]) -> None:
+        self.kind = kind
+        self.entries = entries
+
+    def names(self) -> list[str]:
+        return list(self.entries)
+
+    def help(self) -> str:
+        return "; ".join(f"{name}: {e.summary}" for name, e in self.entries.items())
+
+    def load(self, name: str) -> Any:
+        entry = self.entries.get(name)
+        if entry is None:
+            raise ConfigError(f"unknown {self.kind} '{name}'; choose one of: "
+                              f"{', '.join(self.entries)}")
+        module, _, attr = entry.target.partition(":")
+        return getattr(importlib.import_module(module), attr)
+
+
+LOCALIZERS = Registry("algorithm", {
+    "elimination": Entry("service.localizers.elimination:Elimination",
+                         "Algorithm III, process of elimination over a pose table"),
+})
+
+POLICIES = Registry("policy", {
+    "paper": Entry("service.policies.paper:PaperPolicy",
+                   "the paper's heuristic: the move 10 sampled candidates disagree on most"),
+    "random": Entry("service.policies.paper:RandomPolicy", "a random unblocked move"),
+})
+
+BACKENDS = Registry("backend", {
+    "sim": Entry("sim_backend.finger:SimulatedFinger", "simulated finger on the map"),
+})

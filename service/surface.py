@@ -1,0 +1,156 @@
+"""Height maps and the contact surface a spherical fingertip's centre rides on.
+
+A `HeightMap` is a grid of surface heights (metres) with its sample spacing (metres);
+sample [row, col] sits at map coordinates (x, y) = (col * spacing, row * spacing).
+The `ContactSurface` is the height the centre of a sphere of radius r reaches over each
+point (paper Eq. 7): the grey dilation of the map by the sphere, computed once per map and
+radius with scipy.ndimage, after which every hypothesis test is one interpolated lookup.
+
+A map with a single row is a 1-D profile (what a planar finger explores): it is treated as
+extruded along y, so lookups ignore y.
+"""
+
+from __future__ import annotations
+
+import weakref
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy import ndimage
+
+from service.errors import MapError
+
+
+@dataclass(frozen=True, eq=False)
+class HeightMap:
+    """A validated grid of surface heights in metres."""
+
+    heights: np.ndarray
+    spacing: float
+    name: str = "map"
+
+    def __post_init__(self) -> None:
+        heights = np.asarray(self.heights)
+        if heights.ndim == 1:
+            heights = heights[np.newaxis, :]
+        if heights.ndim != 2:
+            raise MapError(
+                f"map '{self.name}' has {heights.ndim} dimensions; a height map is a 2-D grid "
+                "(or a single row for a profile)"
+            )
+        if not np.issubdtype(heights.dtype, np.number) or np.iscomplexobj(heights):
+            raise MapError(f"map '{self.name}' holds {heights.dtype} values; heights must be real")
+        if max(heights.shape) < 2:
+            raise MapError(
+                f"map '{self.name}' is {heights.shape[0]}x{heights.shape[1]} samples; "
+                "it needs at least 2 samples along one axis"
+            )
+        if not np.all(np.isfinite(heights)):
+            bad = int(np.count_nonzero(~np.isfinite(heights)))
+            raise MapError(
+                f"map '{self.name}' has {bad} non-finite heights (NaN or inf); fill or crop them"
+            )
+        if not (np.isfinite(self.spacing) and self.spacing > 0):
+            raise MapError(f"map spacing must be a positive number of metres, got {self.spacing}")
+        heights = np.ascontiguousarray(heights, dtype=np.float64)
+        heights.setflags(write=False)
+        object.__setattr__(self, "heights", heights)
+        object.__setattr__(self, "spacing", float(self.spacing))
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.heights.shape  # type: ignore[return-value]
+
+    @property
+    def is_profile(self) -> bool:
+        """True for a single-row map: a profile explored by a planar finger."""
+        return self.heights.shape[0] == 1
+
+    @property
+    def extent(self) -> tuple[float, float]:
+        """(x_max, y_max) in metres; the map covers [0, x_max] x [0, y_max]."""
+        rows, cols = self.heights.shape
+        return ((cols - 1) * self.spacing, (rows - 1) * self.spacing)
+
+    def inside(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """Mask of points inside the map (on its border counts as inside)."""
+        x_max, y_max = self.extent
+        x = np.asarray(x)
+        mask = (x >= 0.0) & (x <= x_max)
+        if not self.is_profile:
+            y = np.asarray(y)
+            mask &= (y >= 0.0) & (y <= y_max)
+        return mask
+
+    def lookup(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Bilinearly interpolated heights at (x, y) and the inside mask."""
+        return _interpolate(self.heights, self.spacing, self.is_profile, x, y), self.inside(x, y)
+
+
+@dataclass(frozen=True, eq=False)
+class ContactSurface:
+    """Height of the fingertip centre over each map point, for one map and radius."""
+
+    map: HeightMap
+    radius: float
+    centre_heights: np.ndarray = field(repr=False)
+
+    def lookup(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Centre heights at (x, y) (bilinear) and the inside-the-map mask."""
+        heights = _interpolate(self.centre_heights, self.map.spacing, self.map.is_profile, x, y)
+        return heights, self.map.inside(x, y)
+
+    def height(self, x: float, y: float) -> float:
+        """Centre height at one point (for simulators and tests)."""
+        return float(self.lookup(np.array([x]), np.array([y]))[0][0])
+
+
+def _interpolate(
+    grid: np.ndarray, spacing: float, is_profile: bool, x: np.ndarray, y: np.ndarray
+) -> np.ndarray:
+    x = np.asarray(x, dtype=np.float64)
+    cols = x / spacing
+    if is_profile:
+        rows = np.zeros_like(cols)
+    else:
+        rows = np.asarray(y, dtype=np.float64) / spacing
+    coords = np.stack(np.broadcast_arrays(rows, cols)).reshape(2, -1)
+    values = ndimage.map_coordinates(grid, coords, order=1, mode="nearest")
+    return values.reshape(np.broadcast(rows, cols).shape)
+
+
+def sphere_structure(radius: float, spacing: float) -> tuple[np.ndarray, np.ndarray]:
+    """Footprint (disk) and heights of a sphere cap sampled on the map grid."""
+    k = int(np.floor(radius / spacing + 1e-9))
+    offsets = np.arange(-k, k + 1) * spacing
+    dy, dx = np.meshgrid(offsets, offsets, indexing="ij")
+    d2 = dx**2 + dy**2
+    footprint = d2 <= radius**2 + 1e-12
+    cap = np.sqrt(np.clip(radius**2 - d2, 0.0, None))
+    return footprint, np.where(footprint, cap, 0.0)
+
+
+_CACHE: weakref.WeakKeyDictionary[HeightMap, dict[float, ContactSurface]] = (
+    weakref.WeakKeyDictionary()
+)
+
+
+def contact_surface(height_map: HeightMap, radius: float) -> ContactSurface:
+    """The centre-height surface for a sphere of `radius` metres, cached per map and radius."""
+    if not (np.isfinite(radius) and radius > 0):
+        raise MapError(f"finger radius must be a positive number of metres, got {radius}")
+    per_map = _CACHE.setdefault(height_map, {})
+    cached = per_map.get(radius)
+    if cached is not None:
+        return cached
+    footprint, cap = sphere_structure(radius, height_map.spacing)
+    grid = height_map.heights
+    if height_map.is_profile:
+        # An extruded profile: the sphere's highest point over a row lies in its own plane.
+        footprint, cap = footprint[footprint.shape[0] // 2 :][:1], cap[cap.shape[0] // 2 :][:1]
+    dilated = ndimage.grey_dilation(grid, footprint=footprint, structure=cap, mode="nearest")
+    dilated = np.ascontiguousarray(dilated)
+    dilated.setflags(write=False)
+    surface = ContactSurface(map=height_map, radius=float(radius), centre_heights=dilated)
+    per_map[radius] = surface
+    return surface
