@@ -25,7 +25,7 @@ class BusTimeoutError(CommunicationError):
 
 
 class HardwareFault(FirmwareError):
-    """A servo reports a hardware error, or the bus has failed too often: torque is off, reset needed."""
+    """A servo reports a hardware error, or the bus failed too often: torque off, reset needed."""
 
 
 class NotReadyError(FirmwareError):

@@ -69,7 +69,8 @@ def preset(spec: str) -> HeightMap:
     try:
         numbers = [float(a) for a in args]
     except ValueError:
-        raise MapError(f"map preset '{spec}': size and seed must be numbers, e.g. bumps:40:3") from None
+        raise MapError(
+            f"map preset '{spec}': size and seed must be numbers, e.g. bumps:40:3") from None
     if numbers and not (2 <= numbers[0] <= 400):
         raise MapError(f"map preset '{spec}': size must be 2..400 units")
     if name == "bumps" and len(numbers) >= 2:

@@ -140,6 +140,6 @@ def score(estimate: Estimate, truth: Truth, step: float) -> Score:
     x, y, heading = estimate.pose
     pos_err = float(np.hypot(x - truth.x, y - truth.y))
     head_err = float(abs(wrap_angle(heading - truth.heading)))
-    close = pos_err <= 0.25 * step and head_err <= np.deg2rad(5.0)
-    return Score(pos_err, head_err, estimate.converged and close,
-                 estimate.converged and not close)
+    close = bool(pos_err <= 0.25 * step and head_err <= np.deg2rad(5.0))
+    converged = bool(estimate.converged)
+    return Score(pos_err, head_err, converged and close, converged and not close)

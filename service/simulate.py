@@ -8,11 +8,19 @@ from typing import Any
 
 import numpy as np
 
+from firmware_if.backend import Backend
 from service.episode import EpisodeResult, StepRecord, run_episode
 from service.localizers.base import Hypotheses, Localizer
-from service.registry import BACKENDS
-from service.scenario import RunSettings, Score, Truth, build_localizer, build_policy, \
-    draw_truth, score, surface_for
+from service.scenario import (
+    RunSettings,
+    Score,
+    Truth,
+    build_localizer,
+    build_policy,
+    draw_truth,
+    score,
+    surface_for,
+)
 from service.surface import HeightMap
 
 
@@ -60,17 +68,21 @@ def _step_json(s: StepRecord) -> dict[str, Any]:
 
 def simulate(settings: RunSettings, height_map: HeightMap | None = None, *,
              on_step: Callable[[StepRecord], None] | None = None,
-             snapshot_steps: tuple[int, ...] = ()) -> EpisodeReport:
-    """Run one seeded episode on the simulated finger. Same settings, same report."""
+             snapshot_steps: tuple[int, ...] = (),
+             backend_factory: Callable[[Truth], Backend] | None = None) -> EpisodeReport:
+    """Run one seeded episode. Same settings, same report.
+
+    The finger is simulated unless `backend_factory` gives another (a real or emulated
+    hand); the truth is still drawn from the seed, for scoring.
+    """
     surface = surface_for(settings, height_map)
     rng = np.random.default_rng(settings.seed)
     truth_rng, world_rng, loc_rng, policy_rng = rng.spawn(4)
     truth = draw_truth(settings, surface.map, truth_rng)
-    finger_cls = BACKENDS.load("sim")
-    from sim_backend.finger import SimConfig  # concrete backend chosen at run time
-
-    finger = finger_cls(surface.map, SimConfig(start=truth.as_tuple(), radius=settings.radius,
-                                               noise=settings.noise_spec), world_rng)
+    if backend_factory is None:
+        finger = _sim_finger(settings, surface.map, truth, world_rng)
+    else:
+        finger = backend_factory(truth)
     localizer = build_localizer(settings, surface, loc_rng)
     snapshots: dict[int, Hypotheses] = {}
 
@@ -95,6 +107,14 @@ def simulate(settings: RunSettings, height_map: HeightMap | None = None, *,
                          score=score(result.estimate, truth, settings.step),
                          true_pose_eliminated=_truth_eliminated(localizer, truth, settings),
                          snapshots=snapshots)
+
+
+def _sim_finger(settings: RunSettings, height_map: HeightMap, truth: Truth,
+                rng: np.random.Generator) -> Backend:
+    from sim_backend.finger import SimConfig, SimulatedFinger  # chosen at run time, not import
+
+    return SimulatedFinger(height_map, SimConfig(start=truth.as_tuple(), radius=settings.radius,
+                                                 noise=settings.noise_spec), rng)
 
 
 def _truth_eliminated(localizer: Localizer, truth: Truth, settings: RunSettings) -> bool | None:

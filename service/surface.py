@@ -110,10 +110,7 @@ def _interpolate(
 ) -> np.ndarray:
     x = np.asarray(x, dtype=np.float64)
     cols = x / spacing
-    if is_profile:
-        rows = np.zeros_like(cols)
-    else:
-        rows = np.asarray(y, dtype=np.float64) / spacing
+    rows = np.zeros_like(cols) if is_profile else np.asarray(y, dtype=np.float64) / spacing
     coords = np.stack(np.broadcast_arrays(rows, cols)).reshape(2, -1)
     values = ndimage.map_coordinates(grid, coords, order=1, mode="nearest")
     return values.reshape(np.broadcast(rows, cols).shape)

@@ -1,4 +1,4 @@
-"""The simulated world: the map, optionally perturbed so it differs from what the localizer knows."""
+"""The simulated world: the map, optionally perturbed so it differs from the localizer's map."""
 
 from __future__ import annotations
 

@@ -30,10 +30,15 @@ class Measurement:
 
 @dataclass(frozen=True)
 class Budget:
-    """How much a `work` call may do: a monotonic deadline and/or a count of hypotheses."""
+    """How much one `work` call may do: a monotonic deadline and/or a count of hypotheses."""
 
     deadline_ns: int | None = None
     max_items: int | None = None
+    """At most this many hypotheses processed in the call (at least one slice is done)."""
+
+    def __post_init__(self) -> None:
+        if self.max_items is not None and self.max_items < 1:
+            raise ValueError(f"a budget's max_items must be >= 1, got {self.max_items}")
 
     @classmethod
     def unlimited(cls) -> Budget:
@@ -42,10 +47,6 @@ class Budget:
     @classmethod
     def seconds(cls, s: float) -> Budget:
         return cls(deadline_ns=time.monotonic_ns() + int(s * 1e9))
-
-    def items(self, default: int) -> int:
-        """How many items to take in the next slice."""
-        return default if self.max_items is None else max(1, min(default, self.max_items))
 
     def expired(self) -> bool:
         return self.deadline_ns is not None and time.monotonic_ns() >= self.deadline_ns

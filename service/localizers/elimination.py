@@ -59,6 +59,7 @@ class Elimination:
         self._pending: Measurement | None = None
         self._todo = np.empty(0, dtype=np.intp)
         self._cursor = 0
+        self._suspicion = np.full(len(self.poses), -np.inf)
 
     # -- updates ---------------------------------------------------------------------------
     def start(self, first: Measurement) -> None:
@@ -71,18 +72,25 @@ class Elimination:
         self._pending = measurement
         self._todo = np.flatnonzero(self.alive)
         self._cursor = 0
+        self._suspicion = np.full(len(self.poses), -np.inf)
 
     def work(self, budget: Budget) -> bool:
         m = self._pending
         if m is None:
             return True
+        allowance = budget.max_items
         while self._cursor < len(self._todo):
-            stop = self._cursor + budget.items(CHUNK)
+            take = CHUNK if allowance is None else min(CHUNK, allowance)
+            stop = self._cursor + take
             self._test(self._todo[self._cursor:stop], m)
             self._cursor = min(stop, len(self._todo))
-            if budget.expired():
+            if allowance is not None:
+                allowance -= take
+            if budget.expired() or allowance == 0:
                 break
         if self._cursor >= len(self._todo):
+            if self.sweep == "paper":
+                self._exact_tests_on_most_suspicious(m)
             self._pending = None
             return True
         return False
@@ -99,28 +107,32 @@ class Elimination:
             ok &= self.ctx.sensor.consistent(residual)
             self.sse[idx] += residual**2
         else:
-            ok &= self._paper_tests(idx, x, y, m)
+            ok &= self._band_test(idx, x, y, m)
         self.alive[idx[~ok]] = False
 
-    def _paper_tests(self, idx: np.ndarray, x: np.ndarray, y: np.ndarray, m: Measurement
-                     ) -> np.ndarray:
-        surface = self.ctx.surface
-        r = surface.radius
+    def _band_test(self, idx: np.ndarray, x: np.ndarray, y: np.ndarray, m: Measurement
+                   ) -> np.ndarray:
+        """The paper's cheap sweep; also ranks survivors by how likely they fail the exact one."""
+        r = self.ctx.surface.radius
         tol = self.ctx.sensor.tolerance
-        raw, _ = surface.map.lookup(x, y)
-        centre = self.z0[idx] + m.displacement[2]
-        gap = centre - raw
+        raw, _ = self.ctx.surface.map.lookup(x, y)
+        gap = self.z0[idx] + m.displacement[2] - raw
         ok = (gap >= 0.9 * r - tol) & (gap <= self.band_max + tol)
-        # Exact test on the few the band passes that look most likely to fail it.
-        suspicion = np.where(ok, np.abs(gap - r), -np.inf)
-        k = min(self.exact_per_step, int(ok.sum()))
-        if k:
-            few = np.argpartition(-suspicion, k - 1)[:k]
-            predicted, _ = surface.lookup(x[few], y[few])
-            residual = predicted - centre[few]
-            ok[few] &= self.ctx.sensor.consistent(residual)
-            self.sse[idx[few]] += residual**2
+        self._suspicion[idx] = np.where(ok, np.abs(gap - r), -np.inf)
         return ok
+
+    def _exact_tests_on_most_suspicious(self, m: Measurement) -> None:
+        """The paper's second sweep: the exact test on a bounded few, once per update."""
+        live = np.flatnonzero(self.alive & np.isfinite(self._suspicion))
+        k = min(self.exact_per_step, live.size)
+        if k == 0:
+            return
+        few = live[np.argpartition(-self._suspicion[live], k - 1)[:k]]
+        x, y = self.ctx.motion.positions(self.poses[few], m.displacement[:2])
+        predicted, _ = self.ctx.surface.lookup(x, y)
+        residual = predicted - self.z0[few] - m.displacement[2]
+        self.alive[few[~self.ctx.sensor.consistent(residual)]] = False
+        self.sse[few] += residual**2
 
     # -- belief ----------------------------------------------------------------------------
     def estimate(self) -> Estimate:

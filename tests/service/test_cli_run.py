@@ -1,0 +1,119 @@
+"""`haptic run` as a user meets it: output, JSON, determinism, own maps, clear errors."""
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from service.cli import main
+
+
+def run_cli(*args: str) -> int:
+    return main(["run", "--quiet", *args])
+
+
+def strip_timings(episode: dict) -> dict:
+    for step in episode["steps"]:
+        step.pop("compute_ms")
+        step.pop("policy_ms")
+    return episode
+
+
+def test_default_run_localizes_and_reports_truth(capsys, tmp_path):
+    out = tmp_path / "e.json"
+    assert run_cli("--seed", "2", "--json", str(out)) == 0
+    text = capsys.readouterr().out
+    assert "truth" in text and "estimate" in text and "localized in" in text
+    episode = json.loads(out.read_text())
+    for key in ("settings", "truth", "steps", "estimate", "converged", "success",
+                "true_pose_eliminated"):
+        assert key in episode
+    assert episode["success"] and episode["true_pose_eliminated"] is False
+    step = episode["steps"][0]
+    assert {"move", "measurement", "candidates", "compute_ms"} <= set(step)
+    assert episode["settings"]["radius"] == 0.008  # SI units
+
+
+def test_same_seed_same_episode(tmp_path):
+    a, b, c = (tmp_path / n for n in ("a.json", "b.json", "c.json"))
+    run_cli("--seed", "7", "--noise", "--max-steps", "15", "--json", str(a))
+    run_cli("--seed", "7", "--noise", "--max-steps", "15", "--json", str(b))
+    run_cli("--seed", "8", "--noise", "--max-steps", "15", "--json", str(c))
+    ea, eb, ec = (strip_timings(json.loads(p.read_text())) for p in (a, b, c))
+    assert ea == eb
+    assert ea != ec
+
+
+def test_users_own_map_and_start(tmp_path, capsys):
+    rng = np.random.default_rng(0)
+    from scipy import ndimage
+
+    heights = ndimage.gaussian_filter(rng.normal(0, 1, (121, 161)), 12) * 0.05
+    path = tmp_path / "surface.npy"
+    np.save(path, heights)
+    assert run_cli("--map", str(path), "--spacing", "0.001", "--radius", "0.008",
+                   "--start", "0.08,0.06,30", "--algorithm", "elimination",
+                   "--sweep", "full", "--headings", "12") == 0
+    assert "localized in" in capsys.readouterr().out
+
+
+def test_profile_map_for_a_planar_finger(tmp_path, capsys):
+    x = np.linspace(0, 6 * np.pi, 301)
+    profile = (np.sin(x) + 0.5 * np.sin(2.7 * x)) * 0.005
+    path = tmp_path / "profile.csv"
+    np.savetxt(path, profile[np.newaxis, :], delimiter=",")
+    assert run_cli("--map", str(path), "--spacing", "0.001", "--seed", "1",
+                   "--algorithm", "elimination") == 0
+    assert "truth" in capsys.readouterr().out
+
+
+def test_plot_is_written(tmp_path):
+    png = tmp_path / "fig.png"
+    assert run_cli("--seed", "1", "--plot", str(png)) == 0
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--map", "nope.npy", "--spacing", "0.001"], "does not exist"),
+    (["--map", "wavy"], "unknown map preset"),
+    (["--radius", "-1"], "--radius"),
+    (["--start", "1,2"], "--start"),
+    (["--start", "5,5,0"], "outside the map"),
+    (["--json", "/no/such/dir/x.json"], "does not exist"),
+    (["--sweep", "full", "--algorithm", "elimination", "--max-steps", "0"], "--max-steps"),
+])
+def test_bad_input_is_one_line_and_status_2(args, message, capsys):
+    assert run_cli(*args) == 2
+    err = capsys.readouterr().err.strip()
+    assert message in err and len(err.splitlines()) == 1
+
+
+@pytest.mark.parametrize("content, message", [
+    (b"\x93NUMPY garbage", "could not be read"),
+    (None, "3 dimensions"),
+    ("nan", "non-finite"),
+    ("tiny", "at least 2 samples"),
+])
+def test_bad_map_files_from_a_real_process(tmp_path, content, message):
+    path = tmp_path / "bad.npy"
+    if content is None:
+        np.save(path, np.zeros((3, 3, 3)))
+    elif content == "nan":
+        np.save(path, np.array([[0.0, np.nan], [0.0, 0.0]]))
+    elif content == "tiny":
+        np.save(path, np.zeros((1, 1)))
+    else:
+        path.write_bytes(content)
+    proc = subprocess.run([sys.executable, "-m", "service.cli", "run", "--map", str(path),
+                           "--spacing", "0.001"], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 2
+    assert message in proc.stderr and "Traceback" not in proc.stderr
+    assert len(proc.stderr.strip().splitlines()) == 1
+
+
+def test_unknown_option_exits_2(capsys):
+    with pytest.raises(SystemExit) as exc:
+        main(["run", "--algorithm", "magic"])
+    assert exc.value.code == 2

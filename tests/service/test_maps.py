@@ -1,0 +1,70 @@
+"""Map presets and file loaders."""
+
+import numpy as np
+import pytest
+
+from service.errors import MapError
+from service.maps import load_map, peaks
+
+
+def test_peaks_matches_the_benchmark_definition():
+    m = peaks()
+    assert m.shape == (201, 201)
+    assert m.spacing == pytest.approx(0.001)
+    assert m.extent == pytest.approx((0.2, 0.2))
+    # MATLAB's peaks(3) centre value is 0.981; the grid centre is (0, 0).
+    z0 = 3 * np.exp(-1) - 1 / 3 * np.exp(-1)
+    assert m.heights[100, 100] == pytest.approx(z0 * 0.01)
+
+
+def test_bumps_is_seeded_and_sized():
+    a, b, c = load_map("bumps:40:1"), load_map("bumps:40:1"), load_map("bumps:40:2")
+    assert a.shape == (401, 401)
+    np.testing.assert_array_equal(a.heights, b.heights)
+    assert not np.array_equal(a.heights, c.heights)
+
+
+@pytest.mark.parametrize("suffix", [".npy", ".csv", ".txt"])
+def test_user_files_load(tmp_path, suffix):
+    grid = np.random.default_rng(0).normal(0, 0.001, (6, 9))
+    path = tmp_path / f"surface{suffix}"
+    if suffix == ".npy":
+        np.save(path, grid)
+    else:
+        np.savetxt(path, grid, delimiter="," if suffix == ".csv" else " ")
+    m = load_map(str(path), spacing=0.002)
+    assert m.shape == (6, 9) and m.spacing == 0.002
+    np.testing.assert_allclose(m.heights, grid)
+
+
+@pytest.mark.parametrize("spec, spacing, message", [
+    ("nosuch", None, "unknown map preset"),
+    ("bumps:x", None, "must be numbers"),
+    ("missing.npy", 0.001, "does not exist"),
+    ("peaks", 0.001, "applies to map files"),
+])
+def test_bad_map_specs(spec, spacing, message):
+    with pytest.raises(MapError, match=message):
+        load_map(spec, spacing)
+
+
+def test_file_needs_spacing(tmp_path):
+    path = tmp_path / "s.npy"
+    np.save(path, np.zeros((3, 3)))
+    with pytest.raises(MapError, match="needs --spacing"):
+        load_map(str(path))
+
+
+def test_unreadable_and_pickled_files_are_rejected(tmp_path):
+    garbage = tmp_path / "g.npy"
+    garbage.write_bytes(b"not a numpy file at all")
+    with pytest.raises(MapError, match="could not be read"):
+        load_map(str(garbage), 0.001)
+    pickled = tmp_path / "p.npy"
+    np.save(pickled, np.array([{"a": 1}], dtype=object), allow_pickle=True)
+    with pytest.raises(MapError, match="could not be read"):
+        load_map(str(pickled), 0.001)
+    ragged = tmp_path / "r.csv"
+    ragged.write_text("1,2,3\n4,5\n")
+    with pytest.raises(MapError, match="could not be read"):
+        load_map(str(ragged), 0.001)

@@ -1,0 +1,29 @@
+"""`haptic bench paper` (B1) on a few runs: JSON summary keys, figure, table."""
+
+import json
+
+from service.cli import main
+
+SUMMARY_KEYS = {"runs", "successes", "wrong_declarations", "steps_mean", "steps_sd",
+                "steps_max", "true_pose_eliminated_runs", "first_step_elimination_mean",
+                "first_step_elimination_max", "compute_ms_first_median", "compute_ms_median",
+                "compute_ms_p99"}
+
+
+def test_bench_paper_writes_summary_and_figure(tmp_path, capsys):
+    out, png = tmp_path / "b1.json", tmp_path / "b1.png"
+    assert main(["bench", "paper", "--runs", "6", "--json", str(out), "--plot", str(png),
+                 "--algorithm", "elimination", "--policy", "paper"]) == 0
+    summary = json.loads(out.read_text())["summary"]
+    assert set(summary) >= SUMMARY_KEYS
+    assert summary["runs"] == 6 and summary["successes"] == 6
+    assert summary["true_pose_eliminated_runs"] == 0
+    assert 0 < summary["first_step_elimination_mean"] < 1
+    assert png.stat().st_size > 10_000
+    table = capsys.readouterr().out
+    assert "23.6 +/- 8.7" in table and "6/6" in table
+
+
+def test_bench_rejects_zero_runs(capsys):
+    assert main(["bench", "paper", "--runs", "0"]) == 2
+    assert "--runs" in capsys.readouterr().err

@@ -1,0 +1,107 @@
+"""What every `haptic bench` scenario shares: options, the seeded run loop, the summary."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from collections.abc import Iterable, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from tqdm import tqdm
+
+from service.cli_options import add_scenario_options
+from service.errors import ConfigError
+from service.maps import load_map
+from service.scenario import RunSettings
+from service.simulate import EpisodeReport, simulate
+from service.surface import HeightMap
+
+
+def add_bench_options(parser: argparse.ArgumentParser, *, defaults: RunSettings,
+                      runs: int) -> None:
+    """The scenario options of `haptic run` plus --runs, --first-seed, --json, --plot."""
+    add_scenario_options(parser, defaults=defaults)
+    parser.add_argument("--runs", type=int, default=runs,
+                        help="number of seeded runs (default: %(default)s)")
+    parser.add_argument("--first-seed", type=int, default=0,
+                        help="seed of the first run; runs use consecutive seeds")
+    parser.add_argument("--json", type=Path, metavar="FILE", help="write results as JSON")
+    parser.add_argument("--plot", type=Path, metavar="FILE.png", help="write a figure")
+
+
+def check_bench_args(args: argparse.Namespace) -> None:
+    if args.runs < 1:
+        raise ConfigError(f"--runs must be at least 1, got {args.runs}")
+    for path in (args.json, args.plot):
+        if path is not None and not path.resolve().parent.is_dir():
+            raise ConfigError(f"cannot write {path}: folder {path.parent} does not exist")
+
+
+def run_episodes(settings: Sequence[RunSettings], height_map: HeightMap | None = None,
+                 desc: str = "runs") -> list[EpisodeReport]:
+    """Run each episode with a progress bar; the map is loaded once and shared."""
+    if height_map is None and settings:
+        height_map = load_map(settings[0].map, settings[0].spacing)
+    reports = []
+    with tqdm(settings, desc=desc, unit="run", leave=False, disable=None) as bar:
+        for s in bar:
+            report = simulate(s, height_map)
+            reports.append(report)
+            bar.set_postfix(steps=len(report.result.steps),
+                            ok=sum(r.score.success for r in reports))
+    return reports
+
+
+def _percentile(values: Iterable[float], q: float) -> float | None:
+    arr = np.asarray(list(values), dtype=float)
+    return None if arr.size == 0 else float(np.percentile(arr, q))
+
+
+def summarize(reports: Sequence[EpisodeReport]) -> dict[str, Any]:
+    """The summary every scenario's JSON carries (keys fixed by the issues)."""
+    steps = np.array([len(r.result.steps) for r in reports], dtype=float)
+    first_drop = [1 - r.result.steps[0].candidates / r.result.initial_candidates
+                  for r in reports if r.result.steps and r.result.initial_candidates]
+    first_ms = [r.result.steps[0].compute_ms for r in reports if r.result.steps]
+    all_ms = [s.compute_ms for r in reports for s in r.result.steps]
+    later_ms = [s.compute_ms for r in reports for s in r.result.steps[1:]]
+    eliminated = [r.true_pose_eliminated for r in reports]
+    ok = [r for r in reports if r.score.position_error is not None]
+    return {
+        "runs": len(reports),
+        "successes": int(sum(r.score.success for r in reports)),
+        "wrong_declarations": int(sum(r.score.wrong_declaration for r in reports)),
+        "converged": int(sum(r.result.converged for r in reports)),
+        "steps_mean": float(steps.mean()),
+        "steps_sd": float(steps.std(ddof=1)) if len(steps) > 1 else 0.0,
+        "steps_median": float(np.median(steps)),
+        "steps_p90": float(np.percentile(steps, 90)),
+        "steps_max": int(steps.max()),
+        "true_pose_eliminated_runs": (None if all(e is None for e in eliminated)
+                                      else int(sum(bool(e) for e in eliminated))),
+        "first_step_elimination_mean": float(np.mean(first_drop)) if first_drop else None,
+        "first_step_elimination_max": float(np.max(first_drop)) if first_drop else None,
+        "compute_ms_first_median": _percentile(first_ms, 50),
+        "compute_ms_median": _percentile(all_ms, 50),
+        "compute_ms_p99": _percentile(all_ms, 99),
+        "compute_ms_after_first_median": _percentile(later_ms, 50),
+        "compute_ms_after_first_p99": _percentile(later_ms, 99),
+        "final_position_error_median": _percentile((r.score.position_error for r in ok), 50),
+        "final_position_error_p90": _percentile((r.score.position_error for r in ok), 90),
+        "final_heading_error_deg_median": _percentile(
+            (np.degrees(r.score.heading_error) for r in ok), 50),
+        "final_heading_error_deg_p90": _percentile(
+            (np.degrees(r.score.heading_error) for r in ok), 90),
+    }
+
+
+def write_json(path: Path | None, payload: dict[str, Any]) -> None:
+    if path is not None:
+        path.write_text(json.dumps(payload, indent=1))
+        print(f"results written to {path}")
+
+
+def fmt(value: Any, spec: str = ".2f") -> str:
+    return "-" if value is None else format(value, spec)
