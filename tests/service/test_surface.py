@@ -2,7 +2,7 @@
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
 from service.errors import MapError
@@ -15,7 +15,7 @@ def brute_force_contact(heights: np.ndarray, spacing: float, radius: float,
     rows, cols = np.indices(heights.shape)
     d2 = ((rows - row) ** 2 + (cols - col) ** 2) * spacing**2
     under = d2 <= radius**2 + 1e-12
-    return float(np.max(heights[under] + np.sqrt(radius**2 - d2[under])))
+    return float(np.max(heights[under] + np.sqrt(np.maximum(radius**2 - d2[under], 0.0))))
 
 
 def test_flat_map_lifts_centre_by_radius():
@@ -26,6 +26,7 @@ def test_flat_map_lifts_centre_by_radius():
 
 @settings(max_examples=25, deadline=None)
 @given(seed=st.integers(0, 10_000), radius_samples=st.floats(1.0, 6.0))
+@example(seed=0, radius_samples=1.9999999999999991)  # a disk edge sample exactly at r
 def test_dilation_matches_brute_force(seed, radius_samples):
     rng = np.random.default_rng(seed)
     heights = rng.normal(0, 0.002, size=(17, 23))
