@@ -52,4 +52,6 @@ POLICIES = Registry("policy", {
 
 BACKENDS = Registry("backend", {
     "sim": Entry("sim_backend.finger:SimulatedFinger", "simulated finger on the map"),
+    "dynamixel": Entry("firmware_if.dynamixel_backend:DynamixelBackend",
+                       "Dynamixel servos on --port, hand from --hand"),
 })

@@ -1,0 +1,314 @@
+"""The Dynamixel bus driver: dynamixel-sdk (Protocol 2.0) with the fixes of `sdk_fixes`.
+
+One control cycle is one Sync Read (Fast Sync Read where every servo supports it, falling
+back to Sync Read) of Present Current, Velocity and Position, plus one Sync Write of goal
+positions. Packet timeouts are bounded by the cycle budget; waiting sleeps in select().
+Consecutive failed cycles are tolerated up to `failure_tolerance`, then the bus latches a
+fault and turns torque off; `reset()` recovers it.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+
+from dynamixel_sdk.group_sync_write import GroupSyncWrite
+from dynamixel_sdk.robotis_def import BROADCAST_ID, COMM_SUCCESS
+
+from firmware_if.errors import BusTimeoutError, CommunicationError, HardwareFault, NotReadyError
+from firmware_if.packets import PacketError
+from firmware_if.registers import (
+    ALERT_BIT,
+    BAUD_RATES,
+    REG,
+    SYNC_READ_LENGTH,
+    SYNC_READ_START,
+    describe_hardware_error,
+    describe_status_error,
+)
+from firmware_if.sdk_fixes import FixedPacketHandler, PacedPortHandler, decode_fast_read
+
+FAST_READ_MIN_FIRMWARE = 45
+SETUP_TIMEOUT_MS = 34.0
+"""Packet timeout outside the control cycle (setup, scan, single reads): the SDK's own."""
+_TIMEOUT_RESULTS = (-3001,)  # COMM_RX_TIMEOUT
+
+
+@dataclass(frozen=True)
+class ServoReading:
+    """Raw values of one servo from one cycle."""
+
+    position: int
+    velocity: int
+    current: int
+    error: int
+    """Error byte of its status (bit 7: hardware alert)."""
+
+
+@dataclass
+class BusStats:
+    cycles: int = 0
+    failures: int = 0
+    consecutive_failures: int = 0
+    fast_read: bool = False
+    last_cycle_ns: int = 0
+
+
+class DxlBus:
+    """A servo bus on one serial port. No I/O before `open()`; use from one thread."""
+
+    def __init__(self, port: str, ids: Sequence[int], *, baud: int = 1_000_000,
+                 cycle_budget_s: float = 0.01, failure_tolerance: int = 3,
+                 use_fast_read: bool = True) -> None:
+        if not ids:
+            raise ValueError("a bus needs at least one servo id")
+        self.port_name = port
+        self.ids = tuple(ids)
+        self.baud = baud
+        self.cycle_budget_s = cycle_budget_s
+        self.failure_tolerance = failure_tolerance
+        self.use_fast_read = use_fast_read
+        self.stats = BusStats()
+        self.fault: str | None = None
+        self._port: PacedPortHandler | None = None
+        self._ph = FixedPacketHandler()
+
+    # -- lifecycle -----------------------------------------------------------------------
+    def open(self) -> None:
+        port = PacedPortHandler(self.port_name, budget_ms=SETUP_TIMEOUT_MS)
+        try:
+            if not port.openPort() or not port.setBaudRate(self.baud):
+                raise CommunicationError(f"cannot open {self.port_name} at {self.baud} baud")
+        except OSError as exc:
+            raise CommunicationError(f"cannot open {self.port_name}: {exc}") from None
+        self._port = port
+        self.stats = BusStats()
+
+    def close(self) -> None:
+        """Torque off (best effort) and release the port. Safe to call twice."""
+        if self._port is None:
+            return
+        try:
+            self.torque(False, best_effort=True)
+        finally:
+            self._port.closePort()
+            self._port = None
+
+    def __enter__(self) -> DxlBus:
+        self.open()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    @property
+    def is_open(self) -> bool:
+        return self._port is not None
+
+    def _require(self) -> PacedPortHandler:
+        if self._port is None:
+            raise NotReadyError(f"bus on {self.port_name} is not open: call open() first")
+        return self._port
+
+    # -- single-servo access ---------------------------------------------------------------
+    def ping(self, servo_id: int) -> tuple[int, int] | None:
+        """(model number, firmware version), or None when nothing answers."""
+        port = self._require()
+        data, result, error = self._ph.readTxRx(port, servo_id, 0, 7)
+        if result != COMM_SUCCESS:
+            return None
+        return data[0] | data[1] << 8, data[6]
+
+    def scan(self, ids: Iterable[int] | None = None) -> dict[int, tuple[int, int]]:
+        """Servos present on the bus: {id: (model, firmware)} (broadcast ping, else one by one)."""
+        port = self._require()
+        found, result = self._ph.broadcastPing(port)
+        if result == COMM_SUCCESS and found:
+            return {sid: (model, fw) for sid, (model, fw) in sorted(found.items())}
+        out = {}
+        for sid in ids if ids is not None else range(253):
+            info = self.ping(sid)
+            if info is not None:
+                out[sid] = info
+        return out
+
+    def read(self, servo_id: int, name: str) -> int:
+        """Read one control-table item (raw value)."""
+        reg = REG[name]
+        data, result, error = self._ph.readTxRx(self._require(), servo_id, reg.address, reg.size)
+        self._check(result, error, (servo_id,), f"read {name}")
+        return reg.decode(bytes(data))
+
+    def write(self, servo_id: int, name: str, value: int) -> None:
+        """Write one control-table item (raw value), checked by the servo's status."""
+        reg = REG[name]
+        result, error = self._ph.writeTxRx(self._require(), servo_id, reg.address, reg.size,
+                                           list(reg.encode(value)))
+        self._check(result, error, (servo_id,), f"write {name}={value}")
+
+    def reboot(self, servo_id: int) -> None:
+        result, error = self._ph.reboot(self._require(), servo_id)
+        self._check(result, error & ~ALERT_BIT, (servo_id,), "reboot")
+
+    def _check(self, result: int, error: int, ids: tuple[int, ...], what: str) -> None:
+        if result != COMM_SUCCESS:
+            cls = BusTimeoutError if result in _TIMEOUT_RESULTS else CommunicationError
+            raise cls(f"servo {ids[0]}: {what}: {self._ph.getTxRxResult(result)}", ids)
+        if error & 0x7F:
+            raise CommunicationError(f"servo {ids[0]}: {what}: {describe_status_error(error)}",
+                                     ids)
+
+    # -- configuration ---------------------------------------------------------------------
+    def configure(self, settings: dict[str, int]) -> None:
+        """Write the same raw settings to every servo (EEPROM items need torque off)."""
+        for sid in self.ids:
+            for name, value in settings.items():
+                if self.read(sid, name) != value:
+                    self.write(sid, name, value)
+
+    def detect_fast_read(self) -> bool:
+        """Use Fast Sync Read only if every servo's firmware supports it and it answers."""
+        fast = self.use_fast_read
+        for sid in self.ids:
+            info = self.ping(sid)
+            if info is None:
+                raise BusTimeoutError(f"servo {sid} does not answer a ping on {self.port_name}",
+                                      (sid,))
+            fast = fast and info[1] >= FAST_READ_MIN_FIRMWARE
+        if fast:
+            try:
+                self._fast_sync_read()
+            except CommunicationError:
+                fast = False
+        self.stats.fast_read = fast
+        return fast
+
+    def torque(self, on: bool, *, best_effort: bool = False) -> None:
+        """Torque on or off for every servo (one Sync Write)."""
+        port = self._require()
+        writer = GroupSyncWrite(port, self._ph, REG["torque_enable"].address, 1)
+        for sid in self.ids:
+            writer.addParam(sid, [int(on)])
+        try:
+            result = writer.txPacket()
+        except OSError as exc:  # the adapter was unplugged
+            if best_effort:
+                return
+            raise CommunicationError(f"torque {'on' if on else 'off'}: {exc}", self.ids) from None
+        if result != COMM_SUCCESS and not best_effort:
+            raise CommunicationError(f"torque {'on' if on else 'off'}: "
+                                     f"{self._ph.getTxRxResult(result)}", self.ids)
+
+    # -- the control cycle -----------------------------------------------------------------
+    def cycle(self, goals: dict[int, int] | None = None) -> dict[int, ServoReading]:
+        """One Sync Read of every servo, then one Sync Write of `goals` (ticks), if any.
+
+        Raises CommunicationError on a failed read (counted), HardwareFault once
+        `failure_tolerance` consecutive cycles failed or a servo reports a hardware error.
+        """
+        if self.fault:
+            raise HardwareFault(f"bus faulted: {self.fault}; reset first")
+        t0 = time.monotonic_ns()
+        port = self._require()
+        port.budget_ms = self.cycle_budget_s * 1e3 / 2
+        try:
+            readings = self._fast_sync_read() if self.stats.fast_read else self._sync_read()
+        except CommunicationError as exc:
+            port.budget_ms = SETUP_TIMEOUT_MS
+            self.stats.failures += 1
+            self.stats.consecutive_failures += 1
+            if self.stats.consecutive_failures >= self.failure_tolerance:
+                self._latch(f"{self.stats.consecutive_failures} consecutive failed cycles "
+                            f"(last: {exc})")
+            raise
+        port.budget_ms = SETUP_TIMEOUT_MS
+        self.stats.consecutive_failures = 0
+        alerts = [sid for sid, r in readings.items() if r.error & ALERT_BIT]
+        if alerts:
+            detail = []
+            for sid in alerts:
+                try:
+                    bits = self.read(sid, "hardware_error_status")
+                    detail.append(f"servo {sid}: {describe_hardware_error(bits) or 'alert'}")
+                except CommunicationError:
+                    detail.append(f"servo {sid}: alert")
+            self._latch("; ".join(detail))
+        if goals:
+            self.write_goals(goals)
+        self.stats.cycles += 1
+        self.stats.last_cycle_ns = time.monotonic_ns() - t0
+        return readings
+
+    def write_goals(self, goals: dict[int, int]) -> None:
+        writer = GroupSyncWrite(self._require(), self._ph, REG["goal_position"].address, 4)
+        for sid, ticks in goals.items():
+            writer.addParam(sid, list(REG["goal_position"].encode(ticks)))
+        result = writer.txPacket()
+        if result != COMM_SUCCESS:
+            raise CommunicationError(f"sync write of goals: {self._ph.getTxRxResult(result)}",
+                                     tuple(goals))
+
+    def _sync_read(self) -> dict[int, ServoReading]:
+        port = self._require()
+        result = self._ph.syncReadTx(port, SYNC_READ_START, SYNC_READ_LENGTH, list(self.ids),
+                                     len(self.ids), False)
+        if result != COMM_SUCCESS:
+            raise CommunicationError(f"sync read: {self._ph.getTxRxResult(result)}", self.ids)
+        out = {}
+        for sid in self.ids:
+            data, result, error = self._ph.readRx(port, sid, SYNC_READ_LENGTH)
+            if result != COMM_SUCCESS:
+                cls = BusTimeoutError if result in _TIMEOUT_RESULTS else CommunicationError
+                raise cls(f"sync read: servo {sid}: {self._ph.getTxRxResult(result)}", (sid,))
+            out[sid] = _reading(bytes(data), error)
+        return out
+
+    def _fast_sync_read(self) -> dict[int, ServoReading]:
+        port = self._require()
+        result = self._ph.syncReadTx(port, SYNC_READ_START, SYNC_READ_LENGTH, list(self.ids),
+                                     len(self.ids), True)
+        if result != COMM_SUCCESS:
+            raise CommunicationError(f"fast sync read: {self._ph.getTxRxResult(result)}",
+                                     self.ids)
+        rx, result = self._ph.rxPacket(port, True)
+        if result != COMM_SUCCESS:
+            cls = BusTimeoutError if result in _TIMEOUT_RESULTS else CommunicationError
+            raise cls(f"fast sync read: {self._ph.getTxRxResult(result)}", self.ids, bytes(rx))
+        try:
+            decoded = decode_fast_read(rx, [(sid, SYNC_READ_LENGTH) for sid in self.ids])
+        except PacketError as exc:
+            raise CommunicationError(f"fast sync read: {exc}", self.ids, bytes(rx)) from None
+        return {sid: _reading(data, error) for sid, (error, data) in decoded.items()}
+
+    def _latch(self, reason: str) -> None:
+        self.fault = reason
+        self.torque(False, best_effort=True)
+        raise HardwareFault(f"bus on {self.port_name}: {reason}; torque is off, reset to recover")
+
+    def reset(self) -> None:
+        """Clear a latched fault: reboot servos that report a hardware error, count afresh."""
+        for sid in self.ids:
+            try:
+                if self.read(sid, "hardware_error_status"):
+                    self.reboot(sid)
+            except CommunicationError:
+                pass
+        self.fault = None
+        self.stats.consecutive_failures = 0
+
+    @staticmethod
+    def baud_register(baud: int) -> int:
+        return {v: k for k, v in BAUD_RATES.items()}[baud]
+
+
+def _reading(data: bytes, error: int) -> ServoReading:
+    base = SYNC_READ_START
+    return ServoReading(
+        position=REG["present_position"].decode(data[132 - base:136 - base]),
+        velocity=REG["present_velocity"].decode(data[128 - base:132 - base]),
+        current=REG["present_current"].decode(data[126 - base:128 - base]),
+        error=error)
+
+
+__all__ = ["BROADCAST_ID", "BusStats", "DxlBus", "ServoReading"]

@@ -1,0 +1,325 @@
+"""The Backend contract on Dynamixel servos: encoders -> kinematics -> fingertip centre.
+
+A step is a compliant Cartesian move: inverse kinematics of (centre + step, a little below
+the surface) gives goal positions in current-based position mode, so the tip presses with a
+bounded current and rides the surface. Every `read_state` is one bus cycle (sync read, plus a
+sync write when the step's state machine has new goals) and advances that state machine:
+
+    move --settled, reached, pressing--> done
+    move --settled, reached, not touching--> move deeper (up to `max_press`)
+    move --settled, short of the target (a wall) or timed out--> retreat --settled--> done (blocked)
+
+A blocked step leaves the finger where it started, as the simulated finger does.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from firmware_if import kinematics as kin
+from firmware_if.backend import FingerState, StepCommand
+from firmware_if.dxl_bus import DxlBus, ServoReading
+from firmware_if.errors import (
+    CommunicationError,
+    HandConfigError,
+    HardwareFault,
+    NotReadyError,
+)
+from firmware_if.hand import Hand, load_hand
+from firmware_if.registers import (
+    CURRENT_BASED_POSITION,
+    RAD_PER_TICK,
+    amp_to_current,
+    rad_s_to_velocity,
+    rad_to_ticks,
+    ticks_to_rad,
+)
+
+
+@dataclass(frozen=True)
+class StepSettings:
+    """How a compliant step is made. Metres and seconds."""
+
+    press: float = 0.004
+    """How far below the last contact height each move aims, so the tip keeps pressing."""
+    max_press: float = 0.03
+    """Give up (blocked) when no surface is found this far below the start height."""
+    reach_tolerance: float = 0.001
+    """A move counts as reached when the centre is this close to the target in x-y."""
+    contact_margin: float = 0.0005
+    """In contact when the centre rests this far above where the goal would put it."""
+    timeout_s: float = 3.0
+    cycle_budget_s: float = 0.01
+    failure_tolerance: int = 3
+
+    def __post_init__(self) -> None:
+        for name in ("press", "max_press", "reach_tolerance", "contact_margin", "timeout_s",
+                     "cycle_budget_s"):
+            if not getattr(self, name) > 0:
+                raise HandConfigError(f"step setting {name} must be > 0")
+        if self.failure_tolerance < 1:
+            raise HandConfigError("failure_tolerance must be at least 1")
+
+
+class DynamixelBackend:
+    """A finger of Dynamixel servos on one bus, implementing `firmware_if.backend.Backend`."""
+
+    def __init__(self, hand: Hand, port: str, settings: StepSettings | None = None) -> None:
+        self.hand = hand
+        self.port = port
+        self.settings = settings or StepSettings()
+        self.bus = DxlBus(port, hand.ids, baud=hand.baud,
+                          cycle_budget_s=self.settings.cycle_budget_s,
+                          failure_tolerance=self.settings.failure_tolerance)
+        self._state: FingerState | None = None
+        self._q = np.asarray(hand.home, dtype=np.float64)
+        self._torque = False
+        self._fault: str | None = None
+        self._steps_done = 0
+        self._blocked = False
+        self._pending_goals: dict[int, int] | None = None
+        self._step: _Step | None = None
+        self._joints_moving = False
+        self._nominal_xy: np.ndarray | None = None
+        self._blocked_touch = False
+
+    @classmethod
+    def from_cli(cls, *, port: str, hand: str, radius: float, step: float) -> DynamixelBackend:
+        """Build from `haptic run` options (no I/O: that happens in `open`)."""
+        h = load_hand(hand)
+        if abs(h.radius - radius) > 1e-9:
+            raise HandConfigError(f"--radius {radius} m does not match the hand's fingertip "
+                                  f"radius {h.radius} m; pass --radius {h.radius}")
+        return cls(h, port)
+
+    def centre_sigma(self) -> np.ndarray:
+        """1-sigma error (metres, per hand axis) of the centre from encoder rounding at the
+        present posture: half a tick each way per joint, through the Jacobian.
+
+        A localizer fed by this backend needs a sensor tolerance at least a few times this
+        (about 0.1 mm for the presets), not the noise-free 0.5 um of the simulator.
+        """
+        jac = kin.jacobian(self.hand, self._q)
+        return RAD_PER_TICK / np.sqrt(12.0) * np.sqrt(np.sum(jac**2, axis=1))
+
+    # -- lifecycle -------------------------------------------------------------------------
+    def open(self) -> None:
+        self.bus.open()
+        try:
+            self.bus.torque(False)
+            self.bus.configure({"return_delay_time": self.hand.return_delay_us // 2,
+                                "status_return_level": 2,
+                                "operating_mode": CURRENT_BASED_POSITION})
+            goal_current = amp_to_current(self.hand.goal_current_a)
+            velocity = rad_s_to_velocity(self.hand.profile_velocity_rad_s)
+            for sid in self.hand.ids:
+                self.bus.write(sid, "goal_current", goal_current)
+                self.bus.write(sid, "profile_velocity", velocity)
+            self.bus.detect_fast_read()
+            self._state = self._read()
+        except BaseException:
+            self.bus.close()
+            raise
+
+    def close(self) -> None:
+        self._torque = False
+        self.bus.close()
+        self._state = None
+
+    def __enter__(self) -> DynamixelBackend:
+        self.open()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def set_torque(self, on: bool) -> None:
+        """Torque on holds the present posture, then lowers the tip onto the surface."""
+        self._require_open()
+        if not on:
+            self.bus.torque(False, best_effort=True)
+            self._torque = False
+            if self._step is not None:
+                self._finish(blocked=True)  # a step cut short counts as blocked
+            return
+        if self._fault:
+            raise HardwareFault(f"cannot enable torque while faulted: {self._fault}; reset first")
+        state = self._read()
+        self.bus.write_goals(self._goal_ticks(np.asarray(state.joints)))
+        self.bus.torque(True)
+        self._torque = True
+        self._nominal_xy = None
+        self._touch_down()
+
+    def clear_fault(self) -> None:
+        self._require_open()
+        self.bus.reset()
+        self._fault = None
+        self._step = None
+        self._torque = False
+        self._state = self._read()
+
+    # -- I/O -------------------------------------------------------------------------------
+    def read_state(self) -> FingerState:
+        self._require_open()
+        goals, self._pending_goals = self._pending_goals, None
+        try:
+            state = self._read(goals)
+        except HardwareFault as exc:
+            self._fault = str(exc)
+            self._torque = False
+            if self._step is not None:
+                self._finish(blocked=True)  # whoever waits for the step sees it end
+            return self._stale()
+        except CommunicationError:
+            if goals:
+                self._pending_goals = goals  # resend with the next cycle
+            return self._stale()
+        if self._step is not None:
+            self._advance_step(state)
+            state = self._stamp(state)
+        self._state = state
+        return state
+
+    def command_step(self, step: StepCommand) -> None:
+        self._require_open()
+        if self._fault:
+            raise HardwareFault(f"finger is faulted: {self._fault}; reset first")
+        if not self._torque:
+            raise NotReadyError("torque is off: activate the finger before stepping")
+        if self._step is not None:
+            raise NotReadyError("a step is still under way")
+        state = self._state or self._read()
+        q = np.asarray(state.joints)
+        centre = np.asarray(state.centre)
+        if self._nominal_xy is None:
+            self._nominal_xy = centre[:2].copy()
+        # Aim from where the previous step was aimed, not from the quantized reading, so
+        # encoder rounding does not accumulate into a drift over many steps.
+        xy = self._nominal_xy + np.array([step.dx, step.dy])
+        target = np.array([xy[0], xy[1], centre[2] - self.settings.press])
+        self._step = _Step(start_q=q, start_centre=centre, target=target, depth=0.0,
+                           t0=time.monotonic(), phase="move")
+        self._aim(target, q)
+
+    # -- internals -------------------------------------------------------------------------
+    def _aim(self, target: np.ndarray, q0: np.ndarray) -> None:
+        ik = kin.inverse(self.hand, target, q0, tolerance=2e-5)
+        step = self._step
+        assert step is not None
+        if not bool(ik.reachable):
+            step.phase, step.blocked = "retreat", True
+            self._pending_goals = self._goal_ticks(step.start_q)
+        else:
+            self._pending_goals = self._goal_ticks(ik.q)
+        step.goal_q = ik.q if bool(ik.reachable) else step.start_q
+        step.last, step.cycles = None, 0
+
+    def _advance_step(self, state: FingerState) -> None:
+        step = self._step
+        assert step is not None
+        positions = tuple(state.joints)
+        step.cycles += 1
+        settled = step.last == positions and not self._joints_moving and step.cycles > 2
+        step.last = positions
+        timed_out = time.monotonic() - step.t0 > self.settings.timeout_s
+        if not settled and not timed_out:
+            return
+        centre = np.asarray(state.centre)
+        if step.phase == "retreat":  # back where the step began (or out of time)
+            self._finish(blocked=True)
+            return
+        reached = np.hypot(*(centre[:2] - step.target[:2])) <= self.settings.reach_tolerance
+        goal_z = kin.forward(self.hand, step.goal_q)[2]
+        touching = centre[2] > goal_z + self.settings.contact_margin
+        if reached and touching:
+            self._finish(blocked=False)
+        elif reached and not timed_out and step.depth + self.settings.press \
+                <= self.settings.max_press:
+            step.depth += self.settings.press
+            step.target = step.target - np.array([0.0, 0.0, self.settings.press])
+            self._aim(step.target, np.asarray(state.joints))
+        else:
+            step.phase, step.blocked = "retreat", True
+            step.t0 = time.monotonic()
+            self._pending_goals = self._goal_ticks(step.start_q)
+            step.goal_q, step.last, step.cycles = step.start_q, None, 0
+
+    def _finish(self, blocked: bool) -> None:
+        step = self._step
+        if not blocked and step is not None:
+            self._nominal_xy = step.target[:2].copy()
+        self._steps_done += 1
+        self._blocked = blocked
+        self._step = None
+
+    def _touch_down(self) -> None:
+        """Press straight down until the tip rests on the surface (blocking, bounded)."""
+        self.command_step(StepCommand(0.0, 0.0))
+        deadline = time.monotonic() + self.settings.timeout_s * 4
+        done = self._steps_done
+        while self._steps_done == done and time.monotonic() < deadline and not self._fault:
+            self.read_state()
+        self._steps_done = done  # touching down is not a step
+        self._blocked_touch, self._blocked = self._blocked, False
+        if self._fault:
+            raise HardwareFault(self._fault)
+        if self._blocked_touch:
+            raise HardwareFault(f"no surface found within {self.settings.max_press} m below "
+                                "the fingertip; move the hand closer and retry")
+
+    def _goal_ticks(self, q: np.ndarray) -> dict[int, int]:
+        return {j.id: rad_to_ticks(float(a), j.zero_ticks, j.direction)
+                for j, a in zip(self.hand.joints, q, strict=True)}
+
+    def _read(self, goals: dict[int, int] | None = None) -> FingerState:
+        readings = self.bus.cycle(goals)
+        return self._state_from(readings)
+
+    def _state_from(self, readings: dict[int, ServoReading]) -> FingerState:
+        q = np.array([ticks_to_rad(readings[j.id].position, j.zero_ticks, j.direction)
+                      for j in self.hand.joints])
+        self._q = q
+        self._joints_moving = any(readings[j.id].velocity for j in self.hand.joints)
+        centre = kin.forward(self.hand, q)
+        roll = self.hand.tip_roll
+        tip_roll = None if roll is None else ticks_to_rad(readings[roll.id].position,
+                                                          roll.zero_ticks, roll.direction)
+        return self._stamp(FingerState(t_ns=time.monotonic_ns(),
+                                       centre=(float(centre[0]), float(centre[1]),
+                                               float(centre[2])),
+                                       joints=tuple(float(a) for a in q), tip_roll=tip_roll))
+
+    def _stamp(self, state: FingerState) -> FingerState:
+        return FingerState(t_ns=state.t_ns, centre=state.centre, moving=self._step is not None,
+                           blocked=self._blocked, steps_done=self._steps_done,
+                           joints=state.joints, tip_roll=state.tip_roll,
+                           torque_on=self._torque, fault=self._fault)
+
+    def _stale(self) -> FingerState:
+        """The last good reading, restamped: a missed cycle does not move the finger."""
+        if self._state is None:
+            raise NotReadyError("no valid reading from the bus yet")
+        return self._stamp(self._state)
+
+    def _require_open(self) -> None:
+        if not self.bus.is_open:
+            raise NotReadyError("Dynamixel finger is not open: call open() first")
+
+
+@dataclass
+class _Step:
+    start_q: np.ndarray
+    start_centre: np.ndarray
+    target: np.ndarray
+    depth: float
+    t0: float
+    phase: str
+    goal_q: np.ndarray | None = None
+    last: tuple[float, ...] | None = None
+    cycles: int = 0
+    """Bus cycles since the last goals were sent."""
+    blocked: bool = False

@@ -1,0 +1,194 @@
+"""Hand descriptions: a finger as a serial chain of revolute joints on Dynamixel servos.
+
+Loaded from TOML (a preset name from `firmware_if/hands/` or a file path), validated once in
+`__post_init__` with errors that name the field to fix. Lengths in metres, angles in radians.
+"""
+
+from __future__ import annotations
+
+import math
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from firmware_if.errors import HandConfigError
+from firmware_if.registers import BAUD_RATES, MODELS, POSITION_CENTRE
+
+PRESET_DIR = Path(__file__).with_name("hands")
+
+
+def _vec3(value: Any, where: str) -> tuple[float, float, float]:
+    try:
+        v = tuple(float(x) for x in value)
+    except (TypeError, ValueError):
+        raise HandConfigError(f"{where} must be a list of three numbers, got {value!r}") from None
+    if len(v) != 3 or not all(math.isfinite(x) for x in v):
+        raise HandConfigError(f"{where} must be three finite numbers, got {value!r}")
+    return v  # type: ignore[return-value]
+
+
+@dataclass(frozen=True)
+class Joint:
+    """One revolute joint: rotation about `axis` after translating by `origin` (parent frame)."""
+
+    name: str
+    id: int
+    axis: tuple[float, float, float]
+    origin: tuple[float, float, float]
+    limits: tuple[float, float]
+    zero_ticks: int = POSITION_CENTRE
+    """Register value at joint angle 0."""
+    direction: int = 1
+    """+1 or -1: sign between joint angle and servo ticks."""
+    model: str = "XM430-W350"
+
+    def __post_init__(self) -> None:
+        where = f"joint '{self.name}'"
+        if not 0 <= self.id <= 252:
+            raise HandConfigError(f"{where}: id must be 0..252, got {self.id}")
+        axis = np.asarray(_vec3(self.axis, f"{where}: axis"))
+        norm = float(np.linalg.norm(axis))
+        if norm < 1e-9:
+            raise HandConfigError(f"{where}: axis must not be zero")
+        object.__setattr__(self, "axis", tuple(float(a) for a in axis / norm))
+        object.__setattr__(self, "origin", _vec3(self.origin, f"{where}: origin"))
+        lo, hi = (float(v) for v in self.limits)
+        if not (math.isfinite(lo) and math.isfinite(hi) and lo < hi):
+            raise HandConfigError(f"{where}: limits must be [low, high] radians with low < high, "
+                                  f"got {list(self.limits)}")
+        object.__setattr__(self, "limits", (lo, hi))
+        if self.direction not in (1, -1):
+            raise HandConfigError(f"{where}: direction must be 1 or -1, got {self.direction}")
+        if self.model not in MODELS:
+            raise HandConfigError(f"{where}: unknown servo model '{self.model}'; known: "
+                                  f"{', '.join(MODELS)}")
+
+
+@dataclass(frozen=True)
+class TipRoll:
+    """A continuously rolling tip joint: reported, not part of the centre's kinematics."""
+
+    id: int
+    zero_ticks: int = POSITION_CENTRE
+    direction: int = 1
+
+    def __post_init__(self) -> None:
+        if not 0 <= self.id <= 252:
+            raise HandConfigError(f"tip_roll: id must be 0..252, got {self.id}")
+        if self.direction not in (1, -1):
+            raise HandConfigError(f"tip_roll: direction must be 1 or -1, got {self.direction}")
+
+
+@dataclass(frozen=True)
+class Hand:
+    """A finger: joints from base to tip, the fingertip sphere and bus settings."""
+
+    name: str
+    joints: tuple[Joint, ...]
+    tip: tuple[float, float, float]
+    """Offset from the last joint frame to the fingertip centre."""
+    radius: float
+    home: tuple[float, ...]
+    """Joint angles of the start posture (the tip is then lowered onto the surface)."""
+    baud: int = 1_000_000
+    return_delay_us: int = 0
+    goal_current_a: float = 0.4
+    """Current bound in current-based position mode: how hard the tip presses."""
+    profile_velocity_rad_s: float = 0.0
+    """Profile velocity of every joint (0: as fast as the servo can)."""
+    tip_roll: TipRoll | None = None
+    planar: bool = field(default=False)
+    """All joint axes parallel: the centre moves in a vertical plane (explores a profile)."""
+
+    def __post_init__(self) -> None:
+        if not self.joints:
+            raise HandConfigError(f"hand '{self.name}': needs at least one [[joints]] entry")
+        ids = [j.id for j in self.joints] + ([self.tip_roll.id] if self.tip_roll else [])
+        if len(set(ids)) != len(ids):
+            raise HandConfigError(f"hand '{self.name}': servo ids must be unique, got {ids}")
+        object.__setattr__(self, "tip", _vec3(self.tip, f"hand '{self.name}': tip"))
+        if not (math.isfinite(self.radius) and self.radius > 0):
+            raise HandConfigError(f"hand '{self.name}': radius must be > 0 metres, "
+                                  f"got {self.radius}")
+        if len(self.home) != len(self.joints):
+            raise HandConfigError(f"hand '{self.name}': home needs {len(self.joints)} angles, "
+                                  f"got {len(self.home)}")
+        for j, q in zip(self.joints, self.home, strict=True):
+            if not j.limits[0] <= q <= j.limits[1]:
+                raise HandConfigError(f"hand '{self.name}': home angle {q} of joint '{j.name}' "
+                                      f"is outside its limits {list(j.limits)}")
+        if self.baud not in BAUD_RATES.values():
+            raise HandConfigError(f"hand '{self.name}': baud must be one of "
+                                  f"{sorted(BAUD_RATES.values())}, got {self.baud}")
+        if not 0 <= self.return_delay_us <= 508:
+            raise HandConfigError(f"hand '{self.name}': return_delay_us must be 0..508")
+        if not 0 < self.goal_current_a <= 3.2:
+            raise HandConfigError(f"hand '{self.name}': goal_current_a must be in (0, 3.2] A")
+        if not self.profile_velocity_rad_s >= 0:
+            raise HandConfigError(f"hand '{self.name}': profile_velocity_rad_s must be >= 0")
+        axes = np.array([j.axis for j in self.joints])
+        object.__setattr__(self, "planar", bool(np.all(np.abs(axes @ axes[0]) > 1 - 1e-9)))
+
+    @property
+    def ids(self) -> tuple[int, ...]:
+        """Servo ids of the chain, then the tip roll joint's if any."""
+        return tuple(j.id for j in self.joints) + ((self.tip_roll.id,) if self.tip_roll else ())
+
+    @property
+    def lower(self) -> np.ndarray:
+        return np.array([j.limits[0] for j in self.joints])
+
+    @property
+    def upper(self) -> np.ndarray:
+        return np.array([j.limits[1] for j in self.joints])
+
+
+def hand_from_dict(data: dict[str, Any], name: str = "hand") -> Hand:
+    """Build a hand from parsed TOML, turning missing or mistyped fields into clear errors."""
+    try:
+        joints = tuple(
+            Joint(name=str(j.get("name", f"joint{i}")), id=int(j["id"]), axis=j["axis"],
+                  origin=j.get("origin", (0.0, 0.0, 0.0)), limits=tuple(j["limits"]),
+                  zero_ticks=int(j.get("zero_ticks", POSITION_CENTRE)),
+                  direction=int(j.get("direction", 1)),
+                  model=str(j.get("model", data.get("model", "XM430-W350"))))
+            for i, j in enumerate(data.get("joints", [])))
+        roll = data.get("tip_roll")
+        tip_roll = None if roll is None else TipRoll(
+            id=int(roll["id"]), zero_ticks=int(roll.get("zero_ticks", POSITION_CENTRE)),
+            direction=int(roll.get("direction", 1)))
+        return Hand(name=str(data.get("name", name)), joints=joints, tip=data["tip"],
+                    radius=float(data["radius"]), home=tuple(float(q) for q in data["home"]),
+                    baud=int(data.get("baud", 1_000_000)),
+                    return_delay_us=int(data.get("return_delay_us", 0)),
+                    goal_current_a=float(data.get("goal_current_a", 0.4)),
+                    profile_velocity_rad_s=float(data.get("profile_velocity_rad_s", 0.0)),
+                    tip_roll=tip_roll)
+    except KeyError as exc:
+        raise HandConfigError(f"hand '{name}': missing field {exc.args[0]!r}") from None
+    except (TypeError, ValueError) as exc:
+        if isinstance(exc, HandConfigError):
+            raise
+        raise HandConfigError(f"hand '{name}': {exc}") from None
+
+
+def presets() -> list[str]:
+    return sorted(p.stem for p in PRESET_DIR.glob("*.toml"))
+
+
+def load_hand(spec: str) -> Hand:
+    """A preset name ('planar', 'spatial') or a path to a TOML hand description."""
+    path = PRESET_DIR / f"{spec}.toml"
+    if not path.is_file():
+        path = Path(spec)
+        if not path.is_file():
+            raise HandConfigError(f"no hand preset or file '{spec}'; presets: "
+                                  f"{', '.join(presets())}")
+    try:
+        data = tomllib.loads(path.read_text())
+    except tomllib.TOMLDecodeError as exc:
+        raise HandConfigError(f"{path}: not valid TOML ({exc})") from None
+    return hand_from_dict(data, name=path.stem)

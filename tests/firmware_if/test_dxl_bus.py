@@ -1,0 +1,120 @@
+"""The bus driver through the real SDK on the emulator: cycles, fallback, faults, recovery."""
+
+from __future__ import annotations
+
+import time
+
+import pytest
+
+from firmware_if.dxl_bus import DxlBus
+from firmware_if.errors import BusTimeoutError, CommunicationError, HardwareFault, NotReadyError
+from sim_backend.emulator import EmulatedServo, ServoBus
+
+IDS = (1, 2, 3)
+
+
+@pytest.fixture
+def emulator():
+    with ServoBus([EmulatedServo(i) for i in IDS]) as bus:
+        yield bus
+
+
+@pytest.fixture
+def bus(emulator):
+    with DxlBus(emulator.port, IDS, cycle_budget_s=0.01, failure_tolerance=3) as b:
+        b.configure({"return_delay_time": 0, "operating_mode": 5})
+        b.detect_fast_read()
+        yield b
+
+
+def test_no_io_before_open():
+    bus = DxlBus("/dev/does-not-exist", IDS)
+    with pytest.raises(NotReadyError):
+        bus.cycle()
+    with pytest.raises(CommunicationError, match="cannot open"):
+        bus.open()
+
+
+def test_scan_and_configure(emulator, bus):
+    assert bus.scan() == {sid: (1020, 46) for sid in IDS}
+    assert all(s.get("operating_mode") == 5 and s.get("return_delay_time") == 0
+               for s in emulator.servos.values())
+    assert bus.stats.fast_read
+
+
+def test_cycle_reads_positions_and_writes_goals(emulator, bus):
+    bus.torque(True)
+    bus.cycle({1: 1000, 2: 2000, 3: -300})
+    readings = bus.cycle()
+    assert [readings[s].position for s in IDS] == [1000, 2000, -300]
+    assert all(r.error == 0 for r in readings.values())
+
+
+@pytest.mark.parametrize("firmware", [44, 46])
+def test_falls_back_to_sync_read(firmware):
+    servos = [EmulatedServo(i, firmware_version=firmware) for i in IDS]
+    with ServoBus(servos, fast_read=firmware >= 45 and False) as emu, \
+            DxlBus(emu.port, IDS) as bus:
+        assert not bus.detect_fast_read()
+        assert set(bus.cycle()) == set(IDS)
+        assert emu.stats["unknown_instruction"] == (1 if firmware == 46 else 0)
+
+
+def test_failures_are_tolerated_then_latch_a_fault_with_torque_off(emulator, bus):
+    bus.torque(True)
+    emulator.fault(2).mute = True
+    for _ in range(2):
+        with pytest.raises(CommunicationError):  # a truncated fast read, or a timeout
+            bus.cycle()
+    with pytest.raises(HardwareFault, match="3 consecutive failed cycles"):
+        bus.cycle()
+    assert emulator.wait_until(lambda: not any(s.torque_on for s in emulator.servos.values()))
+    with pytest.raises(HardwareFault, match="reset first"):
+        bus.cycle()
+    emulator.fault(2).mute = False
+    bus.reset()
+    assert set(bus.cycle()) == set(IDS)
+    assert bus.stats.failures == 3 and bus.stats.consecutive_failures == 0
+
+
+def test_a_corrupt_reply_is_counted_and_forgiven(emulator, bus):
+    emulator.fault(1).corrupt = 1
+    with pytest.raises(CommunicationError):
+        bus.cycle()
+    assert bus.stats.consecutive_failures == 1
+    bus.cycle()
+    assert bus.stats.consecutive_failures == 0 and emulator.stats["corrupted"] == 1
+
+
+def test_a_late_reply_is_a_timeout_within_the_budget(emulator, bus):
+    emulator.fault(3).late_s = 0.05
+    sent = emulator.stats["tx_packets"]
+    start = time.perf_counter()
+    with pytest.raises(BusTimeoutError):
+        bus.cycle()
+    assert time.perf_counter() - start < 0.04  # the SDK's own allowance alone is 34 ms
+    assert emulator.wait_until(lambda: emulator.stats["tx_packets"] > sent)  # it came, late
+    emulator.fault(3).late_s = 0.0
+    bus.cycle()  # the stale reply is flushed; the next cycle is clean
+
+
+def test_hardware_error_latches_a_fault_and_reset_reboots(emulator, bus):
+    bus.torque(True)
+    emulator.inject_hardware_error(2, 0x20)
+    with pytest.raises(HardwareFault, match="servo 2: overload error"):
+        bus.cycle()
+    assert emulator.wait_until(lambda: not any(s.torque_on for s in emulator.servos.values()))
+    bus.reset()
+    assert emulator.servos[2].get("hardware_error_status") == 0
+    readings = bus.cycle()
+    assert readings[2].error == 0
+
+
+def test_close_turns_torque_off(emulator):
+    bus = DxlBus(emulator.port, IDS)
+    bus.open()
+    bus.torque(True)
+    assert emulator.wait_until(lambda: all(s.torque_on for s in emulator.servos.values()))
+    bus.close()
+    bus.close()
+    assert emulator.wait_until(lambda: not any(s.torque_on for s in emulator.servos.values()))

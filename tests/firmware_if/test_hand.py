@@ -1,0 +1,61 @@
+"""Hand descriptions: presets load, and the validator names the field to fix."""
+
+from __future__ import annotations
+
+import copy
+import tomllib
+
+import pytest
+
+from firmware_if.errors import HandConfigError
+from firmware_if.hand import PRESET_DIR, hand_from_dict, load_hand, presets
+
+
+def spatial_dict() -> dict:
+    return tomllib.loads((PRESET_DIR / "spatial.toml").read_text())
+
+
+def test_presets_load_and_classify():
+    assert set(presets()) >= {"planar", "spatial"}
+    spatial, planar = load_hand("spatial"), load_hand("planar")
+    assert not spatial.planar and planar.planar
+    assert spatial.ids == (1, 2, 3, 4) and spatial.tip_roll is not None
+    assert planar.ids == (1, 2)
+
+
+@pytest.mark.parametrize(("edit", "message"), [
+    (lambda d: d["joints"][0].update(id=300), "joint 'yaw': id must be 0..252"),
+    (lambda d: d["joints"][1].update(limits=[1.0, -1.0]), "joint 'shoulder': limits"),
+    (lambda d: d["joints"][2].update(axis=[0, 0, 0]), "joint 'elbow': axis must not be zero"),
+    (lambda d: d["joints"][2].update(axis=[0, 1]), "joint 'elbow': axis must be three"),
+    (lambda d: d["joints"][0].update(direction=2), "direction must be 1 or -1"),
+    (lambda d: d["joints"][0].update(model="XL320"), "unknown servo model 'XL320'"),
+    (lambda d: d["joints"][1].update(id=1), "servo ids must be unique"),
+    (lambda d: d.update(home=[0.0, 5.0, 1.1]), "home angle 5.0 of joint 'shoulder'"),
+    (lambda d: d.update(home=[0.0]), "home needs 3 angles"),
+    (lambda d: d.update(radius=-1), "radius must be > 0"),
+    (lambda d: d.update(baud=12345), "baud must be one of"),
+    (lambda d: d.pop("tip"), "missing field 'tip'"),
+    (lambda d: d["joints"][0].pop("axis"), "missing field 'axis'"),
+    (lambda d: d.update(goal_current_a=0), "goal_current_a"),
+])
+def test_validator_names_the_field(edit, message):
+    data = copy.deepcopy(spatial_dict())
+    edit(data)
+    with pytest.raises(HandConfigError, match=message.replace("(", r"\(")):
+        hand_from_dict(data, "test")
+
+
+def test_unknown_preset_and_bad_toml(tmp_path):
+    with pytest.raises(HandConfigError, match="no hand preset or file 'nope'"):
+        load_hand("nope")
+    bad = tmp_path / "bad.toml"
+    bad.write_text("radius = [")
+    with pytest.raises(HandConfigError, match="not valid TOML"):
+        load_hand(str(bad))
+
+
+def test_file_path_loads(tmp_path):
+    path = tmp_path / "mine.toml"
+    path.write_text((PRESET_DIR / "planar.toml").read_text())
+    assert load_hand(str(path)).planar

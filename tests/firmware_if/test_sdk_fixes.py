@@ -1,0 +1,138 @@
+"""Each dynamixel-sdk 4.1.0 defect worked around in `firmware_if.sdk_fixes`: every test shows
+the stock SDK failing and the fixed one succeeding, so a fixed upstream release shows up here."""
+
+from __future__ import annotations
+
+import time
+
+import pytest
+from dynamixel_sdk.port_handler import PortHandler
+from dynamixel_sdk.protocol2_packet_handler import Protocol2PacketHandler
+from dynamixel_sdk.robotis_def import COMM_SUCCESS
+
+from firmware_if import packets as pk
+from firmware_if.sdk_fixes import FixedPacketHandler, PacedPortHandler
+from sim_backend.emulator import EmulatedServo, ServoBus
+
+AWKWARD = [0xFF, 0xFF, 0xFD, 0xFF]  # Homing Offset -131073: needs byte stuffing
+
+
+class CapturePort:
+    """Enough of a PortHandler to capture what the packet handler transmits."""
+
+    is_using = False
+    sent = b""
+
+    def clearPort(self) -> None:  # noqa: N802
+        pass
+
+    def writePort(self, packet: list[int]) -> int:  # noqa: N802
+        self.sent = bytes(packet)
+        return len(packet)
+
+
+@pytest.fixture
+def emulator():
+    with ServoBus([EmulatedServo(i) for i in (1, 2, 3)], honour_return_delay=False) as bus:
+        yield bus
+
+
+def _open(port: PortHandler, ph: Protocol2PacketHandler) -> PortHandler:
+    assert port.openPort()
+    return port
+
+
+# -- 1. transmit stuffing ------------------------------------------------------------------
+def test_tx_stuffing_stock_sends_unstuffed_packet():
+    port = CapturePort()
+    Protocol2PacketHandler().writeTxOnly(port, 1, 20, 4, AWKWARD)
+    body = port.sent[7:-2]
+    assert pk.has_unstuffed_header(body)  # the defect
+
+
+def test_tx_stuffing_fixed_sends_a_valid_stuffed_packet():
+    port = CapturePort()
+    FixedPacketHandler().writeTxOnly(port, 1, 20, 4, AWKWARD)
+    parsed = pk.parse(port.sent)
+    assert parsed.params == bytes([20, 0] + AWKWARD)
+    assert not pk.has_unstuffed_header(port.sent[7:-2])
+
+
+@pytest.mark.parametrize(("handler", "works"), [(Protocol2PacketHandler, False),
+                                                (FixedPacketHandler, True)])
+def test_tx_stuffing_on_the_bus(emulator, handler, works):
+    port = _open(PortHandler(emulator.port), handler())
+    result, error = handler().write4ByteTxRx(port, 2, 20, 0xFFFDFFFF)
+    port.closePort()
+    assert (result == COMM_SUCCESS) is works
+    assert (emulator.servos[2].get("homing_offset") == -131073) is works
+
+
+# -- 2. receive destuffing -----------------------------------------------------------------
+@pytest.mark.parametrize(("handler", "works"), [(Protocol2PacketHandler, False),
+                                                (FixedPacketHandler, True)])
+def test_rx_destuffing_on_the_bus(emulator, handler, works):
+    pattern = bytes([0xFF, 0xFF, 0xFD, 0x00, 0x01, 0xFF, 0xFD, 0xFD, 0x05])
+    emulator.servos[1].mem[224:224 + len(pattern)] = pattern  # Indirect Data 1..9
+    port = _open(PortHandler(emulator.port), handler())
+    data, result, _ = handler().readTxRx(port, 1, 224, len(pattern))
+    port.closePort()
+    assert result == COMM_SUCCESS
+    assert (bytes(data) == pattern) is works
+
+
+# -- 3. fast bulk read decoding --------------------------------------------------------------
+@pytest.mark.parametrize(("handler", "works"), [(Protocol2PacketHandler, False),
+                                                (FixedPacketHandler, True)])
+def test_fast_bulk_read_decoding(emulator, handler, works):
+    emulator.servos[1].set("present_current", 77)
+    emulator.servos[2].set("present_position", 3000)
+    emulator.servos[3].set("present_current", -5)
+    # id 2 equals servo 1's length byte: param.index(2) finds the wrong record
+    param = [1, 126, 0, 2, 0, 2, 132, 0, 4, 0, 3, 126, 0, 2, 0]
+    ph = handler()
+    port = _open(PortHandler(emulator.port), ph)
+    assert ph.bulkReadTx(port, param, len(param), True) == COMM_SUCCESS
+    decoded, result = ph.fastBulkReadRx(port, param)
+    port.closePort()
+    assert result == COMM_SUCCESS
+    expected = {1: list((77).to_bytes(2, "little")), 2: list((3000).to_bytes(4, "little")),
+                3: list((-5).to_bytes(2, "little", signed=True))}
+    assert ({k: list(v) for k, v in decoded.items()} == expected) is works
+
+
+# -- 4. busy polling and unbounded timeouts --------------------------------------------------
+def _counting(port_cls: type[PortHandler]) -> type[PortHandler]:
+    class Counting(port_cls):  # type: ignore[valid-type, misc]
+        reads = 0
+
+        def readPort(self, length: int):  # noqa: N802
+            self.reads += 1
+            return super().readPort(length)
+
+    return Counting
+
+
+@pytest.mark.parametrize(("port_cls", "spins"), [(PortHandler, True), (PacedPortHandler, False)])
+def test_waiting_for_a_silent_servo(emulator, port_cls, spins):
+    emulator.fault(3).mute = True
+    port = _open(_counting(port_cls)(emulator.port), FixedPacketHandler())
+    wall = time.perf_counter()
+    _, result, _ = FixedPacketHandler().read4ByteTxRx(port, 3, 132)
+    wall = time.perf_counter() - wall
+    port.closePort()
+    assert result != COMM_SUCCESS
+    assert wall >= 0.02  # both wait out the timeout...
+    assert (port.reads > 100) is spins  # ...but the stock port polls the serial port in a loop
+    assert spins or port.reads <= 5
+
+
+def test_paced_port_bounds_the_timeout_by_its_budget(emulator):
+    emulator.fault(3).mute = True
+    port = _open(PacedPortHandler(emulator.port, budget_ms=3.0), FixedPacketHandler())
+    wall = time.perf_counter()
+    _, result, _ = FixedPacketHandler().read4ByteTxRx(port, 3, 132)
+    wall = time.perf_counter() - wall
+    port.closePort()
+    assert result != COMM_SUCCESS
+    assert wall < 0.025  # the stock allowance is 34 ms

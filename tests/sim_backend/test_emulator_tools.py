@@ -1,0 +1,82 @@
+"""`haptic emulate`, `haptic bus scan|read|check` and the bus benchmark, on the emulator."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import threading
+
+import pytest
+
+from service import cli
+from tools import bench_bus, emulate_cli
+
+
+@pytest.fixture
+def emulated(capsys):
+    """(port, what `haptic emulate` printed) of an emulator running in a thread."""
+    args = cli.build_parser().parse_args(["emulate", "--hand", "spatial", "--seed", "3"])
+    ready, stop = threading.Event(), threading.Event()
+    box: dict[str, str] = {}
+
+    def on_ready(port: str) -> None:
+        box["port"] = port
+        ready.set()
+
+    thread = threading.Thread(target=emulate_cli.run, args=(args,),
+                              kwargs={"ready": on_ready, "stop": stop})
+    thread.start()
+    assert ready.wait(10)
+    yield box["port"], capsys.readouterr().out
+    stop.set()
+    thread.join(10)
+    assert not thread.is_alive()
+
+
+def test_emulate_prints_the_port_and_the_truth_of_the_seed(emulated):
+    port, out = emulated
+    assert out.splitlines()[0] == port
+    assert "x=0.1200 m, y=0.1000 m" in out  # what `haptic run --seed 3` draws
+
+
+def test_bus_scan_read_check(emulated, capsys):
+    emulated_port, _ = emulated
+    assert cli.main(["bus", "scan", "--port", emulated_port]) == 0
+    out = capsys.readouterr().out
+    assert [line.split(":")[0] for line in out.splitlines()] == [
+        "id   1", "id   2", "id   3", "id   4"]
+    assert "XM430-W350, firmware 46" in out
+    assert cli.main(["bus", "read", "--port", emulated_port, "--hand", "spatial", "--count",
+                     "2", "--interval", "0"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert len(lines) == 2 and "centre x=" in lines[0]
+    assert cli.main(["bus", "check", "--port", emulated_port, "--hand", "spatial"]) == 0
+    out = capsys.readouterr().out
+    assert "no USB latency timer" in out
+    assert "warn servo 1: operating mode 3 (position)" in out
+    assert "FAIL" not in out
+
+
+def test_bus_check_fails_on_a_wrong_baud_register(emulated, capsys, tmp_path):
+    emulated_port, _ = emulated
+    hand = tmp_path / "slow.toml"
+    from firmware_if.hand import PRESET_DIR
+
+    hand.write_text((PRESET_DIR / "spatial.toml").read_text().replace(
+        "baud = 1000000", "baud = 57600"))
+    assert cli.main(["bus", "check", "--port", emulated_port, "--hand", str(hand),
+                     "--baud", "1000000"]) == 1
+    assert "FAIL servo 1: baud register 3 (1000000 bps) but the hand says 57600" in \
+        capsys.readouterr().out
+
+
+def test_bench_bus_measures_and_writes_json(tmp_path, capsys):
+    result = bench_bus.measure(servos=3, cycles=50)
+    assert result["read"] == "fast sync read" and result["failures"] == 0
+    assert 0 < result["p50_ms"] <= result["p99_ms"] <= result["max_ms"]
+    parser = argparse.ArgumentParser()
+    bench_bus.add_arguments(parser)
+    out = tmp_path / "bus.json"
+    assert bench_bus.run(parser.parse_args(["--cycles", "30", "--json", str(out)])) == 0
+    data = json.loads(out.read_text())
+    assert [r["read"] for r in data["results"]] == ["fast sync read", "sync read"]

@@ -1,0 +1,163 @@
+"""`haptic bus scan|read|check`: look at a Dynamixel bus before trusting a run to it."""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+import numpy as np
+
+from firmware_if import kinematics as kin
+from firmware_if.dxl_bus import FAST_READ_MIN_FIRMWARE, DxlBus
+from firmware_if.errors import CommunicationError
+from firmware_if.hand import Hand, load_hand, presets
+from firmware_if.registers import (
+    BAUD_RATES,
+    CURRENT_BASED_POSITION,
+    MODELS,
+    OPERATING_MODES,
+    ticks_to_rad,
+)
+
+MODEL_NAMES = {number: name for name, (number, _) in MODELS.items()}
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("bus", help="scan, read or check a Dynamixel servo bus")
+    verbs = p.add_subparsers(dest="verb", metavar="VERB", required=True)
+    scan = verbs.add_parser("scan", help="find the servos on a port")
+    _port_options(scan)
+    scan.set_defaults(handler=cmd_scan)
+    read = verbs.add_parser("read", help="joint angles and fingertip centre, live")
+    _port_options(read, hand=True)
+    read.add_argument("--count", type=int, default=0, metavar="N",
+                      help="stop after N readings (default: until Ctrl-C)")
+    read.add_argument("--interval", type=float, default=0.1, metavar="S",
+                      help="seconds between readings (default: %(default)s)")
+    read.set_defaults(handler=cmd_read)
+    check = verbs.add_parser("check", help="configuration sanity: latency timer, return "
+                                           "delay, baud, modes")
+    _port_options(check, hand=True)
+    check.set_defaults(handler=cmd_check)
+
+
+def _port_options(p: argparse.ArgumentParser, hand: bool = False) -> None:
+    p.add_argument("--port", required=True, help="serial port, e.g. /dev/ttyUSB0")
+    p.add_argument("--baud", type=int, default=None,
+                   help="baud rate (default: the hand's, else 1000000)")
+    if hand:
+        p.add_argument("--hand", required=True, metavar="PRESET|FILE",
+                       help=f"hand preset ({', '.join(presets())}) or TOML file")
+
+
+def _bus(args: argparse.Namespace, hand: Hand | None, ids: tuple[int, ...] = (1,)) -> DxlBus:
+    baud = args.baud or (hand.baud if hand else 1_000_000)
+    return DxlBus(args.port, hand.ids if hand else ids, baud=baud)
+
+
+def cmd_scan(args: argparse.Namespace) -> int:
+    with _bus(args, None) as bus:
+        found = bus.scan()
+    if not found:
+        print(f"no servo answered on {args.port}")
+        return 1
+    for sid, (model, firmware) in found.items():
+        print(f"id {sid:3d}: {MODEL_NAMES.get(model, f'model {model}')}, firmware {firmware}")
+    return 0
+
+
+def cmd_read(args: argparse.Namespace) -> int:
+    hand = load_hand(args.hand)
+    with _bus(args, hand) as bus:
+        bus.detect_fast_read()
+        n = 0
+        next_t = time.monotonic()
+        while args.count <= 0 or n < args.count:
+            readings = bus.cycle()
+            q = np.array([ticks_to_rad(readings[j.id].position, j.zero_ticks, j.direction)
+                          for j in hand.joints])
+            centre = kin.forward(hand, q)
+            joints = " ".join(f"{j.name}={np.degrees(a):7.2f}" for j, a in
+                              zip(hand.joints, q, strict=True))
+            print(f"{joints} deg | centre x={centre[0] * 1e3:8.2f} y={centre[1] * 1e3:8.2f} "
+                  f"z={centre[2] * 1e3:8.2f} mm", flush=True)
+            n += 1
+            next_t += args.interval
+            time.sleep(max(0.0, next_t - time.monotonic()))
+    return 0
+
+
+def latency_timer(port: str) -> int | None:
+    """The USB adapter's latency timer in ms (FTDI on Linux), or None if not applicable."""
+    name = Path(port).resolve().name
+    path = Path(f"/sys/bus/usb-serial/devices/{name}/latency_timer")
+    try:
+        return int(path.read_text().strip())
+    except (OSError, ValueError):
+        return None
+
+
+def check_lines(bus: DxlBus, hand: Hand, port: str) -> list[tuple[str, str]]:
+    """(level, message) findings: level is 'ok', 'warn' or 'FAIL'."""
+    out: list[tuple[str, str]] = []
+    timer = latency_timer(port)
+    if timer is None:
+        out.append(("ok", f"{port}: no USB latency timer (not an FTDI adapter)"))
+    elif timer > 1:
+        out.append(("warn", f"latency timer {timer} ms adds up to {timer} ms per packet; "
+                            f"echo 1 > /sys/bus/usb-serial/devices/{Path(port).name}/"
+                            "latency_timer"))
+    else:
+        out.append(("ok", f"latency timer {timer} ms"))
+    baud_reg = {v: k for k, v in BAUD_RATES.items()}.get(hand.baud)
+    for sid in hand.ids:
+        info = bus.ping(sid)
+        if info is None:
+            out.append(("FAIL", f"servo {sid}: no answer"))
+            continue
+        model, firmware = info
+        name = MODEL_NAMES.get(model, f"model {model}")
+        out.append(("ok" if model in MODEL_NAMES else "warn", f"servo {sid}: {name}, "
+                    f"firmware {firmware}"))
+        if firmware < FAST_READ_MIN_FIRMWARE:
+            out.append(("warn", f"servo {sid}: firmware {firmware} has no Fast Sync Read; "
+                                "plain Sync Read will be used"))
+        try:
+            values = {name: bus.read(sid, name) for name in
+                      ("baud_rate", "return_delay_time", "status_return_level",
+                       "operating_mode", "hardware_error_status", "torque_enable")}
+        except CommunicationError as exc:
+            out.append(("FAIL", f"servo {sid}: {exc}"))
+            continue
+        if values["baud_rate"] != baud_reg:
+            out.append(("FAIL", f"servo {sid}: baud register {values['baud_rate']} "
+                                f"({BAUD_RATES.get(values['baud_rate'])} bps) but the hand "
+                                f"says {hand.baud}"))
+        delay_us = 2 * values["return_delay_time"]
+        out.append(("ok" if delay_us <= hand.return_delay_us else "warn",
+                    f"servo {sid}: return delay {delay_us} us"
+                    + ("" if delay_us <= hand.return_delay_us else
+                       f" (the driver sets {hand.return_delay_us} us on open)")))
+        mode = values["operating_mode"]
+        out.append(("ok" if mode == CURRENT_BASED_POSITION else "warn",
+                    f"servo {sid}: operating mode {mode} ({OPERATING_MODES.get(mode, '?')})"
+                    + ("" if mode == CURRENT_BASED_POSITION else
+                       "; the driver switches to 5 (current-based position) on open")))
+        if values["status_return_level"] != 2:
+            out.append(("warn", f"servo {sid}: status return level "
+                                f"{values['status_return_level']}; writes will not be "
+                                "confirmed until the driver sets 2"))
+        if values["hardware_error_status"]:
+            out.append(("FAIL", f"servo {sid}: hardware error status "
+                                f"{values['hardware_error_status']:#04x}; reboot it"))
+    return out
+
+
+def cmd_check(args: argparse.Namespace) -> int:
+    hand = load_hand(args.hand)
+    with _bus(args, hand) as bus:
+        lines = check_lines(bus, hand, args.port)
+    for level, message in lines:
+        print(f"{level:4s} {message}")
+    return 1 if any(level == "FAIL" for level, _ in lines) else 0

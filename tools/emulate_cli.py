@@ -1,0 +1,76 @@
+"""`haptic emulate`: a Dynamixel servo bus on a pseudo-terminal, with the finger on a surface.
+
+The emulated hand stands at the start pose `haptic run` would draw from the same seed, so
+`haptic run --backend dynamixel --port PORT --hand HAND --seed N` on the printed port
+localizes the same hidden pose as the simulated finger would.
+"""
+
+from __future__ import annotations
+
+import argparse
+import threading
+from collections.abc import Callable
+
+import numpy as np
+
+from firmware_if.hand import load_hand, presets
+from service.cli_options import add_scenario_options, settings_from_args
+from service.scenario import RunSettings, Truth, draw_truth, surface_for
+from service.surface import HeightMap
+from sim_backend.emulator import ServoBus
+from sim_backend.emulator.plant import FingerPlant, hand_bus_servos
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("emulate", help="emulate a Dynamixel hand on a pseudo-terminal",
+                       description="Start a Protocol 2.0 servo-bus emulator whose servos move "
+                                   "a fingertip over the map (hardware in the loop); print the "
+                                   "port path and serve until Ctrl-C.")
+    p.add_argument("--hand", required=True, metavar="PRESET|FILE",
+                   help=f"hand preset ({', '.join(presets())}) or TOML file")
+    add_scenario_options(p, defaults=RunSettings())
+    p.add_argument("--seed", type=int, default=0,
+                   help="seed of the hidden start pose, as `haptic run` draws it")
+    p.add_argument("--start", metavar="X,Y,HEADING_DEG", default=None,
+                   help="hidden start pose instead of the seed's (metres, metres, degrees)")
+    p.add_argument("--no-fast-read", action="store_true",
+                   help="emulate firmware older than v45 (no Fast Sync/Bulk Read)")
+    p.set_defaults(handler=run)
+
+
+def emulator_truth(settings: RunSettings) -> tuple[Truth, HeightMap]:
+    """The start pose `simulate` draws for these settings (same seed, same draw), and the map."""
+    surface = surface_for(settings)
+    truth_rng = np.random.default_rng(settings.seed).spawn(4)[0]
+    return draw_truth(settings, surface.map, truth_rng), surface.map
+
+
+def start_emulator(args: argparse.Namespace) -> tuple[ServoBus, Truth]:
+    hand = load_hand(args.hand)
+    settings = settings_from_args(args, radius=hand.radius)
+    truth, height_map = emulator_truth(settings)
+    plant = FingerPlant(hand, height_map, truth.as_tuple())
+    bus = ServoBus(hand_bus_servos(hand, plant), plant=plant,
+                   fast_read=not args.no_fast_read).start()
+    return bus, truth
+
+
+def run(args: argparse.Namespace, *, ready: Callable[[str], None] | None = None,
+        stop: threading.Event | None = None) -> int:
+    bus, truth = start_emulator(args)
+    stop = stop or threading.Event()
+    try:
+        print(bus.port, flush=True)
+        print(f"emulating hand '{args.hand}' (ids {sorted(bus.servos)}) at hidden start "
+              f"x={truth.x:.4f} m, y={truth.y:.4f} m, heading={np.degrees(truth.heading):.1f} deg;"
+              " Ctrl-C to stop", flush=True)
+        if ready:
+            ready(bus.port)
+        while not stop.wait(0.5):
+            pass
+    except KeyboardInterrupt:
+        pass
+    finally:
+        bus.stop()
+        print(f"served {bus.stats['rx_packets']} packets", flush=True)
+    return 0
