@@ -21,9 +21,10 @@ def strip_timings(episode: dict) -> dict:
     return episode
 
 
-def test_default_run_localizes_and_reports_truth(capsys, tmp_path):
+def test_algorithm_iii_run_localizes_and_reports_truth(capsys, tmp_path):
     out = tmp_path / "e.json"
-    assert run_cli("--seed", "2", "--json", str(out)) == 0
+    assert run_cli("--seed", "2", "--algorithm", "elimination", "--policy", "paper",
+                   "--json", str(out)) == 0
     text = capsys.readouterr().out
     assert "truth" in text and "estimate" in text and "localized in" in text
     episode = json.loads(out.read_text())

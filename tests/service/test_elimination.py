@@ -39,15 +39,20 @@ def test_too_small_map_for_table_is_a_clear_error():
 @pytest.mark.parametrize("sweep", ["paper", "full"])
 @pytest.mark.parametrize("seed", range(12))
 def test_noise_free_runs_never_eliminate_the_truth(sweep, seed):
-    report = simulate(RunSettings(seed=seed, localizer_options={"sweep": sweep}))
+    report = simulate(RunSettings(seed=seed, algorithm="elimination", policy="paper",
+                                  localizer_options={"sweep": sweep}))
     assert report.true_pose_eliminated is False
     assert report.score.success
 
 
 def test_full_sweep_pins_the_pose_faster_than_the_papers():
-    paper = [len(simulate(RunSettings(seed=s)).result.steps) for s in range(6)]
-    full = [len(simulate(RunSettings(seed=s, localizer_options={"sweep": "full"})).result.steps)
-            for s in range(6)]
+    def steps(seed: int, sweep: str) -> int:
+        settings = RunSettings(seed=seed, algorithm="elimination", policy="paper",
+                               localizer_options={"sweep": sweep})
+        return len(simulate(settings).result.steps)
+
+    paper = [steps(s, "paper") for s in range(6)]
+    full = [steps(s, "full") for s in range(6)]
     assert sum(full) < sum(paper)
 
 

@@ -1,0 +1,75 @@
+"""The daemon's lifecycle as an explicit transition table.
+
+unconfigured --configure--> inactive --activate--> active --deactivate--> inactive
+any opened state --fault--> fault (latched, torque off) --reset--> inactive
+
+Inactive means the backend is open, torque is off and state is streamed. Nothing is
+commanded to the servos (not even torque) until a first valid read since the backend was
+opened: `Lifecycle.require_valid_read` is the gate every command path goes through.
+"""
+
+from __future__ import annotations
+
+from enum import StrEnum
+
+from service.errors import StateError
+
+
+class State(StrEnum):
+    UNCONFIGURED = "unconfigured"
+    INACTIVE = "inactive"
+    ACTIVE = "active"
+    FAULT = "fault"
+
+
+TRANSITIONS: dict[str, dict[State, State]] = {
+    "configure": {State.UNCONFIGURED: State.INACTIVE, State.INACTIVE: State.INACTIVE},
+    "activate": {State.INACTIVE: State.ACTIVE},
+    "deactivate": {State.ACTIVE: State.INACTIVE, State.INACTIVE: State.INACTIVE},
+    "fault": {State.INACTIVE: State.FAULT, State.ACTIVE: State.FAULT, State.FAULT: State.FAULT},
+    "reset": {State.FAULT: State.INACTIVE},
+    "shutdown": {s: State.UNCONFIGURED for s in State},
+}
+"""event -> {from state: to state}; anything missing is refused."""
+
+
+class Lifecycle:
+    """Current state, the last fault and whether the backend has been read since opening."""
+
+    def __init__(self) -> None:
+        self.state = State.UNCONFIGURED
+        self.fault: str | None = None
+        self.valid_read = False
+
+    def allowed(self, event: str) -> bool:
+        return self.state in TRANSITIONS.get(event, {})
+
+    def check(self, event: str) -> State:
+        """The state `event` leads to, or StateError saying which states allow it."""
+        table = TRANSITIONS.get(event)
+        if table is None:
+            raise StateError(f"unknown lifecycle event '{event}'")
+        if self.state not in table:
+            allowed = ", ".join(s.value for s in table)
+            raise StateError(f"cannot {event} while {self.state.value}; allowed in: {allowed}")
+        return table[self.state]
+
+    def apply(self, event: str, reason: str | None = None) -> tuple[State, State]:
+        """Make the transition; returns (old, new)."""
+        new = self.check(event)
+        old = self.state
+        self.state = new
+        if event == "fault":
+            self.fault = reason or self.fault or "fault"
+        elif event in ("reset", "shutdown"):
+            self.fault = None
+        if event in ("configure", "reset", "shutdown"):
+            self.valid_read = False
+        return old, new
+
+    def mark_read(self) -> None:
+        self.valid_read = True
+
+    def require_valid_read(self) -> None:
+        if not self.valid_read:
+            raise StateError("no valid reading from the finger yet; wait for state to stream")

@@ -1,0 +1,180 @@
+"""The wire format: msgpack messages in one envelope, arrays as typed binary, never pickle.
+
+Every message is a msgpack map ``{v, type, seq, t_mono_ns, t_wall_ns, ...fields}``.
+A numpy array travels as a map ``{dtype, shape, data}`` (little-endian dtype string,
+list of ints, raw bytes), which any language can read. Decoding is strict: a size limit
+is checked before unpacking, msgpack's own container limits bound memory, extension types
+are refused, and only whitelisted dtypes become arrays. docs/protocol.md is the spec.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import msgpack
+import numpy as np
+
+from service.errors import InputError
+
+VERSION = 1
+"""Schema version carried in every envelope as `v`."""
+
+MAX_MESSAGE_BYTES = 64 * 1024
+"""Default size limit of one decoded message (commands are small)."""
+
+DTYPES = frozenset({"<f8", "<f4", "<i8", "<i4", "<i2", "<u8", "<u4", "<u2", "|u1", "|i1",
+                    "|b1"})
+"""Array dtypes accepted on the wire: little-endian numbers and bools, nothing with objects."""
+
+MAX_ARRAY_DIMS = 4
+
+
+class WireError(InputError):
+    """A message could not be decoded or does not follow the envelope; `code` says which."""
+
+    def __init__(self, code: str, message: str) -> None:
+        super().__init__(message)
+        self.code = code
+
+
+@dataclass(frozen=True)
+class Message:
+    """A decoded message: the envelope plus its remaining fields (arrays as numpy)."""
+
+    type: str
+    seq: int
+    t_mono_ns: int
+    t_wall_ns: int
+    body: dict[str, Any] = field(default_factory=dict)
+    topic: str = ""
+
+    def __getitem__(self, key: str) -> Any:
+        return self.body[key]
+
+    def get(self, key: str, default: Any = None) -> Any:
+        return self.body.get(key, default)
+
+
+def pack_array(a: np.ndarray) -> dict[str, Any]:
+    """An array as `{dtype, shape, data}`, converted to little-endian and C order."""
+    a = np.asarray(a)
+    dtype = a.dtype.newbyteorder("<") if a.dtype.byteorder == ">" else a.dtype
+    dt = dtype.str
+    if dt not in DTYPES:
+        raise WireError("bad_array", f"dtype {a.dtype} cannot go on the wire; use numbers")
+    data = np.ascontiguousarray(a, dtype=dtype).tobytes()
+    return {"dtype": dt, "shape": list(a.shape), "data": data}
+
+
+def unpack_array(obj: dict[str, Any]) -> np.ndarray:
+    """The inverse of `pack_array`, checking dtype, shape and byte count."""
+    dt, shape, data = obj.get("dtype"), obj.get("shape"), obj.get("data")
+    if dt not in DTYPES:
+        raise WireError("bad_array", f"array dtype {dt!r} is not allowed")
+    if (not isinstance(shape, list) or len(shape) > MAX_ARRAY_DIMS
+            or not all(isinstance(n, int) and not isinstance(n, bool) and n >= 0
+                       for n in shape)):
+        raise WireError("bad_array", "array shape must be a list of at most 4 ints >= 0")
+    if not isinstance(data, bytes):
+        raise WireError("bad_array", "array data must be binary")
+    dtype = np.dtype(dt)
+    if int(np.prod(shape, dtype=np.int64)) * dtype.itemsize != len(data):
+        raise WireError("bad_array", f"array of shape {shape} {dt} needs "
+                        f"{int(np.prod(shape)) * dtype.itemsize} bytes, got {len(data)}")
+    return np.frombuffer(data, dtype=dtype).reshape(shape)
+
+
+def _to_wire(value: Any) -> Any:
+    if isinstance(value, np.ndarray):
+        return pack_array(value)
+    if isinstance(value, dict):
+        return {str(k): _to_wire(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_to_wire(v) for v in value]
+    if isinstance(value, np.generic):
+        return value.item()
+    return value
+
+
+def _from_wire(value: Any, depth: int = 0) -> Any:
+    if depth > 16:
+        raise WireError("malformed", "message is nested too deeply")
+    if isinstance(value, dict):
+        if set(value) == {"dtype", "shape", "data"} and isinstance(value.get("data"), bytes):
+            return unpack_array(value)
+        return {k: _from_wire(v, depth + 1) for k, v in value.items()}
+    if isinstance(value, list):
+        return [_from_wire(v, depth + 1) for v in value]
+    return value
+
+
+def encode(type_: str, seq: int, fields: dict[str, Any] | None = None, *,
+           t_mono_ns: int | None = None) -> bytes:
+    """One message as bytes: the envelope plus `fields` (numpy arrays allowed anywhere)."""
+    envelope: dict[str, Any] = {
+        "v": VERSION, "type": type_, "seq": int(seq),
+        "t_mono_ns": time.monotonic_ns() if t_mono_ns is None else int(t_mono_ns),
+        "t_wall_ns": time.time_ns(),
+    }
+    if fields:
+        for key, value in fields.items():
+            if key in envelope:
+                raise ValueError(f"field '{key}' would overwrite the envelope")
+            envelope[key] = _to_wire(value)
+    return msgpack.packb(envelope, use_bin_type=True)
+
+
+def unpack_map(data: bytes, max_bytes: int = MAX_MESSAGE_BYTES) -> dict[str, Any]:
+    """Bytes to a msgpack map with strict limits; raises WireError, never anything else."""
+    if not isinstance(data, (bytes, bytearray, memoryview)):
+        raise WireError("malformed", "message must be bytes")
+    if len(data) > max_bytes:
+        raise WireError("too_large", f"message of {len(data)} bytes exceeds the limit of "
+                        f"{max_bytes} bytes")
+    try:
+        obj = msgpack.unpackb(bytes(data), raw=False, strict_map_key=True, use_list=True,
+                              max_str_len=max_bytes, max_bin_len=max_bytes,
+                              max_array_len=max_bytes, max_map_len=max_bytes // 2,
+                              max_ext_len=0, ext_hook=_refuse_ext)
+    except WireError:
+        raise
+    except Exception as exc:  # msgpack raises several unrelated types on garbage
+        raise WireError("malformed", f"not a msgpack message: {type(exc).__name__}") from None
+    if not isinstance(obj, dict):
+        raise WireError("malformed", "message must be a msgpack map")
+    return obj
+
+
+def _refuse_ext(code: int, data: bytes) -> Any:
+    raise WireError("malformed", f"msgpack extension type {code} is not allowed")
+
+
+def check_envelope(obj: dict[str, Any], *, need_seq: bool = True) -> None:
+    """Raise WireError unless `obj` carries a valid envelope of our version."""
+    v = obj.get("v")
+    if v != VERSION:
+        raise WireError("bad_version", f"schema version {v!r} is not supported; this "
+                        f"service speaks v={VERSION}")
+    if not isinstance(obj.get("type"), str):
+        raise WireError("malformed", "envelope field 'type' must be a string")
+    if need_seq:
+        for key in ("seq", "t_mono_ns", "t_wall_ns"):
+            if not isinstance(obj.get(key), int) or isinstance(obj.get(key), bool):
+                raise WireError("malformed", f"envelope field '{key}' must be an integer")
+
+
+def decode(data: bytes, max_bytes: int = 16 * 1024 * 1024, topic: str = "") -> Message:
+    """Bytes from the stream to a Message (arrays as read-only numpy arrays)."""
+    obj = unpack_map(data, max_bytes)
+    check_envelope(obj)
+    body = {k: _from_wire(v) for k, v in obj.items()
+            if k not in ("v", "type", "seq", "t_mono_ns", "t_wall_ns")}
+    return Message(type=obj["type"], seq=obj["seq"], t_mono_ns=obj["t_mono_ns"],
+                   t_wall_ns=obj["t_wall_ns"], body=body, topic=topic)
+
+
+def decode_fields(value: Any) -> Any:
+    """Arrays in an already unpacked value (command arguments and results) to numpy."""
+    return _from_wire(value)

@@ -1,0 +1,243 @@
+"""The command channel under abuse: every bad request gets an error reply and changes nothing."""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import os
+from collections.abc import Iterator
+
+import msgpack
+import pytest
+import zmq
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from service.client import Client, CommandFailed, Subscriber
+from service.commands import TABLE, CommandServer, Lease, validate
+from service.harness import loopback_config, running_node
+from service.node import Node
+
+
+@pytest.fixture()
+def node() -> Iterator[Node]:
+    with running_node(loopback_config({"backend": {"step_duration_s": 0.02}})) as n:
+        yield n
+
+
+@pytest.fixture()
+def raw(node: Node) -> Iterator[zmq.Socket]:
+    ctx = zmq.Context()
+    sock = ctx.socket(zmq.DEALER)
+    sock.setsockopt(zmq.LINGER, 0)
+    sock.connect(node.endpoints["cmd"])
+    yield sock
+    sock.close()
+    ctx.term()
+
+
+def ask(sock: zmq.Socket, *frames: bytes) -> dict:
+    sock.send_multipart(list(frames))
+    assert sock.poll(5000), "no reply"
+    reply = msgpack.unpackb(sock.recv())
+    assert reply["v"] == 1 and reply["type"] == "reply"
+    return reply
+
+
+def snapshot(client: Client) -> tuple:
+    s = client.status()
+    return (s["state"], s["exploring"], s["lease"]["holder"], s["fault"],
+            str(client.call("get_config")))
+
+
+def request(**fields: object) -> bytes:
+    return msgpack.packb({"v": 1, "type": "request", "id": 9, **fields})
+
+
+def test_garbage_gets_error_replies_and_changes_nothing(node: Node, raw: zmq.Socket) -> None:
+    with Client(node.endpoints["cmd"]) as ctl:
+        ctl.call("activate")
+        before = snapshot(ctl)
+        cases = [
+            (os.urandom(200), "malformed"),
+            (b"", "malformed"),
+            (msgpack.packb([1, 2]), "malformed"),
+            (msgpack.packb({"v": 2, "type": "request", "id": 1, "cmd": "estop"}),
+             "bad_version"),
+            (request(cmd="format_disk", client="x"), "unknown_command"),
+            (request(cmd="estop", args={"reason": 3}), "bad_args"),
+            (request(cmd="estop", args={"force": True}), "bad_args"),
+            (request(cmd="estop", args=[1]), "bad_args"),
+            (request(cmd="set_map", client="intruder", args={}), "bad_args"),
+            (request(cmd="deactivate", client="intruder"), "lease_held"),
+            (request(cmd="activate"), "bad_args"),  # control without a client id
+            (request(cmd=7), "malformed"),
+            (msgpack.packb({"v": 1, "type": "request", "id": [1], "cmd": "ping"}),
+             "malformed"),
+            (msgpack.packb({"v": 1, "type": "request", "id": 1, "cmd": "estop",
+                            "pad": "x" * 70_000}), "too_large"),
+            (b"\x00" * (1 << 20), "too_large"),
+            (msgpack.packb(msgpack.ExtType(1, b"\x80\x04")), "malformed"),
+        ]
+        for payload, code in cases:
+            reply = ask(raw, payload)
+            assert not reply["ok"] and reply["error"]["code"] == code, (payload[:40], reply)
+            assert reply["error"]["message"]
+        reply = ask(raw, b"one", b"two")
+        assert reply["error"]["code"] == "malformed"
+        assert snapshot(ctl) == before
+        assert ctl.call("ping") == {"pong": True}  # still serving
+
+
+def test_out_of_state_requests_are_refused(node: Node) -> None:
+    with Client(node.endpoints["cmd"]) as ctl:
+        with pytest.raises(CommandFailed) as err:
+            ctl.call("start_exploration")
+        assert err.value.code == "bad_state" and "activate first" in str(err.value)
+        with pytest.raises(CommandFailed, match="bad_state"):
+            ctl.call("reset")
+        ctl.call("activate")
+        with pytest.raises(CommandFailed, match="bad_state"):
+            ctl.call("activate")
+        with pytest.raises(CommandFailed, match="bad_state"):
+            ctl.call("set_map", map="bumps")
+        with pytest.raises(CommandFailed, match="bad_config"):
+            ctl.call("deactivate") and ctl.call("set_map", map="no-such-map")
+        assert ctl.status()["state"] == "inactive"
+        assert ctl.call("get_config")["scenario"]["map"] == "peaks"
+
+
+def test_lease_is_exclusive_and_estop_is_for_everyone(node: Node) -> None:
+    with Client(node.endpoints["cmd"]) as a, Client(node.endpoints["cmd"]) as b:
+        a.call("activate")
+        with pytest.raises(CommandFailed) as err:
+            b.call("deactivate")
+        assert err.value.code == "lease_held"
+        assert b.status()["lease"]["holder"] == a.client_id
+        assert b.call("estop", reason="observer saw smoke")["state"] == "fault"
+        with Subscriber(node.endpoints["pub"], ["state"]) as sub:
+            a.call("reset")
+            a.call("release")
+            # activation needs a fresh reading after the reset: wait for one to stream
+            assert sub.wait_for(lambda m: m["state"] == "inactive", 5.0)
+            assert b.call("activate")["state"] == "active"
+
+
+def test_retry_with_same_id_does_not_run_twice(node: Node, raw: zmq.Socket) -> None:
+    payload = msgpack.packb({"v": 1, "type": "request", "id": "once", "cmd": "activate",
+                             "client": "retrier"})
+    first = ask(raw, payload)
+    second = ask(raw, payload)
+    assert first["ok"] and second == first  # the cached reply, not "cannot activate"
+
+
+def test_req_sockets_work_too(node: Node) -> None:
+    ctx = zmq.Context()
+    req = ctx.socket(zmq.REQ)
+    req.setsockopt(zmq.LINGER, 0)
+    req.connect(node.endpoints["cmd"])
+    req.send(request(cmd="ping"))
+    assert req.poll(5000)
+    assert msgpack.unpackb(req.recv())["result"] == {"pong": True}
+    req.close()
+    ctx.term()
+
+
+def test_table_and_validator() -> None:
+    assert "ping" in TABLE and not TABLE["estop"].lease and TABLE["activate"].lease
+    rid, cmd, client, args, spec = validate({"v": 1, "type": "request", "id": 3,
+                                             "cmd": "set_map", "client": "c",
+                                             "args": {"map": "peaks", "spacing": None}})
+    assert (rid, cmd, args["map"]) == (3, "set_map", "peaks")
+
+
+def test_lease_expiry_on_a_fake_clock() -> None:
+    now = [0]
+    lease = Lease(2.0, clock=lambda: now[0])
+    lease.claim("a")
+    now[0] = int(1.5e9)
+    lease.touch("a")
+    now[0] = int(3.0e9)
+    assert lease.expire_due() is None
+    now[0] = int(3.6e9)
+    assert lease.expire_due() == "a" and lease.holder is None
+    lease.claim("b")
+    assert lease.holder == "b"
+
+
+def test_configure_from_unconfigured() -> None:
+    config = dataclasses.replace(loopback_config(), auto_configure=False)
+    with running_node(config) as node, Client(node.endpoints["cmd"]) as ctl, \
+            Subscriber(node.endpoints["pub"], ["state"]) as sub:
+        assert ctl.status()["state"] == "unconfigured"
+        with pytest.raises(CommandFailed, match="bad_state"):
+            ctl.call("activate")
+        with pytest.raises(CommandFailed, match="bad_config"):
+            ctl.call("configure", changes={"loop": {"rate_hz": -1}})
+        assert ctl.status()["state"] == "unconfigured"
+        result = ctl.call("configure", changes={"scenario": {"map": "bumps:20:3", "seed": 4}})
+        assert result["state"] == "inactive"
+        assert sub.wait_for(lambda m: m["state"] == "inactive" and m["centre"], 5.0)
+        assert ctl.call("get_config")["scenario"]["map"] == "bumps:20:3"
+
+
+def test_a_backend_fault_latches_until_reset(node: Node) -> None:
+    with Client(node.endpoints["cmd"]) as ctl, \
+            Subscriber(node.endpoints["pub"], ["event", "state"]) as sub:
+        ctl.call("activate")
+        ctl.call("start_exploration", repeat=True)
+        assert sub.wait_for(lambda m: m.topic == "state" and m["moving"], 5.0)
+        node.backend.inject_fault("servo 2 overheated")  # a drill: the sim latches it
+        fault = sub.wait_for(lambda m: m.topic == "event" and m["event"] == "fault", 5.0)
+        assert fault is not None and "overheated" in fault["reason"]
+        state = sub.wait_for(lambda m: m.topic == "state", 5.0)
+        assert state["state"] == "fault" and not state["torque_on"] and not state["exploring"]
+        with pytest.raises(CommandFailed, match="bad_state"):
+            ctl.call("activate")
+        assert ctl.call("reset")["state"] == "inactive"
+        assert sub.wait_for(lambda m: m.topic == "state" and m["state"] == "inactive", 5.0)
+        assert ctl.call("activate")["state"] == "active"
+
+
+class Inert:
+    """Controls that record calls and do nothing, for fuzzing the request path alone."""
+
+    def __init__(self) -> None:
+        self.calls: list[str] = []
+
+    def __getattr__(self, name: str):  # test double only: every control is a no-op
+        return lambda *a, **k: self.calls.append(name) or {}
+
+
+INTS = st.integers(-(2**63), 2**64 - 1)
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.one_of(
+    st.binary(max_size=300),
+    st.recursive(st.none() | st.booleans() | INTS | st.floats() | st.text(max_size=20)
+                 | st.binary(max_size=20),
+                 lambda inner: st.lists(inner, max_size=4)
+                 | st.dictionaries(st.text(max_size=8), inner, max_size=4),
+                 max_leaves=20).map(lambda v: msgpack.packb(v)),
+    st.dictionaries(st.sampled_from(["v", "type", "id", "cmd", "client", "args"]),
+                    st.none() | INTS | st.text(max_size=12)
+                    | st.dictionaries(st.text(max_size=8), INTS, max_size=3),
+                    max_size=6).map(lambda v: msgpack.packb(v)),
+))
+def test_fuzzed_requests_always_get_a_reply(payload: bytes) -> None:
+    server = fuzz_server()
+    reply = msgpack.unpackb(server.handle(payload))
+    assert reply["v"] == 1 and reply["type"] == "reply" and isinstance(reply["ok"], bool)
+    if not reply["ok"]:
+        assert reply["error"]["code"] in ERROR_CODES
+
+
+ERROR_CODES = {"malformed", "too_large", "bad_version", "unknown_command", "bad_args",
+               "lease_held", "bad_state", "bad_config", "hardware"}  # never "internal"
+
+
+@functools.cache
+def fuzz_server() -> CommandServer:
+    """One server for all examples; `handle` alone is exercised, the socket is idle."""
+    return CommandServer(zmq.Context.instance(), "inproc://fuzz-commands", Inert(), Lease(1.0))

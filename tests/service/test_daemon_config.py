@@ -1,0 +1,77 @@
+"""The daemon config validator and the lifecycle table."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from service.config import DaemonConfig, from_dict, load_config
+from service.errors import ConfigError, StateError
+from service.lifecycle import Lifecycle, State
+
+SAMPLE = Path(__file__).resolve().parents[2] / "config" / "hapticd.toml"
+
+
+def test_sample_config_is_valid_and_equals_the_defaults() -> None:
+    assert load_config(SAMPLE) == DaemonConfig()
+
+
+@pytest.mark.parametrize("data, words", [
+    ({"loop": {"rate_hz": 0}}, "rate_hz"),
+    ({"loop": {"rate_hz": True}}, "rate_hz"),
+    ({"loop": {"overrun": "later"}}, "overrun"),
+    ({"loop": {"work_fraction": 1.5}}, "work_fraction"),
+    ({"loop": {"typo": 1}}, "unknown key"),
+    ({"loop": {"localizer_mode": "gpu"}}, "localizer_mode"),
+    ({"nonsense": {}}, "unknown config section"),
+    ({"backend": {"name": "warp"}}, "backend.name"),
+    ({"scenario": {"localizer": "magic"}}, "localizer"),
+    ({"scenario": {"step": -1}}, "step"),
+    ({"scenario": {"start": [1, 2]}}, "start"),
+    ({"endpoints": {"pub": "localhost"}}, "endpoint"),
+    ({"security": {"curve": True}}, "server_secret_key"),
+    ({"lease": {"ttl_s": 0}}, "ttl_s"),
+    ({"auto_configure": "yes"}, "auto_configure"),
+])
+def test_bad_values_are_rejected_with_a_useful_message(data: dict, words: str) -> None:
+    with pytest.raises(ConfigError, match=words):
+        from_dict(data)
+
+
+def test_changes_are_validated_the_same_way() -> None:
+    config = DaemonConfig()
+    changed = config.updated({"scenario": {"map": "bumps:20:3", "start": [0.1, 0.1, 0.0]}})
+    assert changed.scenario.map == "bumps:20:3" and changed.scenario.start == (0.1, 0.1, 0.0)
+    assert config.scenario.map == "peaks"  # frozen: the old one is untouched
+    with pytest.raises(ConfigError, match="rate_hz"):
+        config.updated({"loop": {"rate_hz": -5}})
+    with pytest.raises(ConfigError, match="cannot be changed"):
+        config.updated({"endpoints": {"pub": "tcp://0.0.0.0:1"}})
+
+
+def test_load_reports_missing_and_broken_files(tmp_path: Path) -> None:
+    with pytest.raises(ConfigError, match="does not exist"):
+        load_config(tmp_path / "none.toml")
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[loop\nrate_hz = 1")
+    with pytest.raises(ConfigError, match="not valid TOML"):
+        load_config(bad)
+
+
+def test_lifecycle_table() -> None:
+    lc = Lifecycle()
+    with pytest.raises(StateError, match="allowed in: inactive"):
+        lc.check("activate")
+    lc.apply("configure")
+    assert lc.state is State.INACTIVE
+    with pytest.raises(StateError, match="no valid reading"):
+        lc.require_valid_read()
+    lc.mark_read()
+    lc.apply("activate")
+    lc.apply("fault", "servo 3 overload")
+    assert (lc.state, lc.fault) == (State.FAULT, "servo 3 overload")
+    for event in ("activate", "configure", "deactivate"):
+        assert not lc.allowed(event)
+    lc.apply("reset")
+    assert lc.state is State.INACTIVE and lc.fault is None and not lc.valid_read

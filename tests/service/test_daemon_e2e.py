@@ -1,0 +1,168 @@
+"""End to end: the real `hapticd --sim` process, and a controller that dies mid-exploration."""
+
+from __future__ import annotations
+
+import signal
+import subprocess
+import sys
+import tempfile
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from service.client import Client, Subscriber
+from service.harness import loopback_config, running_node
+from service.scenario import RunSettings, draw_truth, surface_for
+from service.wire import Message
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def hapticd_command() -> list[str]:
+    script = Path(sys.executable).parent / "hapticd"
+    return [str(script)] if script.exists() else [sys.executable, "-m", "service.daemon"]
+
+
+@pytest.fixture()
+def daemon() -> Iterator[tuple[subprocess.Popen, str, str]]:
+    with tempfile.TemporaryDirectory(dir="/tmp", prefix="hd-") as tmp:
+        pub, cmd = f"ipc://{tmp}/pub", f"ipc://{tmp}/cmd"
+        proc = subprocess.Popen([*hapticd_command(), "--sim", "--pub", pub, "--cmd", cmd],
+                                cwd=ROOT, stderr=subprocess.PIPE, text=True)
+        try:
+            yield proc, pub, cmd
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+            proc.wait(10)
+
+
+def test_hapticd_sim_localizes_at_the_true_pose_and_shuts_down_cleanly(daemon) -> None:
+    proc, pub, cmd = daemon
+    with Subscriber(pub, ["estimate", "event"]) as sub, \
+            Client(cmd, timeout_s=15.0, retries=0) as ctl:
+        assert ctl.call("ping") == {"pong": True}  # waits for the daemon to come up
+        status = ctl.status()
+        assert status["state"] == "inactive" and status["backend"] == "sim"
+        assert ctl.call("activate")["state"] == "active"
+        assert ctl.call("start_exploration")["candidates"] > 1000
+        estimates: list[Message] = []
+        done = sub.wait_for(lambda m: (estimates.append(m) if m.topic == "estimate" else None)
+                            or (m.topic == "estimate" and m["converged"]), 60.0)
+        assert done is not None, "no converged estimate"
+        assert len(estimates) >= 3 and estimates[-1]["candidates"] == 1
+        assert [m.seq for m in estimates] == sorted(m.seq for m in estimates)
+        # The truth, derived independently the way `haptic run --seed 0` hides it.
+        settings = RunSettings()
+        truth_rng = np.random.default_rng(settings.seed).spawn(4)[0]
+        truth = draw_truth(settings, surface_for(settings).map, truth_rng).as_tuple()
+        np.testing.assert_allclose(done["pose"], truth, atol=1e-9)
+        assert ctl.status()["sim_truth"] == pytest.approx(list(truth))
+        proc.send_signal(signal.SIGTERM)
+        final = sub.wait_for(lambda m: m.topic == "event" and m["event"] == "shutdown", 10.0)
+        assert final is not None, "no final shutdown event"
+    assert proc.wait(10) == 0
+    log = proc.stderr.read()
+    assert '"event": "listening"' in log and '"event": "exited"' in log
+
+
+CONTROLLER = """
+import sys
+from service.client import Client
+c = Client(sys.argv[1], client_id="doomed")
+c.call("activate")
+c.call("start_exploration", repeat=True)
+print("exploring", flush=True)
+sys.stdin.read()
+"""
+
+
+def test_controller_dies_lease_expires_finger_holds_then_stops() -> None:
+    config = loopback_config({"backend": {"step_duration_s": 0.1},
+                              "lease": {"ttl_s": 0.5, "hold_s": 0.4}})
+    with running_node(config) as node, \
+            Subscriber(node.endpoints["pub"], ["event", "state"]) as sub, \
+            Client(node.endpoints["cmd"]) as observer:
+        controller = subprocess.Popen([sys.executable, "-c", CONTROLLER, node.endpoints["cmd"]],
+                                      cwd=ROOT, stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                                      text=True)
+        try:
+            assert controller.stdout.readline().strip() == "exploring"
+            assert sub.wait_for(lambda m: m.topic == "state" and m["moving"], 10.0)
+            controller.kill()
+            controller.wait(10)
+        finally:
+            if controller.poll() is None:
+                controller.kill()
+        events: list[str] = []
+        steps_at_hold = None
+        last_state = None
+        for _ in range(2000):
+            m = sub.recv(5.0)
+            assert m is not None, f"stream stalled; events so far {events}"
+            if m.topic == "state":
+                last_state = m
+                continue
+            events.append(m["event"])
+            if m["event"] == "holding":
+                steps_at_hold = last_state["steps_done"]
+                assert observer.call("ping") == {"pong": True}  # others still served
+            if m["event"] == "stopped":
+                break
+        assert events[events.index("lease_expired"):] [:2] == ["lease_expired", "holding"]
+        assert events[-1] == "stopped"
+        after = sub.wait_for(lambda m: m.topic == "state", 5.0)
+        assert after["state"] == "inactive" and not after["torque_on"]
+        assert not after["exploring"]
+        assert after["steps_done"] <= steps_at_hold + 1  # at most the step under way finished
+        status = observer.status()
+        assert status["state"] == "inactive" and status["lease"]["holder"] is None
+        assert observer.call("activate")["state"] == "active"  # the lease is free for others
+
+
+def test_bad_config_is_one_line_and_exit_2(tmp_path: Path, capsys) -> None:
+    from service.daemon import main
+
+    cfg = tmp_path / "hapticd.toml"
+    cfg.write_text("[loop]\nrate_hz = 200\nrate_hx = 5\n")
+    assert main(["--config", str(cfg)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "rate_hx" in err
+    exposed = tmp_path / "exposed.toml"
+    exposed.write_text('[endpoints]\npub = "tcp://0.0.0.0:*"\ncmd = "tcp://127.0.0.1:*"\n')
+    assert main(["--config", str(exposed)]) == 2
+    assert "without CurveZMQ" in capsys.readouterr().err
+
+
+def test_thread_mode_localizes_off_the_control_path() -> None:
+    config = loopback_config({"backend": {"step_duration_s": 0.01},
+                              "loop": {"localizer_mode": "thread", "cloud_hz": 50.0}})
+    with running_node(config) as node, \
+            Subscriber(node.endpoints["pub"], ["estimate", "cloud"]) as sub, \
+            Client(node.endpoints["cmd"]) as ctl:
+        ctl.call("activate")
+        ctl.call("start_exploration")
+        clouds = []
+        done = sub.wait_for(lambda m: (clouds.append(m) if m.topic == "cloud" else None)
+                            or (m.topic == "estimate" and m["converged"]), 30.0)
+        assert done is not None
+        np.testing.assert_allclose(done["pose"], ctl.status()["sim_truth"], atol=1e-9)
+        assert clouds and all(c["poses"].shape[1] == 3 for c in clouds)
+        assert ctl.status()["timing"]["localizer_p99_ms"] == 0.0  # never on the loop thread
+
+
+def test_lease_keeper_holds_control_through_long_waits() -> None:
+    from service.client import LeaseKeeper
+
+    config = loopback_config({"lease": {"ttl_s": 0.3, "hold_s": 0.1}})
+    with running_node(config) as node, Client(node.endpoints["cmd"]) as ctl, \
+            Subscriber(node.endpoints["pub"], ["state"]) as sub:
+        ctl.call("activate")
+        with LeaseKeeper(node.endpoints["cmd"], ctl.client_id, interval_s=0.05) as keeper:
+            first = sub.recv(5.0)
+            later = sub.wait_for(lambda m: m.t_mono_ns - first.t_mono_ns > 1.0e9, 5.0)
+            assert later["state"] == "active" and later["lease_holder"] == ctl.client_id
+            assert keeper.error is None
+        assert ctl.call("deactivate")["state"] == "inactive"

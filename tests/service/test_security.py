@@ -1,0 +1,67 @@
+"""Loopback by default; CurveZMQ required (and working) for anything else."""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import pytest
+import zmq
+
+from service.client import Client, CommandTimeout
+from service.config import SecurityConfig
+from service.errors import ConfigError
+from service.harness import loopback_config, running_node
+from service.security import check_binds, client_curve_options, generate_keys, is_loopback
+
+
+@pytest.mark.parametrize("endpoint, local", [
+    ("tcp://127.0.0.1:5560", True), ("tcp://127.8.0.1:*", True), ("tcp://localhost:1", True),
+    ("tcp://[::1]:5560", True), ("ipc:///tmp/x", True), ("inproc://x", True),
+    ("tcp://0.0.0.0:5560", False), ("tcp://*:5560", False), ("tcp://192.168.1.4:1", False),
+    ("tcp://eth0:5560", False), ("udp://127.0.0.1:1", False),
+])
+def test_loopback_detection(endpoint: str, local: bool) -> None:
+    assert is_loopback(endpoint) is local
+
+
+def test_exposed_bind_needs_curve() -> None:
+    with pytest.raises(ConfigError, match="without CurveZMQ"):
+        check_binds(["tcp://127.0.0.1:1", "tcp://*:5561"], SecurityConfig())
+    config = loopback_config()
+    exposed = dataclasses.replace(config, endpoints=dataclasses.replace(
+        config.endpoints, pub="tcp://0.0.0.0:*"))
+    with pytest.raises(ConfigError, match="without CurveZMQ"), running_node(exposed):
+        pass
+
+
+def test_curve_admits_only_authorized_clients(tmp_path: Path) -> None:
+    _, server_secret = generate_keys(tmp_path / "server", "server")
+    clients = tmp_path / "clients"
+    client_public, client_secret = generate_keys(tmp_path / "mine", "lab")
+    clients.mkdir()
+    (clients / "lab.key").write_bytes(client_public.read_bytes())
+    _, stranger_secret = generate_keys(tmp_path / "other", "stranger")
+    config = dataclasses.replace(loopback_config(), security=SecurityConfig(
+        curve=True, server_secret_key=str(server_secret), authorized_clients=str(clients)))
+    server_public = str(tmp_path / "server" / "server.key")
+    with running_node(config) as node:
+        ok = client_curve_options(server_public, str(client_secret))
+        with Client(node.endpoints["cmd"], socket_options=ok, timeout_s=5.0) as c:
+            assert c.call("ping") == {"pong": True}
+        bad = client_curve_options(server_public, str(stranger_secret))
+        with Client(node.endpoints["cmd"], socket_options=bad, timeout_s=0.5,
+                    retries=0) as c, pytest.raises(CommandTimeout):
+            c.call("ping")
+        with Client(node.endpoints["cmd"], timeout_s=0.5, retries=0) as c, \
+                pytest.raises(CommandTimeout):
+            c.call("ping")  # plain text is refused too
+    assert zmq.has("curve")
+
+
+def test_a_busy_endpoint_is_a_config_error() -> None:
+    with running_node(loopback_config()) as node:
+        taken = dataclasses.replace(loopback_config(), endpoints=dataclasses.replace(
+            loopback_config().endpoints, cmd=node.endpoints["cmd"]))
+        with pytest.raises(ConfigError, match="cannot bind"), running_node(taken):
+            pass

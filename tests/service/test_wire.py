@@ -1,0 +1,85 @@
+"""The wire format: round trips, and strict refusal of everything else."""
+
+from __future__ import annotations
+
+import msgpack
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from hypothesis.extra import numpy as hnp
+
+from service import wire
+
+DTYPES = [np.float64, np.float32, np.int64, np.int32, np.uint8, np.bool_]
+
+
+def test_envelope_round_trip_with_nested_arrays() -> None:
+    poses = np.arange(12, dtype=np.float64).reshape(4, 3)
+    data = wire.encode("cloud", 7, {"poses": poses, "meta": {"w": np.ones(2, np.float32)},
+                                     "n": np.int64(3), "t": (1, 2)})
+    msg = wire.decode(data, topic="cloud")
+    assert (msg.type, msg.seq, msg.topic) == ("cloud", 7, "cloud")
+    assert msg.t_mono_ns > 0 and msg.t_wall_ns > 1_600_000_000 * 10**9
+    np.testing.assert_array_equal(msg["poses"], poses)
+    assert msg["meta"]["w"].dtype == np.float32
+    assert msg["n"] == 3 and msg["t"] == [1, 2]
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.sampled_from(DTYPES).flatmap(
+    lambda dt: hnp.arrays(dt, hnp.array_shapes(min_dims=0, max_dims=3, max_side=5))))
+def test_any_numeric_array_survives(a: np.ndarray) -> None:
+    back = wire.unpack_array(msgpack.unpackb(msgpack.packb(wire.pack_array(a))))
+    assert back.dtype == a.dtype.newbyteorder("<") and back.shape == a.shape
+    np.testing.assert_array_equal(back, a)
+
+
+def test_big_endian_arrays_are_sent_little_endian() -> None:
+    a = np.arange(3, dtype=">f8")
+    packed = wire.pack_array(a)
+    assert packed["dtype"] == "<f8"
+    np.testing.assert_array_equal(wire.unpack_array(packed), a)
+
+
+@pytest.mark.parametrize("data, code", [
+    (b"\xc1\xff garbage", "malformed"),
+    (msgpack.packb([1, 2, 3]), "malformed"),
+    (msgpack.packb(msgpack.ExtType(5, b"x")), "malformed"),
+    (b"\x00" * (wire.MAX_MESSAGE_BYTES + 1), "too_large"),
+    (msgpack.packb({1: 2}), "malformed"),
+])
+def test_unpack_refuses_garbage(data: bytes, code: str) -> None:
+    with pytest.raises(wire.WireError) as err:
+        wire.unpack_map(data)
+    assert err.value.code == code
+
+
+def test_bad_envelopes() -> None:
+    good = {"v": 1, "type": "state", "seq": 1, "t_mono_ns": 1, "t_wall_ns": 1}
+    wire.check_envelope(good)
+    for change, code in [({"v": 2}, "bad_version"), ({"v": "1"}, "bad_version"),
+                         ({"type": 3}, "malformed"), ({"seq": "x"}, "malformed"),
+                         ({"seq": True}, "malformed")]:
+        with pytest.raises(wire.WireError) as err:
+            wire.check_envelope({**good, **change})
+        assert err.value.code == code
+
+
+@pytest.mark.parametrize("array", [
+    {"dtype": "|O", "shape": [1], "data": b"\x00" * 8},
+    {"dtype": "<f8", "shape": [2], "data": b"\x00" * 8},
+    {"dtype": "<f8", "shape": [-1], "data": b""},
+    {"dtype": "<f8", "shape": [1, 1, 1, 1, 1], "data": b"\x00" * 8},
+    {"dtype": "<f8", "shape": "1", "data": b"\x00" * 8},
+])
+def test_bad_arrays_are_refused(array: dict) -> None:
+    with pytest.raises(wire.WireError):
+        wire.unpack_array(array)
+
+
+def test_objects_cannot_be_sent() -> None:
+    with pytest.raises(wire.WireError):
+        wire.pack_array(np.array([object()]))
+    with pytest.raises(ValueError):
+        wire.encode("state", 1, {"seq": 3})

@@ -1,0 +1,177 @@
+"""B4 `service`: the daemon's real-time loop under load (BENCHMARKS.md).
+
+`hapticd` runs as its own process with the simulated backend at 200 Hz, localizing B2
+episodes (noise, continuous pose) back to back. The run is made twice: with no subscriber,
+and with N subscribers of which one never reads (its queue fills and PUB drops for it
+alone). A controller in this process keeps the lease and times `ping` round trips; the
+daemon reports tick period, overruns and localizer work per tick over the measured window.
+
+    haptic bench service --duration 60 --json b4.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import signal
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import zmq
+
+from service.client import Client, Subscriber
+from service.errors import ConfigError
+
+CONFIG = """
+[backend]
+name = "sim"
+step_duration_s = {step_s}
+[scenario]
+noise = true
+max_steps = 60
+seed = {seed}
+[loop]
+rate_hz = {rate}
+[endpoints]
+pub = "{pub}"
+cmd = "{cmd}"
+[lease]
+ttl_s = 5.0
+"""
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--duration", type=float, default=60.0,
+                        help="seconds measured per run (default: %(default)s)")
+    parser.add_argument("--rate", type=float, default=200.0, help="loop rate, Hz")
+    parser.add_argument("--subscribers", type=int, default=10,
+                        help="subscribers in the loaded run, one of which never reads")
+    parser.add_argument("--step-s", type=float, default=0.02,
+                        help="simulated step duration, s (default: %(default)s)")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--ping-hz", type=float, default=20.0,
+                        help="command round trips timed per second")
+    parser.add_argument("--json", type=Path, metavar="FILE", help="write the figures as JSON")
+
+
+class Reader(threading.Thread):
+    """A subscriber that reads and decodes everything, counting messages and gaps."""
+
+    def __init__(self, endpoint: str, ctx: zmq.Context) -> None:
+        super().__init__(daemon=True)
+        self.sub = Subscriber(endpoint, ctx=ctx)
+        self.stop = threading.Event()
+        self.episodes_done = 0
+
+    def run(self) -> None:
+        while not self.stop.is_set():
+            msg = self.sub.recv(0.1)
+            if msg is not None and msg.topic == "event" and msg["event"] == "episode_done":
+                self.episodes_done += 1
+        self.sub.close()
+
+
+def _percentiles(values: list[float]) -> dict[str, float | None]:
+    if not values:
+        return {"p50": None, "p99": None, "max": None}
+    a = np.asarray(values)
+    return {"p50": float(np.percentile(a, 50)), "p99": float(np.percentile(a, 99)),
+            "max": float(a.max())}
+
+
+def measure(subscribers: int, args: argparse.Namespace) -> dict[str, Any]:
+    """One run of the daemon with `subscribers` subscribers (one stuck if any)."""
+    with tempfile.TemporaryDirectory(dir="/tmp", prefix="b4-") as tmp:
+        pub, cmd = f"ipc://{tmp}/pub", f"ipc://{tmp}/cmd"
+        cfg = Path(tmp) / "hapticd.toml"
+        cfg.write_text(CONFIG.format(step_s=args.step_s, seed=args.seed, rate=args.rate,
+                                     pub=pub, cmd=cmd))
+        proc = subprocess.Popen([sys.executable, "-m", "service.daemon", "--config", str(cfg),
+                                 "--log-level", "warning"])
+        ctx = zmq.Context()
+        readers: list[Reader] = []
+        stuck = None
+        try:
+            ctl = Client(cmd, ctx=ctx, timeout_s=20.0, retries=0)
+            ctl.call("ping")
+            if subscribers > 0:
+                stuck = ctx.socket(zmq.SUB)  # connected, subscribed, never read
+                stuck.setsockopt(zmq.SUBSCRIBE, b"")
+                stuck.connect(pub)
+                readers = [Reader(pub, ctx) for _ in range(subscribers - 1)]
+                for r in readers:
+                    r.start()
+            ctl.timeout_s = 2.0
+            ctl.call("activate")
+            ctl.call("start_exploration", repeat=True)
+            ctl.call("reset_stats")
+            rtts: list[float] = []
+            end = time.monotonic() + args.duration
+            period = 1.0 / args.ping_hz
+            next_ping = time.monotonic()
+            while time.monotonic() < end:
+                t0 = time.perf_counter()
+                ctl.call("ping")
+                rtts.append((time.perf_counter() - t0) * 1e3)
+                next_ping += period
+                time.sleep(max(0.0, next_ping - time.monotonic()))
+            status = ctl.status()
+            ctl.close()
+        finally:
+            for r in readers:
+                r.stop.set()
+            for r in readers:
+                r.join(5)
+            if stuck is not None:
+                stuck.close(linger=0)
+            if proc.poll() is None:
+                proc.send_signal(signal.SIGTERM)
+            try:
+                proc.wait(15)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait(5)
+            ctx.term()
+    t = status["timing"]
+    gaps = [sum(r.sub.gaps.values()) for r in readers]
+    received = [sum(r.sub.received.values()) for r in readers]
+    return {
+        "subscribers": subscribers, "stuck_subscribers": 1 if subscribers else 0,
+        "duration_s": args.duration, "rate_hz": args.rate, "ticks": t["ticks"],
+        "period_ms": {"p50": t["period_p50_ms"], "p99": t["period_p99_ms"],
+                      "max": t["period_max_ms"]},
+        "overruns": t["overruns"], "skipped_periods": t["skipped"],
+        "tick_work_ms": {"p50": t["work_p50_ms"], "p99": t["work_p99_ms"],
+                         "max": t["work_max_ms"]},
+        "localizer_work_per_tick_ms": {"p99": t["localizer_p99_ms"],
+                                       "max": t["localizer_max_ms"]},
+        "episodes_started": (status["estimate"] or {}).get("episode", 0),
+        "published": status["published"],
+        "reader_received": {"min": min(received, default=0), "max": max(received, default=0)},
+        "reader_gaps": {"min": min(gaps, default=0), "max": max(gaps, default=0)},
+        "command_rtt_ms": _percentiles(rtts), "commands_timed": len(rtts),
+    }
+
+
+def run(args: argparse.Namespace) -> int:
+    if not args.duration > 0 or not args.rate > 0 or args.subscribers < 2:
+        raise ConfigError("--duration and --rate must be > 0 and --subscribers >= 2")
+    results = [measure(0, args), measure(args.subscribers, args)]
+    for r in results:
+        p, w = r["period_ms"], r["localizer_work_per_tick_ms"]
+        rtt = r["command_rtt_ms"]
+        print(f"{r['subscribers']:>2} subscribers ({r['stuck_subscribers']} stuck): "
+              f"period p50 {p['p50']:.3f} p99 {p['p99']:.3f} max {p['max']:.3f} ms, "
+              f"overruns {r['overruns']} of {r['ticks']} ticks, localizer p99 {w['p99']:.3f} ms"
+              f", episodes {r['episodes_started']}, published {sum(r['published'].values())}"
+              f", reader gaps {r['reader_gaps']['max']}, rtt p50 {rtt['p50']:.3f} "
+              f"p99 {rtt['p99']:.3f} ms")
+    if args.json:
+        args.json.write_text(json.dumps({"scenario": "service", "runs": results}, indent=2))
+    return 0
