@@ -173,6 +173,9 @@ class Node:
             self._next_cloud_ns = tick.start_ns + int(1e9 / self.config.loop.cloud_hz)
             hyp = self.explorer.cloud()
         if hyp is not None:
+            if self.explorer.estimate is not None:
+                # Re-sent at the cloud's pace so late subscribers catch up with the belief.
+                self.pub.publish("estimate", "estimate", self.explorer.estimate_fields())
             self.pub.publish("cloud", "cloud", {
                 "episode": self.explorer.episode, "step": self.explorer.steps,
                 "poses": hyp.poses.astype(np.float32), "weights": hyp.weights.astype(np.float32),

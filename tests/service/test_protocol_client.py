@@ -96,3 +96,20 @@ def test_plain_client_reads_state_and_commands_the_service(endpoints) -> None:
         assert c.call("deactivate")["result"]["state"] == "inactive"
     finally:
         c.close()
+
+
+def test_a_subscriber_joining_after_convergence_still_gets_the_estimate(endpoints) -> None:
+    first = Plain(endpoints["pub"], endpoints["cmd"])
+    try:
+        first.call("activate")
+        first.call("start_exploration")
+        while not first.next(b"estimate", 30000)["converged"]:
+            pass
+    finally:
+        first.close()
+    late = Plain(endpoints["pub"], endpoints["cmd"])
+    try:
+        est = late.next(b"estimate", 5000)
+        assert est["converged"] and est["pose"] is not None
+    finally:
+        late.close()
