@@ -10,6 +10,10 @@ from service.errors import ConfigError
 from service.registry import LOCALIZERS, POLICIES
 from service.scenario import RunSettings
 
+HARDWARE_SENSOR_SIGMA = 0.0002
+"""Assumed centre noise on real servos: encoder rounding (about 0.1 mm at the tip for the
+preset hands) times the surface slope; the simulator's noise-free tolerance is far tighter."""
+
 
 def add_scenario_options(parser: argparse.ArgumentParser, *, defaults: RunSettings) -> None:
     """Map, finger, algorithm, policy and noise options, with `defaults` shown in --help."""
@@ -29,6 +33,10 @@ def add_scenario_options(parser: argparse.ArgumentParser, *, defaults: RunSettin
                    help=f"exploration policy (default: %(default)s). {POLICIES.help()}")
     g.add_argument("--noise", action="store_true", default=defaults.noise,
                    help="turn on BENCHMARKS.md B2's noise and model-mismatch models")
+    g.add_argument("--sensor-sigma", type=float, default=None, metavar="M",
+                   help="measurement noise (metres) the localizer assumes; default: exact "
+                        "for a noise-free simulation, B2's with --noise, "
+                        f"{HARDWARE_SENSOR_SIGMA} m on hardware")
     g.add_argument("--max-steps", type=int, default=defaults.max_steps, metavar="N",
                    help="give up after N steps (default: %(default)s)")
     g.add_argument("--headings", type=int, default=defaults.headings, metavar="N",
@@ -63,6 +71,7 @@ def settings_from_args(args: argparse.Namespace, **overrides: Any) -> RunSetting
         map=args.map, spacing=args.spacing, radius=args.radius, step=args.step,
         algorithm=args.algorithm, policy=args.policy, noise=args.noise,
         max_steps=args.max_steps, headings=args.headings, localizer_options=options,
+        sensor_sigma=getattr(args, "sensor_sigma", None),
         seed=getattr(args, "seed", 0), start=parse_start(getattr(args, "start", None)))
     fields.update(overrides)
     return RunSettings(**fields)

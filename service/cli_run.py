@@ -5,9 +5,10 @@ from __future__ import annotations
 import argparse
 import json
 import math
+from dataclasses import replace
 from pathlib import Path
 
-from service.cli_options import add_scenario_options, settings_from_args
+from service.cli_options import HARDWARE_SENSOR_SIGMA, add_scenario_options, settings_from_args
 from service.episode import StepRecord
 from service.errors import ConfigError
 from service.maps import load_map
@@ -48,6 +49,8 @@ def run(args: argparse.Namespace) -> int:
     if args.backend != "sim":
         if not args.port or not args.hand:
             raise ConfigError(f"--backend {args.backend} needs --port and --hand")
+        if settings.sensor_sigma is None:
+            settings = replace(settings, sensor_sigma=HARDWARE_SENSOR_SIGMA)
         cls = BACKENDS.load(args.backend)
         backend_factory = lambda truth: cls.from_cli(  # noqa: E731
             port=args.port, hand=args.hand, radius=settings.radius, step=settings.step)

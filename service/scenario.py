@@ -36,6 +36,8 @@ class RunSettings:
     """(x, y, heading) in metres and radians; None draws one from the seed."""
     max_steps: int = 100
     headings: int = 11
+    sensor_sigma: float | None = None
+    """Measurement noise (metres) the localizer assumes; None: what `noise` implies."""
     localizer_options: dict[str, Any] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
@@ -47,6 +49,10 @@ class RunSettings:
             raise ConfigError(f"--max-steps must be at least 1, got {self.max_steps}")
         if self.headings < 1:
             raise ConfigError(f"headings must be at least 1, got {self.headings}")
+        if self.sensor_sigma is not None and not (np.isfinite(self.sensor_sigma)
+                                                  and self.sensor_sigma > 0):
+            raise ConfigError(f"--sensor-sigma must be a positive number of metres, "
+                              f"got {self.sensor_sigma}")
         if self.seed < 0:
             raise ConfigError(f"--seed must be >= 0, got {self.seed}")
         LOCALIZERS.load(self.algorithm)
@@ -108,7 +114,9 @@ def draw_truth(settings: RunSettings, height_map: HeightMap, rng: np.random.Gene
 
 def build_localizer(settings: RunSettings, surface: ContactSurface,
                     rng: np.random.Generator) -> Localizer:
-    motion, sensor = models_for(settings.noise_spec)
+    assumed = (settings.noise_spec if settings.sensor_sigma is None
+               else NoiseSpec(measurement_sigma=settings.sensor_sigma))
+    motion, sensor = models_for(assumed)
     ctx = LocalizerContext(surface=surface, motion=motion, sensor=sensor,
                            step_length=settings.step, rng=rng)
     cls = LOCALIZERS.load(settings.algorithm)

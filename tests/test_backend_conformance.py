@@ -201,20 +201,26 @@ def test_dynamixel_on_the_emulator_localizes_like_the_simulated_finger(seed):
     assert buses[0].stats["rx_packets"] > 3 * len(hil.result.steps)  # it really used the bus
 
 
-def test_haptic_run_dynamixel_on_haptic_emulate(tmp_path, capsys):
-    """The command-line path: `haptic emulate` then `haptic run --backend dynamixel`."""
+@pytest.mark.parametrize("noise", [True, False], ids=["noise", "noise-free"])
+def test_haptic_run_dynamixel_on_haptic_emulate(tmp_path, capsys, noise):
+    """The command-line path: `haptic emulate` then `haptic run --backend dynamixel`.
+
+    Noise-free, the simulator's exact tolerance would eliminate the truth on encoder
+    readings; hardware runs assume `HARDWARE_SENSOR_SIGMA` instead.
+    """
     from service import cli
     from tools.emulate_cli import start_emulator
 
     x, y, heading = _grid_settings(3).start
     start = f"{x!r},{y!r},{float(np.degrees(heading))!r}"
     args = argparse.Namespace(hand="spatial", map="peaks", spacing=None, radius=0.008,
-                              step=STEP, algorithm="elimination", policy="paper", noise=True,
+                              step=STEP, algorithm="elimination", policy="paper", noise=noise,
                               max_steps=100, headings=11, sweep=None, seed=3, start=start,
                               no_fast_read=False)
     bus, _ = start_emulator(args)
     try:
-        common = ["--seed", "3", "--noise", "--start", start, "--quiet"]
+        common = ["--seed", "3", "--start", start, "--quiet", "--algorithm", "elimination",
+                  "--policy", "paper", *(["--noise"] if noise else [])]
         assert cli.main(["run", "--backend", "dynamixel", "--port", bus.port, "--hand",
                          "spatial", "--json", str(tmp_path / "hil.json"), *common]) == 0
     finally:
