@@ -153,9 +153,12 @@ def models_for(noise: NoiseSpec) -> tuple[RigidMotion, RobustGaussian]:
     """
     if not noise.any:
         return RigidMotion(0.0), RobustGaussian(sigma_m=1e-7, gate=5.0)
+    # Measured on B2 (peaks): the refined fit's residuals are about 0.12 mm while the sum
+    # of every term at its worst is 0.35 mm, because the finger's dilation smooths the
+    # world's perturbation and the height offset is fitted. 0.2 mm keeps a margin.
     slope = 1.0
-    sigma = float(np.sqrt(2 * noise.measurement_sigma**2 + 2 * noise.surface_sigma**2
-                          + 2 * (slope * noise.measurement_sigma) ** 2))
+    sigma = float(np.sqrt(noise.measurement_sigma**2 + noise.surface_sigma**2 / 2
+                          + (slope * noise.measurement_sigma) ** 2))
     return (RigidMotion(noise.measurement_sigma),
             RobustGaussian(sigma_m=sigma, outlier_probability=0.02,
                            outlier_range_m=0.05, gate=5.0))

@@ -42,12 +42,20 @@ class Registry:
 LOCALIZERS = Registry("algorithm", {
     "elimination": Entry("service.localizers.elimination:Elimination",
                          "Algorithm III, process of elimination over a pose table"),
+    "grid": Entry("service.localizers.grid:Grid",
+                  "Algorithm I, position (and heading) probability grid"),
+    "match": Entry("service.localizers.match:Match",
+                   "Algorithm II, probability grid plus pattern matching of the readings"),
+    "particles": Entry("service.localizers.particles:Particles",
+                       "Algorithm IV, evolutionary Monte Carlo with a bounded pool"),
 })
 
 POLICIES = Registry("policy", {
     "paper": Entry("service.policies.paper:PaperPolicy",
                    "the paper's heuristic: the move 10 sampled candidates disagree on most"),
     "random": Entry("service.policies.paper:RandomPolicy", "a random unblocked move"),
+    "info-gain": Entry("service.policies.info_gain:InfoGainPolicy",
+                       "the move with the largest expected information about the pose"),
 })
 
 BACKENDS = Registry("backend", {

@@ -1,0 +1,65 @@
+"""Honest convergence: no wrong declarations on an ambiguous surface, and the rule itself."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from service.localizers.convergence import ConvergenceRule, distinct, group_modes
+from service.localizers.refine import Fit
+from service.localizers.symmetry import images, symmetries
+from service.maps import eggcrate, peaks
+from service.scenario import RunSettings
+from service.simulate import simulate
+from service.surface import contact_surface
+
+
+@pytest.mark.parametrize("name", ["particles", "grid"])
+@pytest.mark.parametrize("noise", [False, True])
+def test_egg_crate_gets_no_wrong_declaration(name, noise):
+    crate = eggcrate()
+    for seed in (1, 3):
+        report = simulate(RunSettings(map="eggcrate", algorithm=name, policy="info-gain",
+                                      seed=seed, noise=noise, max_steps=25), crate)
+        assert not report.score.wrong_declaration, f"{name} seed {seed} declared wrongly"
+
+
+def test_egg_crate_symmetries_read_the_same_heights():
+    surface = contact_surface(eggcrate(), 0.008)
+    motions = symmetries(surface)
+    assert len(motions) > 10 and set(motions[:, 0]) == {0.0, 1.0, 2.0, 3.0}
+    pose = np.array([0.07, 0.11, 0.4])
+    rivals = images(surface, pose, motions)
+    x_max, _ = surface.map.extent
+    on_map = np.all((rivals[:, :2] > 0.02) & (rivals[:, :2] < x_max - 0.02), axis=1)
+    here = surface.height(0.07, 0.11)
+    for x, y, _ in rivals[on_map]:
+        assert surface.height(x, y) == pytest.approx(here, abs=1e-6)
+    assert len(symmetries(contact_surface(peaks(), 0.008))) == 0
+
+
+def _fit(**kw) -> Fit:
+    base = dict(pose=(0.1, 0.1, 0.0), position_sd=1e-4, heading_sd=0.005, rms=1.0,
+                max_abs=2.0, readings=8)
+    base.update(kw)
+    return Fit(**base)
+
+
+def test_rule_needs_readings_mass_fit_and_tightness():
+    rule = ConvergenceRule()
+    ok = dict(readings=8, noisy=True, mode_mass=0.9999, fit=_fit(), step_length=0.01)
+    assert rule.holds(**ok)
+    assert not rule.holds(**{**ok, "readings": 3})
+    assert not rule.holds(**{**ok, "mode_mass": 0.9})
+    assert not rule.holds(**{**ok, "fit": _fit(rms=5.0)})
+    assert not rule.holds(**{**ok, "fit": _fit(position_sd=2e-3)})
+    assert not rule.holds(**{**ok, "fit": None})
+    assert rule.loosened().holds(**{**ok, "fit": _fit(position_sd=1e-3)})
+
+
+def test_modes_group_and_merge():
+    poses = np.array([[0.1, 0.1, 0.0], [0.1005, 0.1, 0.01], [0.15, 0.1, 0.0]])
+    modes = group_modes(poses, np.array([3.0, 2.0, 1.0]), 0.0025, np.deg2rad(5))
+    assert modes.masses.tolist() == pytest.approx([5 / 6, 1 / 6])
+    assert modes.labels.tolist() == [0, 0, 1]
+    assert distinct(poses, np.array([1.0, 2.0, 0.5]), 0.0025, np.deg2rad(5)).tolist() == [1, 2]

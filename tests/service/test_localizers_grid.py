@@ -1,0 +1,57 @@
+"""Algorithms I and II: the probability grid and its pattern matching."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from service.errors import ConfigError
+from service.localizers.base import LocalizerContext
+from service.localizers.grid import Grid
+from service.localizers.match import Match, best_headings
+from service.maps import peaks
+from service.models import NoiseSpec, models_for
+from service.scenario import RunSettings
+from service.simulate import simulate
+from service.surface import HeightMap, contact_surface
+
+
+@pytest.fixture(scope="module")
+def surface():
+    return contact_surface(peaks(), 0.008)
+
+
+def _ctx(surface):
+    motion, sensor = models_for(NoiseSpec())
+    return LocalizerContext(surface=surface, motion=motion, sensor=sensor, step_length=0.01)
+
+
+def test_position_only_grid_localizes_through_its_heading_scan():
+    report = simulate(RunSettings(algorithm="grid", policy="info-gain", seed=4, max_steps=30,
+                                  localizer_options={"headings": 1, "keep": 200}))
+    assert report.score.success
+
+
+def test_match_drops_cells_that_cannot_fit():
+    report = simulate(RunSettings(algorithm="match", policy="info-gain", seed=2, max_steps=30))
+    assert report.score.success
+
+
+def test_best_headings_finds_the_true_rotation(surface):
+    truth = np.array([0.12, 0.09, 0.7])
+    d = np.array([[0, 0], [0.01, 0], [0.01, 0.01], [0.02, 0.01], [0.02, 0.02]])
+    c, s = np.cos(truth[2]), np.sin(truth[2])
+    xs, ys = truth[0] + c * d[:, 0] - s * d[:, 1], truth[1] + s * d[:, 0] + c * d[:, 1]
+    z = np.array([surface.height(x, y) for x, y in zip(xs, ys, strict=True)])
+    history = np.column_stack([d, z - z[0]])
+    heading, rms = best_headings(surface, history, xs[-1:], ys[-1:], scan=72)
+    assert abs(heading[0] - truth[2]) < np.deg2rad(5)
+    assert rms[0] < 1e-3
+
+
+def test_bad_options_are_rejected(surface):
+    with pytest.raises(ConfigError):
+        Grid(_ctx(surface), headings=0)
+    profile = contact_surface(HeightMap(np.linspace(0, 0.01, 50), 0.001), 0.008)
+    with pytest.raises(ConfigError):
+        Match(_ctx(profile))

@@ -1,0 +1,53 @@
+"""Algorithm IV and its pool mechanics: resampling, thinning, niching, bounded work."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from service.localizers.pool import effective_sample_size, niche, systematic_resample, thin
+from service.maps import bumps
+from service.scenario import RunSettings
+from service.simulate import simulate
+
+
+def test_systematic_resample_follows_the_weights():
+    rng = np.random.default_rng(0)
+    w = np.array([0.0, 0.5, 0.25, 0.25])
+    idx = systematic_resample(w, 1000, rng)
+    counts = np.bincount(idx, minlength=4)
+    assert counts[0] == 0
+    np.testing.assert_allclose(counts / 1000, w, atol=0.002)
+
+
+def test_effective_sample_size():
+    assert effective_sample_size(np.ones(10)) == pytest.approx(10)
+    assert effective_sample_size(np.array([1.0, 0, 0])) == pytest.approx(1)
+
+
+def test_thin_keeps_the_count_and_every_strong_member():
+    rng = np.random.default_rng(1)
+    w = np.concatenate([np.full(5, 1.0), rng.uniform(0, 1e-3, 995)])
+    kept = thin(w, 100, rng)
+    assert len(kept) == 100 and len(np.unique(kept)) == 100
+    assert set(range(5)) <= set(kept.tolist())
+    assert np.array_equal(thin(w, 2000, rng), np.arange(1000))
+
+
+def test_niche_keeps_the_best_member_per_cell():
+    poses = np.array([[0.0101, 0.0101, 0.1], [0.0102, 0.0102, 0.1], [0.05, 0.05, 0.1]])
+    score = np.array([1.0, 2.0, 0.5])
+    kept = niche(poses, score, 0.001, np.deg2rad(2.0))
+    assert kept.tolist() == [1, 2]
+
+
+def test_compute_per_step_does_not_grow_with_the_map():
+    """Bounded work: the pool, hence the per-step work, is capped whatever the area."""
+    sizes = {}
+    for units in (20, 60):
+        m = bumps(units, seed=1)
+        report = simulate(RunSettings(map=f"bumps:{units}:1", algorithm="particles",
+                                      policy="info-gain", noise=True, seed=2,
+                                      max_steps=6), m)
+        sizes[units] = max(s.candidates for s in report.result.steps[1:])
+    assert sizes[60] <= 1.1 * max(sizes[20], 3000)

@@ -1,0 +1,112 @@
+"""B3 `scale`: compute per step as the map grows (BENCHMARKS.md B3).
+
+Seeded smooth random bumps (`bumps:SIZE:SEED`) of 20, 40 and 80 units at 10 samples per
+unit, with B2's noise; one row per algorithm and map size. A bounded-pool localizer
+(Algorithm IV) should stay flat after its first step; a table over every pose
+(Algorithm III) grows with the area.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+
+from service.cli_options import settings_from_args
+from service.errors import ConfigError
+from service.maps import load_map
+from service.registry import LOCALIZERS
+from service.scenario import RunSettings
+from tools.bench_common import add_bench_options, check_bench_args, fmt, run_episodes, summarize
+from tools.bench_common import write_json as _write_json
+
+RECOMMENDED = {"algorithm": "particles", "policy": "info-gain"}
+"""What B2/B3 run unless told otherwise (see the issue-4 report on RunSettings' defaults)."""
+DEFAULTS = dataclasses.replace(RunSettings(), noise=True, max_steps=60, **RECOMMENDED)
+COMPARED = ("particles", "elimination")
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    add_bench_options(p, defaults=DEFAULTS, runs=20)
+    p.set_defaults(algorithm=None)  # none given: compare Algorithms IV and III
+    p.add_argument("--sizes", default="20,40,80", metavar="UNITS,...",
+                   help="map sizes in units, comma separated (default: %(default)s)")
+    p.add_argument("--map-seed", type=int, default=1,
+                   help="seed of the bumps maps (default: %(default)s)")
+
+
+def _sizes(text: str) -> list[float]:
+    try:
+        sizes = [float(s) for s in text.split(",") if s.strip()]
+    except ValueError:
+        raise ConfigError(f"--sizes takes numbers separated by commas, got '{text}'") from None
+    if not sizes:
+        raise ConfigError("--sizes needs at least one size")
+    return sizes
+
+
+def run(args: argparse.Namespace) -> int:
+    check_bench_args(args)
+    sizes = _sizes(args.sizes)
+    algorithms = [args.algorithm] if args.algorithm else list(COMPARED)
+    for name in algorithms:
+        LOCALIZERS.load(name)
+    if args.map != DEFAULTS.map:
+        print("note: B3 builds its own bumps maps; --map is ignored (see --sizes, --map-seed)")
+    rows = []
+    for size in sizes:
+        spec = f"bumps:{size:g}:{args.map_seed}"
+        height_map = load_map(spec)
+        for name in algorithms:
+            settings = [settings_from_args(args, map=spec, algorithm=name, noise=True,
+                                           seed=args.first_seed + i) for i in range(args.runs)]
+            reports = run_episodes(settings, height_map, desc=f"B3 {name} {size:g}")
+            s = summarize(reports)
+            rows.append({
+                "algorithm": name, "policy": settings[0].policy, "map": spec,
+                "map_units": size, "runs": s["runs"], "successes": s["successes"],
+                "wrong_declarations": s["wrong_declarations"],
+                "steps": s["steps_median"], "steps_median": s["steps_median"],
+                "compute_ms_first_median": s["compute_ms_first_median"],
+                "compute_ms_median": s["compute_ms_median"],
+                "compute_ms_p99": s["compute_ms_p99"],
+                "compute_ms_after_first_median": s["compute_ms_after_first_median"],
+                "compute_ms_after_first_p99": s["compute_ms_after_first_p99"],
+            })
+            print_row(rows[-1])
+    _write_json(args.json, {"scenario": "scale", "settings": settings_from_args(
+        args, algorithm=algorithms[0], noise=True).to_json(), "rows": rows})
+    if args.plot:
+        plot_rows(rows, args.plot)
+        print(f"figure written to {args.plot}")
+    return 0
+
+
+def print_row(r: dict) -> None:
+    print(f"{r['algorithm']:<12} {r['map_units']:>4g} units  {r['successes']:>3}/{r['runs']:<3} "
+          f"ok  wrong {r['wrong_declarations']}  steps {fmt(r['steps'], '.0f'):>3}  compute "
+          f"first {fmt(r['compute_ms_first_median']):>8} ms  after it median "
+          f"{fmt(r['compute_ms_after_first_median']):>7} ms, p99 "
+          f"{fmt(r['compute_ms_after_first_p99']):>7} ms", flush=True)
+
+
+def plot_rows(rows: list[dict], path) -> None:
+    """Compute per step (after the first) against map size, one line per algorithm."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6, 4))
+    for name in dict.fromkeys(r["algorithm"] for r in rows):
+        mine = [r for r in rows if r["algorithm"] == name]
+        units = [r["map_units"] for r in mine]
+        for key, style in (("compute_ms_after_first_median", "-o"),
+                           ("compute_ms_after_first_p99", "--^")):
+            ax.plot(units, [r[key] or 0 for r in mine], style,
+                    label=f"{name} {key.rsplit('_', 1)[-1]}")
+    ax.set(xlabel="map size (units)", ylabel="ms per step after the first", yscale="log",
+           title="B3: compute per step as the map grows")
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
