@@ -107,10 +107,10 @@ class LoopConfig:
     """Publish `state` every N ticks."""
     cloud_points: int = 500
     stats_window: int = 1000
+    """Ticks the `state` timing percentiles cover."""
     localizer_mode: str = "sliced"
     """'sliced': anytime `work` under each tick's budget; 'thread': whole updates on a
     worker thread, for localizers whose slices are longer than a tick."""
-    """Ticks the `state` timing percentiles cover."""
 
     def __post_init__(self) -> None:
         _positive("loop.rate_hz", self.rate_hz)

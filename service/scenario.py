@@ -28,8 +28,8 @@ class RunSettings:
     spacing: float | None = None
     radius: float = 0.008
     step: float = 0.01
-    algorithm: str = "elimination"
-    policy: str = "paper"
+    algorithm: str = "particles"
+    policy: str = "info-gain"
     seed: int = 0
     noise: bool = False
     start: tuple[float, float, float] | None = None

@@ -177,7 +177,8 @@ def _grid_settings(seed: int) -> RunSettings:
     this arm is ~0.3 mm at the tip), so hardware runs use the noise-aware sensor model.
     """
     truth = draw_truth(RunSettings(seed=seed), MAP, np.random.default_rng(seed).spawn(4)[0])
-    return RunSettings(seed=seed, noise=True, start=truth.as_tuple())
+    return RunSettings(seed=seed, noise=True, start=truth.as_tuple(), algorithm="elimination",
+                       policy="paper")
 
 
 @pytest.mark.parametrize("seed", [0, 3])

@@ -12,6 +12,6 @@ def pose_spread(poses: np.ndarray, weights: np.ndarray | None = None) -> tuple[f
     w = np.full(len(poses), 1.0 / len(poses)) if weights is None else weights / weights.sum()
     mean_xy = w @ poses[:, :2]
     pos_var = w @ np.sum((poses[:, :2] - mean_xy) ** 2, axis=1)
-    resultant = abs(w @ np.exp(1j * poses[:, 2]))
-    heading_sd = float(np.sqrt(-2 * np.log(max(resultant, 1e-300))))
+    resultant = min(abs(w @ np.exp(1j * poses[:, 2])), 1.0)  # rounding can exceed 1
+    heading_sd = abs(float(np.sqrt(-2 * np.log(max(resultant, 1e-300)))))
     return float(np.sqrt(pos_var)), heading_sd

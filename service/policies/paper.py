@@ -23,9 +23,9 @@ class PaperPolicy:
     def next_move(self, view: PolicyInput) -> int:
         poses, weights = view.hypotheses.poses, view.hypotheses.weights
         moves = allowed_moves(view)
-        if len(poses) == 0:
+        if len(poses) == 0 or not np.any(weights > 0):
             return moves[int(view.rng.integers(len(moves)))]
-        k = min(self.samples, len(poses))
+        k = min(self.samples, int(np.count_nonzero(weights)))
         picked = view.rng.choice(len(poses), size=k, replace=False, p=weights / weights.sum())
         z, inside = predicted_heights(view, poses[picked])
         z = np.where(inside, z, np.nan)

@@ -87,3 +87,12 @@ def test_estimate_reports_spread_and_convergence():
 def test_unknown_sweep_is_rejected():
     with pytest.raises(ConfigError, match="sweep"):
         Elimination(context(), sweep="fast")
+
+
+def test_spread_of_identical_headings_is_zero_not_nan():
+    from service.localizers.spread import pose_spread
+
+    poses = np.tile([0.1, 0.1, 0.3], (7, 1))
+    pos_sd, head_sd = pose_spread(poses, np.full(7, 1 / 7))
+    assert pos_sd == pytest.approx(0.0, abs=1e-12) and head_sd == pytest.approx(0.0, abs=1e-6)
+    assert not np.isnan(head_sd)

@@ -73,3 +73,20 @@ def test_deterministic_and_beats_random_on_average(lookahead):
     surface = contact_surface(peaks(), 0.008)
     poses = np.array([[0.1, 0.1, 0.0], [0.12, 0.08, 1.0], [0.05, 0.15, 2.0]])
     assert policy.next_move(_view(surface, poses)) in range(4)
+
+
+def test_paper_policy_samples_only_candidates_with_weight():
+    """Fewer nonzero weights than the 10 samples must not crash the paper's heuristic."""
+    from service.localizers.base import Hypotheses
+    from service.maps import peaks
+    from service.policies.base import PolicyInput
+    from service.policies.paper import PaperPolicy
+    from service.surface import contact_surface
+
+    poses = np.array([[0.05, 0.05, 0.0], [0.1, 0.1, 1.0], [0.15, 0.1, 2.0]] * 5)
+    weights = np.zeros(len(poses))
+    weights[:3] = 1 / 3
+    view = PolicyInput(hypotheses=Hypotheses(poses, weights), displacement=np.zeros(2),
+                       blocked=frozenset(), surface=contact_surface(peaks(), 0.008),
+                       step_length=0.01, rng=np.random.default_rng(0))
+    assert PaperPolicy().next_move(view) in range(4)
