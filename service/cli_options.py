@@ -7,12 +7,9 @@ import math
 from typing import Any
 
 from service.errors import ConfigError
+from service.models import HARDWARE_SENSOR_SIGMA
 from service.registry import LOCALIZERS, POLICIES
 from service.scenario import RunSettings
-
-HARDWARE_SENSOR_SIGMA = 0.0002
-"""Assumed centre noise on real servos: encoder rounding (about 0.1 mm at the tip for the
-preset hands) times the surface slope; the simulator's noise-free tolerance is far tighter."""
 
 
 def add_scenario_options(parser: argparse.ArgumentParser, *, defaults: RunSettings) -> None:

@@ -8,10 +8,11 @@ import math
 from dataclasses import replace
 from pathlib import Path
 
-from service.cli_options import HARDWARE_SENSOR_SIGMA, add_scenario_options, settings_from_args
+from service.cli_options import add_scenario_options, settings_from_args
 from service.episode import StepRecord
 from service.errors import ConfigError
 from service.maps import load_map
+from service.models import HARDWARE_SENSOR_SIGMA
 from service.policies.base import MOVE_NAMES
 from service.registry import BACKENDS
 from service.scenario import RunSettings

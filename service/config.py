@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from service.errors import ConfigError
+from service.models import HARDWARE_SENSOR_SIGMA
 from service.registry import BACKENDS, LOCALIZERS, POLICIES
 from service.scenario import RunSettings
 
@@ -68,6 +69,9 @@ class ScenarioConfig:
     start: tuple[float, float, float] | None = None
     """Simulator only: the hidden start pose; None draws one from the seed."""
     localizer_options: dict[str, Any] = field(default_factory=dict)
+    sensor_sigma: float | None = None
+    """Measurement noise (m) the localizer assumes; None: from `noise`, or
+    HARDWARE_SENSOR_SIGMA on a hardware backend."""
 
     def __post_init__(self) -> None:
         if self.localizer not in LOCALIZERS.names():
@@ -88,7 +92,8 @@ class ScenarioConfig:
                                step=self.step, algorithm=self.localizer, policy=self.policy,
                                seed=self.seed, noise=self.noise, start=self.start,
                                max_steps=self.max_steps, headings=self.headings,
-                               localizer_options=dict(self.localizer_options))
+                               localizer_options=dict(self.localizer_options),
+                               sensor_sigma=self.sensor_sigma)
         except TypeError as exc:
             raise ConfigError(f"scenario: {exc}") from None
 
@@ -192,6 +197,13 @@ class DaemonConfig:
     lease: LeaseConfig = field(default_factory=LeaseConfig)
     auto_configure: bool = True
     """Open the backend at start-up (state inactive) instead of waiting for `configure`."""
+
+    def run_settings(self) -> RunSettings:
+        """The scenario's settings; on hardware the localizer assumes encoder-level noise."""
+        settings = self.scenario.run_settings()
+        if self.backend.name != "sim" and settings.sensor_sigma is None:
+            settings = dataclasses.replace(settings, sensor_sigma=HARDWARE_SENSOR_SIGMA)
+        return settings
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)

@@ -113,6 +113,12 @@ class RobustGaussian:
         return np.abs(residual) <= self.tolerance
 
 
+HARDWARE_SENSOR_SIGMA = 0.0002
+"""Centre noise (metres) assumed on real servos: encoder rounding (about 0.1 mm at the tip
+of the preset hands) times the surface slope. The simulator's noise-free tolerance (0.5 um)
+would eliminate the true pose on encoder readings."""
+
+
 @dataclass(frozen=True)
 class NoiseSpec:
     """The noise the finger and world actually have (BENCHMARKS.md B2), all in metres/radians."""

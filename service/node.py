@@ -45,7 +45,7 @@ def make_backend(config: DaemonConfig, surface: Any) -> tuple[Backend, Truth | N
     The seed is split as `service.simulate` splits it, so `hapticd` and `haptic run` with
     the same seed hide the same start pose.
     """
-    settings = config.scenario.run_settings()
+    settings = config.run_settings()
     truth_rng, world_rng, loc_rng, _ = np.random.default_rng(settings.seed).spawn(4)
     cls = BACKENDS.load(config.backend.name)
     if config.backend.name != "sim":
@@ -300,7 +300,7 @@ class Node:
     def configure(self, changes: dict[str, Any]) -> dict[str, Any]:
         self.lifecycle.check("configure")
         new = self.config.updated(changes)
-        surface = surface_for(new.scenario.run_settings())
+        surface = surface_for(new.run_settings())
         backend, truth, rng = make_backend(new, surface)
         try:
             backend.open()
@@ -313,7 +313,7 @@ class Node:
         if self.explorer is not None:
             self.explorer.close()
         offload = new.loop.localizer_mode == "thread"
-        self.explorer = Explorer(new.scenario.run_settings(), surface, rng, offload=offload,
+        self.explorer = Explorer(new.run_settings(), surface, rng, offload=offload,
                                  cloud_points=new.loop.cloud_points)
         if offload:  # let the loop thread take the GIL back from the worker promptly
             sys.setswitchinterval(min(sys.getswitchinterval(), 0.0005))

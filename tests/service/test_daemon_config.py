@@ -75,3 +75,15 @@ def test_lifecycle_table() -> None:
         assert not lc.allowed(event)
     lc.apply("reset")
     assert lc.state is State.INACTIVE and lc.fault is None and not lc.valid_read
+
+
+def test_hardware_backends_assume_encoder_noise_unless_told() -> None:
+    from service.config import BackendConfig, DaemonConfig, ScenarioConfig
+    from service.models import HARDWARE_SENSOR_SIGMA
+
+    assert DaemonConfig().run_settings().sensor_sigma is None
+    hw = DaemonConfig(backend=BackendConfig(name="dynamixel"))
+    assert hw.run_settings().sensor_sigma == HARDWARE_SENSOR_SIGMA
+    told = DaemonConfig(backend=BackendConfig(name="dynamixel"),
+                        scenario=ScenarioConfig(sensor_sigma=0.0005))
+    assert told.run_settings().sensor_sigma == 0.0005
