@@ -16,6 +16,7 @@ SCENARIOS: dict[str, tuple[str, str]] = {
     "scale": ("tools.bench_scale", "B3: compute per step as the map grows"),
     "service": ("tools.bench_service", "B4: the real-time loop under load"),
     "bus": ("tools.bench_bus", "bus cycle time on the servo-bus emulator"),
+    "anytime": ("tools.bench_anytime", "longest localizer work slice under a time budget"),
 }
 
 

@@ -20,6 +20,7 @@ by least squares and declared only when `convergence.py` agrees.
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from typing import ClassVar
 
 import numpy as np
@@ -35,6 +36,7 @@ from service.localizers.convergence import (
     spread,
 )
 from service.localizers.fitting import sample, typical_slope
+from service.localizers.pool import AnytimeJob
 from service.localizers.symmetry import symmetries
 from service.models import rotate
 
@@ -79,7 +81,7 @@ class Grid:
         self.prob = np.zeros((headings, *self.gx.shape))
         self.history = np.zeros((1, 3))
         self.verdict = Verdict(None, np.empty((0, 3)), 0.0, None, 0.0, False)
-        self._pending: Measurement | None = None
+        self._job: AnytimeJob | None = None
 
     # -- updates ---------------------------------------------------------------------------
     def start(self, first: Measurement) -> None:
@@ -87,41 +89,46 @@ class Grid:
         self.prob[:] = 1.0 / self.prob.size
 
     def begin_update(self, measurement: Measurement) -> None:
-        self._pending = measurement
+        self._job = AnytimeJob(lambda job: self._update(measurement))
 
     def work(self, budget: Budget) -> bool:
-        """One grid update is a few vectorized passes: it is done in one slice."""
-        m = self._pending
-        if m is None:
-            return True
-        self._pending = None
+        """Sliced between heading layers (or ring directions), then the judgement."""
+        return True if self._job is None else self._job.work(budget)
+
+    def _update(self, m: Measurement) -> Iterator[int]:
         previous = self.history[-1]
         self.history = np.vstack([self.history, np.asarray(m.displacement, dtype=np.float64)])
         step = self.history[-1] - previous
-        self._predict_and_weigh(step[:2], step[2])
+        yield from self._predict_and_weigh(step[:2], step[2])
         self._after_update()
+        yield self.prob.size
         self.verdict = self._judge()
-        return True
 
     def _likelihood(self, dz_cells: np.ndarray, dz: float) -> np.ndarray:
         z = (dz_cells - dz) / self.grid_sigma
         return (1 - self.outlier_p) * np.exp(-0.5 * z * z) / self.grid_sigma + \
             self.outlier_p / self.outlier_range
 
-    def _predict_and_weigh(self, d: np.ndarray, dz: float) -> None:
-        """Eq. 1-3: spread each cell by the step, weight by the height change."""
+    def _predict_and_weigh(self, d: np.ndarray, dz: float) -> Iterator[int]:
+        """Eq. 1-3: spread each cell by the step, weight by the height change.
+
+        Yields after each heading layer (or ring direction): one slice of anytime work.
+        """
         length = float(np.hypot(*d))
         if length < 0.2 * self.cell:  # a blocked step: nothing moved, nothing to learn
             return
         new = np.zeros_like(self.prob)
+        layer = self.prob[0].size
         if self.headings > 1:
             for h, angle in enumerate(self.angles):
                 vx, vy = rotate(np.asarray(angle), d[0], d[1])
                 new[h] = self._carry(self.prob[h], float(vx), float(vy), dz)
+                yield layer
         else:
             for angle in np.arange(RING) * (2 * np.pi / RING):
                 vx, vy = length * np.cos(angle), length * np.sin(angle)
                 new[0] += self._carry(self.prob[0], float(vx), float(vy), dz) / RING
+                yield layer
         spread = max(self.epsilon * length / self.cell, 0.3)
         heading_spread = self.heading_sd / (2 * np.pi / self.headings) if self.headings > 1 else 0
         new = ndimage.gaussian_filter(new, sigma=(heading_spread, spread, spread),

@@ -145,13 +145,11 @@ class Particles:
         self._reweight()
         self._discard()
         yield 1
-        self._polish()
-        yield min(self.polish, len(self.poses))
-        self._breed()
-        yield self.children
+        yield from self._polish(job)
+        yield from self._breed(job)
         self._inject()
         yield 1
-        self._prune()
+        yield from self._prune()
         self._contract()
         yield len(self.poses)
         self._judge()
@@ -184,30 +182,40 @@ class Particles:
         if len(self.ll):
             self._keep(np.flatnonzero(self.ll >= self.ll.max() - self.drop))
 
-    def _polish(self) -> None:
+    def _polish(self, job: AnytimeJob) -> Iterator[int]:
         """Gauss-Newton on the `polish` best members: each slides onto the readings' fit nearby.
 
         A Lamarckian mutation: a member keeps what it learns, but never moves further than
-        the range it stands for, so it cannot jump into another mode's basin.
+        the range it stands for, so it cannot jump into another mode's basin. Members are
+        independent, so the work is sliced by member without changing the result.
         """
         if len(self.poses) == 0 or len(self.history) < 2:
             return
         k = min(self.polish, len(self.poses))
         top = np.sort(np.argpartition(-self.ll, k - 1)[:k])
         w = 1.0 / np.concatenate([[self.sigma], self._sd()]) ** 2
-        moved = gauss_newton(self.ctx.surface, self.poses[top], self.history, w,
-                             iterations=1,
-                             max_move=max(2 * self.pos_range, 0.05 * self.ctx.step_length))
-        z0 = self._z0(moved)
-        r, ok = residuals(self.ctx.surface, moved, self.history[1:], z0, self.margin)
-        ll = log_likelihood(r, ok, self._sd(), self.outlier_p, self.outlier_range)
-        better = ll > self.ll[top]
-        idx = top[better]
-        self.poses[idx], self.z0[idx] = moved[better], z0[better]
-        self.resid[idx], self.on_map[idx], self.ll[idx] = r[better], ok[better], ll[better]
+        max_move = max(2 * self.pos_range, 0.05 * self.ctx.step_length)
+        cursor = 0
+        while cursor < len(top):
+            part = top[cursor:cursor + job.take(self._slice_members())]
+            moved = gauss_newton(self.ctx.surface, self.poses[part], self.history, w,
+                                 iterations=1, max_move=max_move)
+            z0 = self._z0(moved)
+            r, ok = residuals(self.ctx.surface, moved, self.history[1:], z0, self.margin)
+            ll = log_likelihood(r, ok, self._sd(), self.outlier_p, self.outlier_range)
+            better = ll > self.ll[part]
+            idx = part[better]
+            self.poses[idx], self.z0[idx] = moved[better], z0[better]
+            self.resid[idx], self.on_map[idx], self.ll[idx] = r[better], ok[better], ll[better]
+            cursor += len(part)
+            yield len(part)
 
-    def _breed(self) -> None:
-        """Children around promising parents; a low effective sample size asks for more."""
+    def _breed(self, job: AnytimeJob) -> Iterator[int]:
+        """Children around promising parents; a low effective sample size asks for more.
+
+        All random draws happen first, so slicing the children's evaluation leaves the
+        result (and the generator's stream) unchanged.
+        """
         if len(self.poses) == 0:
             return
         w = np.exp(self.ll - self.ll.max())
@@ -215,7 +223,17 @@ class Particles:
         parents = systematic_resample(w, count, self.ctx.rng)
         jitter = self.ctx.rng.standard_normal((count, 3)) * np.array(
             [self.pos_range, self.pos_range, self.head_range])
-        self._add(self.poses[parents] + jitter)
+        children = self.poses[parents] + jitter
+        cursor = 0
+        while cursor < count:
+            part = children[cursor:cursor + job.take(self._slice_members())]
+            self._add(part)
+            cursor += len(part)
+            yield len(part)
+
+    def _slice_members(self) -> int:
+        """Members per slice: about CHUNK readings' worth of lookups."""
+        return max(1, CHUNK // max(1, len(self.history)))
 
     def _inject(self) -> None:
         """Fresh random members, and wider ranges again, once every member fits poorly:
@@ -229,7 +247,7 @@ class Particles:
             self.head_range = max(self.head_range, np.deg2rad(5.0))
         self._add(self._random(self.fresh))
 
-    def _prune(self) -> None:
+    def _prune(self) -> Iterator[int]:
         """One member per cell, then thin to a capacity that bounds the work per step.
 
         The work of an update is about pool size x readings, so the capacity is
@@ -238,7 +256,9 @@ class Particles:
         """
         if len(self.poses) == 0:
             return
+        before = len(self.poses)
         self._keep(niche(self.poses, self.ll, *self.cells))
+        yield before
         self._discard()
         readings = len(self.history)  # what the next update will test each member on
         # the best member of every plausible coarse cell is a mode the pool must not lose
@@ -248,6 +268,7 @@ class Particles:
         leaders = leaders[:self.kept_modes]
         cap = int(np.clip(self.work_items // readings, self.min_capacity, self.capacity))
         cap = max(cap, len(leaders))
+        yield len(self.poses)
         if len(self.poses) > cap:
             rest = np.setdiff1d(np.arange(len(self.poses)), leaders)
             fill = rest[thin(self._weights()[rest], cap - len(leaders), self.ctx.rng)]
