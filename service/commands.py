@@ -25,7 +25,8 @@ import zmq
 
 from firmware_if.errors import FirmwareError
 from service import wire
-from service.errors import ConfigError, InputError, StateError
+from service.errors import InputError, StateError
+from service.security import bind_server_socket
 
 MAX_FRAME_BYTES = 16 * 1024 * 1024
 """Above this libzmq drops the sender's connection (ZMQ_MAXMSGSIZE) instead of replying."""
@@ -183,21 +184,9 @@ class CommandServer:
 
     def __init__(self, ctx: zmq.Context, endpoint: str, controls: Controls, lease: Lease, *,
                  max_request_bytes: int = wire.MAX_MESSAGE_BYTES, curve: Any = None) -> None:
-        self._sock = ctx.socket(zmq.ROUTER)
-        try:
-            self._sock.setsockopt(zmq.MAXMSGSIZE, MAX_FRAME_BYTES)
-            self._sock.setsockopt(zmq.LINGER, 200)
-            if curve is not None:
-                curve.apply(self._sock)
-            self._sock.bind(endpoint)
-        except zmq.ZMQError as exc:
-            self._sock.close(linger=0)
-            raise ConfigError(f"cannot bind {endpoint}: {exc}; is another hapticd "
-                              f"running there?") from None
-        except Exception:
-            self._sock.close(linger=0)
-            raise
-        self.endpoint = self._sock.getsockopt_string(zmq.LAST_ENDPOINT)
+        self._sock, self.endpoint = bind_server_socket(
+            ctx, zmq.ROUTER, endpoint, {zmq.MAXMSGSIZE: MAX_FRAME_BYTES, zmq.LINGER: 200},
+            curve)
         self.controls = controls
         self.lease = lease
         self.max_request_bytes = max_request_bytes

@@ -36,6 +36,27 @@ def is_loopback(endpoint: str) -> bool:
         return False  # '*', an interface name or a host name: treat as exposed
 
 
+def bind_server_socket(ctx: zmq.Context, kind: int, endpoint: str,
+                       options: dict[int, Any], curve: CurveServer | None = None
+                       ) -> tuple[zmq.Socket, str]:
+    """A bound server socket and the endpoint it got; closed again if binding fails."""
+    sock = ctx.socket(kind)
+    try:
+        for option, value in options.items():
+            sock.setsockopt(option, value)
+        if curve is not None:
+            curve.apply(sock)
+        sock.bind(endpoint)
+    except zmq.ZMQError as exc:
+        sock.close(linger=0)
+        raise ConfigError(f"cannot bind {endpoint}: {exc}; is another hapticd "
+                          f"running there?") from None
+    except Exception:
+        sock.close(linger=0)
+        raise
+    return sock, sock.getsockopt_string(zmq.LAST_ENDPOINT)
+
+
 def check_binds(endpoints: list[str], security: SecurityConfig) -> None:
     """Refuse a non-loopback bind unless CurveZMQ is configured."""
     exposed = [e for e in endpoints if not is_loopback(e)]

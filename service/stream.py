@@ -14,7 +14,7 @@ from typing import Any
 import zmq
 
 from service import wire
-from service.errors import ConfigError
+from service.security import bind_server_socket
 
 TOPICS = ("state", "estimate", "cloud", "event")
 
@@ -22,21 +22,8 @@ TOPICS = ("state", "estimate", "cloud", "event")
 class Publisher:
     def __init__(self, ctx: zmq.Context, endpoint: str, sndhwm: int = 1000,
                  curve: Any = None) -> None:
-        self._sock = ctx.socket(zmq.PUB)
-        try:
-            self._sock.setsockopt(zmq.SNDHWM, sndhwm)
-            self._sock.setsockopt(zmq.LINGER, 200)
-            if curve is not None:
-                curve.apply(self._sock)
-            self._sock.bind(endpoint)
-        except zmq.ZMQError as exc:
-            self._sock.close(linger=0)
-            raise ConfigError(f"cannot bind {endpoint}: {exc}; is another hapticd "
-                              f"running there?") from None
-        except Exception:
-            self._sock.close(linger=0)
-            raise
-        self.endpoint = self._sock.getsockopt_string(zmq.LAST_ENDPOINT)
+        self._sock, self.endpoint = bind_server_socket(
+            ctx, zmq.PUB, endpoint, {zmq.SNDHWM: sndhwm, zmq.LINGER: 200}, curve)
         self.seq = dict.fromkeys(TOPICS, 0)
         self.sent = dict.fromkeys(TOPICS, 0)
         self.dropped = 0

@@ -4,14 +4,14 @@ from __future__ import annotations
 
 import argparse
 import json
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 from tqdm import tqdm
 
-from service.cli_options import add_scenario_options
+from service.cli_options import add_scenario_options, settings_from_args
 from service.errors import ConfigError
 from service.maps import load_map
 from service.scenario import RunSettings
@@ -51,6 +51,31 @@ def run_episodes(settings: Sequence[RunSettings], height_map: HeightMap | None =
             reports.append(report)
             bar.set_postfix(steps=len(report.result.steps),
                             ok=sum(r.score.success for r in reports))
+    return reports
+
+
+def run_seeded_scenario(args: argparse.Namespace, *, scenario: str, label: str,
+                        print_table: Callable[[dict[str, Any], RunSettings], None],
+                        extra: dict[str, Any] | None = None,
+                        **overrides: Any) -> list[EpisodeReport]:
+    """The body of a seeded scenario: consecutive seeds, summary table, JSON, figure."""
+    check_bench_args(args)
+    base = settings_from_args(args, **overrides)
+    height_map = load_map(base.map, base.spacing)
+    settings = [settings_from_args(args, seed=args.first_seed + i, **overrides)
+                for i in range(args.runs)]
+    title = f"{label} {base.algorithm} + {base.policy}"
+    reports = run_episodes(settings, height_map, desc=title)
+    summary = summarize(reports)
+    print_table(summary, base)
+    write_json(args.json, {"scenario": scenario, "settings": base.to_json(),
+                           "summary": summary, **(extra or {}),
+                           "runs": [r.to_json() for r in reports]})
+    if args.plot:
+        from tools.plots import bench_figure
+
+        bench_figure(reports, args.plot, title=title)
+        print(f"figure written to {args.plot}")
     return reports
 
 

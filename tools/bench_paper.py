@@ -4,17 +4,8 @@ from __future__ import annotations
 
 import argparse
 
-from service.cli_options import settings_from_args
-from service.maps import load_map
 from service.scenario import RunSettings
-from tools.bench_common import (
-    add_bench_options,
-    check_bench_args,
-    fmt,
-    run_episodes,
-    summarize,
-    write_json,
-)
+from tools.bench_common import add_bench_options, fmt, run_seeded_scenario
 
 PAPER = {
     "steps": "23.6 +/- 8.7",
@@ -29,23 +20,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    check_bench_args(args)
     if args.noise:
         print("note: B1 is defined noise-free; --noise makes this a different experiment")
-    base = settings_from_args(args)
-    height_map = load_map(base.map, base.spacing)
-    settings = [settings_from_args(args, seed=args.first_seed + i) for i in range(args.runs)]
-    reports = run_episodes(settings, height_map, desc=f"B1 {base.algorithm}+{base.policy}")
-    summary = summarize(reports)
-    print_table(summary, base)
-    write_json(args.json, {"scenario": "paper", "settings": base.to_json(),
-                           "summary": summary, "paper": PAPER,
-                           "runs": [r.to_json() for r in reports]})
-    if args.plot:
-        from tools.plots import bench_figure
-
-        bench_figure(reports, args.plot, title=f"B1 {base.algorithm} + {base.policy}")
-        print(f"figure written to {args.plot}")
+    run_seeded_scenario(args, scenario="paper", label="B1", print_table=print_table,
+                        extra={"paper": PAPER})
     return 0
 
 

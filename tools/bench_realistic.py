@@ -10,21 +10,11 @@ from __future__ import annotations
 import argparse
 import dataclasses
 
-from service.cli_options import settings_from_args
-from service.maps import load_map
 from service.scenario import RunSettings
-from tools.bench_common import (
-    add_bench_options,
-    check_bench_args,
-    fmt,
-    run_episodes,
-    summarize,
-    write_json,
-)
+from tools.bench_common import add_bench_options, fmt, run_seeded_scenario
 
-RECOMMENDED = {"algorithm": "particles", "policy": "info-gain"}
-"""What B2/B3 run unless told otherwise (see the issue-4 report on RunSettings' defaults)."""
-DEFAULTS = dataclasses.replace(RunSettings(), noise=True, max_steps=60, **RECOMMENDED)
+DEFAULTS = dataclasses.replace(RunSettings(), noise=True, max_steps=60)
+"""The recommended algorithm and policy (RunSettings' defaults), with B2's noise."""
 TARGETS = {"successes": ">= 198/200", "wrong_declarations": "<= 1", "steps_median": "<= 12",
            "final_position_error_median": "<= 0.5 mm",
            "final_heading_error_deg_median": "<= 1.5 deg"}
@@ -35,22 +25,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    check_bench_args(args)
-    base = settings_from_args(args, noise=True)
-    height_map = load_map(base.map, base.spacing)
-    settings = [settings_from_args(args, noise=True, seed=args.first_seed + i)
-                for i in range(args.runs)]
-    reports = run_episodes(settings, height_map, desc=f"B2 {base.algorithm}+{base.policy}")
-    summary = summarize(reports)
-    print_table(summary, base)
-    write_json(args.json, {"scenario": "realistic", "settings": base.to_json(),
-                           "summary": summary, "targets": TARGETS,
-                           "runs": [r.to_json() for r in reports]})
-    if args.plot:
-        from tools.plots import bench_figure
-
-        bench_figure(reports, args.plot, title=f"B2 {base.algorithm} + {base.policy}")
-        print(f"figure written to {args.plot}")
+    run_seeded_scenario(args, scenario="realistic", label="B2", print_table=print_table,
+                        extra={"targets": TARGETS}, noise=True)
     return 0
 
 

@@ -19,9 +19,8 @@ from service.scenario import RunSettings
 from tools.bench_common import add_bench_options, check_bench_args, fmt, run_episodes, summarize
 from tools.bench_common import write_json as _write_json
 
-RECOMMENDED = {"algorithm": "particles", "policy": "info-gain"}
-"""What B2/B3 run unless told otherwise (see the issue-4 report on RunSettings' defaults)."""
-DEFAULTS = dataclasses.replace(RunSettings(), noise=True, max_steps=60, **RECOMMENDED)
+DEFAULTS = dataclasses.replace(RunSettings(), noise=True, max_steps=60)
+"""The recommended algorithm and policy (RunSettings' defaults), with B2's noise."""
 COMPARED = ("particles", "elimination")
 
 

@@ -1,0 +1,32 @@
+"""`haptic bench realistic` (B2) and `haptic bench scale` (B3) on a few short runs."""
+
+import json
+
+from service.cli import main
+
+
+def test_realistic_summary_has_the_accuracy_keys(tmp_path):
+    out = tmp_path / "b2.json"
+    assert main(["bench", "realistic", "--runs", "2", "--json", str(out)]) == 0
+    payload = json.loads(out.read_text())
+    summary = payload["summary"]
+    for key in ("runs", "successes", "wrong_declarations", "steps_median", "steps_p90",
+                "final_position_error_median", "final_heading_error_deg_median",
+                "compute_ms_median", "compute_ms_p99"):
+        assert key in summary
+    assert summary["runs"] == 2 and summary["wrong_declarations"] == 0
+    assert payload["settings"]["noise"] is True
+    assert len(payload["runs"]) == 2
+
+
+def test_scale_rows_per_algorithm_and_size(tmp_path):
+    out = tmp_path / "b3.json"
+    assert main(["bench", "scale", "--runs", "1", "--sizes", "20,30", "--max-steps", "8",
+                 "--json", str(out)]) == 0
+    rows = json.loads(out.read_text())["rows"]
+    assert {(r["algorithm"], r["map_units"]) for r in rows} >= {
+        ("particles", 20), ("particles", 30)}
+    for r in rows:
+        for key in ("algorithm", "map_units", "runs", "successes", "compute_ms_median",
+                    "compute_ms_p99"):
+            assert key in r
