@@ -10,6 +10,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Protocol, runtime_checkable
 
+from firmware_if.errors import HardwareFault, NotReadyError
+
 
 @dataclass(frozen=True)
 class FingerState:
@@ -63,3 +65,13 @@ class Backend(Protocol):
 
     def clear_fault(self) -> None:
         """Reset a latched fault (torque stays off)."""
+
+
+def check_can_step(*, fault: str | None, torque_on: bool, busy: bool) -> None:
+    """The contract's preconditions for `command_step`, raised the same way by every backend."""
+    if fault:
+        raise HardwareFault(f"finger is faulted: {fault}; reset first")
+    if not torque_on:
+        raise NotReadyError("torque is off: activate the finger before stepping")
+    if busy:
+        raise NotReadyError("a step is still under way")

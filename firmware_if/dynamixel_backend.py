@@ -20,7 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from firmware_if import kinematics as kin
-from firmware_if.backend import FingerState, StepCommand
+from firmware_if.backend import FingerState, StepCommand, check_can_step
 from firmware_if.dxl_bus import DxlBus, ServoReading
 from firmware_if.errors import (
     CommunicationError,
@@ -186,12 +186,7 @@ class DynamixelBackend:
 
     def command_step(self, step: StepCommand) -> None:
         self._require_open()
-        if self._fault:
-            raise HardwareFault(f"finger is faulted: {self._fault}; reset first")
-        if not self._torque:
-            raise NotReadyError("torque is off: activate the finger before stepping")
-        if self._step is not None:
-            raise NotReadyError("a step is still under way")
+        check_can_step(fault=self._fault, torque_on=self._torque, busy=self._step is not None)
         state = self._state or self._read()
         q = np.asarray(state.joints)
         centre = np.asarray(state.centre)

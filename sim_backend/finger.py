@@ -13,7 +13,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from firmware_if.backend import FingerState, StepCommand
+from firmware_if.backend import FingerState, StepCommand, check_can_step
 from firmware_if.errors import HardwareFault, NotReadyError
 from service.errors import ConfigError
 from service.models import NoiseSpec, rotate
@@ -109,12 +109,8 @@ class SimulatedFinger:
 
     def command_step(self, step: StepCommand) -> None:
         self._require_open()
-        if self._fault:
-            raise HardwareFault(f"finger is faulted: {self._fault}; reset first")
-        if not self._torque:
-            raise NotReadyError("torque is off: activate the finger before stepping")
-        if self._busy_until is not None:
-            raise NotReadyError("a step is still under way")
+        check_can_step(fault=self._fault, torque_on=self._torque,
+                       busy=self._busy_until is not None)
         noise = self.config.noise
         length = np.hypot(step.dx, step.dy) * (1 + noise.step_length_fraction
                                                * self._rng.standard_normal())

@@ -31,6 +31,25 @@ class CapturePort:
         return len(packet)
 
 
+class PatientPort(PacedPortHandler):
+    """Waits up to 0.5 s for a reply, sleeping in select().
+
+    These tests are about the bytes of packets, not timing; the emulator shares this
+    process (and its GIL) with the waiting test, so under load the SDK's 34 ms can pass
+    before it answers, and a byte test would fail for a scheduling reason.
+    """
+
+    PATIENCE_MS = 500.0
+
+    def setPacketTimeout(self, packet_length: int) -> None:  # noqa: N802
+        PortHandler.setPacketTimeout(self, packet_length)
+        self.packet_timeout = self.PATIENCE_MS
+
+    def setPacketTimeoutMillis(self, msec: float) -> None:  # noqa: N802
+        PortHandler.setPacketTimeoutMillis(self, msec)
+        self.packet_timeout = max(self.packet_timeout, self.PATIENCE_MS)
+
+
 @pytest.fixture
 def emulator():
     with ServoBus([EmulatedServo(i) for i in (1, 2, 3)], honour_return_delay=False) as bus:
@@ -61,7 +80,7 @@ def test_tx_stuffing_fixed_sends_a_valid_stuffed_packet():
 @pytest.mark.parametrize(("handler", "works"), [(Protocol2PacketHandler, False),
                                                 (FixedPacketHandler, True)])
 def test_tx_stuffing_on_the_bus(emulator, handler, works):
-    port = _open(PortHandler(emulator.port), handler())
+    port = _open(PatientPort(emulator.port), handler())
     result, error = handler().write4ByteTxRx(port, 2, 20, 0xFFFDFFFF)
     port.closePort()
     assert (result == COMM_SUCCESS) is works
@@ -74,7 +93,7 @@ def test_tx_stuffing_on_the_bus(emulator, handler, works):
 def test_rx_destuffing_on_the_bus(emulator, handler, works):
     pattern = bytes([0xFF, 0xFF, 0xFD, 0x00, 0x01, 0xFF, 0xFD, 0xFD, 0x05])
     emulator.servos[1].mem[224:224 + len(pattern)] = pattern  # Indirect Data 1..9
-    port = _open(PortHandler(emulator.port), handler())
+    port = _open(PatientPort(emulator.port), handler())
     data, result, _ = handler().readTxRx(port, 1, 224, len(pattern))
     port.closePort()
     assert result == COMM_SUCCESS
@@ -91,7 +110,7 @@ def test_fast_bulk_read_decoding(emulator, handler, works):
     # id 2 equals servo 1's length byte: param.index(2) finds the wrong record
     param = [1, 126, 0, 2, 0, 2, 132, 0, 4, 0, 3, 126, 0, 2, 0]
     ph = handler()
-    port = _open(PortHandler(emulator.port), ph)
+    port = _open(PatientPort(emulator.port), ph)
     assert ph.bulkReadTx(port, param, len(param), True) == COMM_SUCCESS
     decoded, result = ph.fastBulkReadRx(port, param)
     port.closePort()
