@@ -20,7 +20,6 @@ from firmware_if.errors import BusTimeoutError, CommunicationError, HardwareFaul
 from firmware_if.packets import PacketError
 from firmware_if.registers import (
     ALERT_BIT,
-    BAUD_RATES,
     REG,
     SYNC_READ_LENGTH,
     SYNC_READ_START,
@@ -296,10 +295,6 @@ class DxlBus:
                 pass
         self.fault = None
         self.stats.consecutive_failures = 0
-
-    @staticmethod
-    def baud_register(baud: int) -> int:
-        return {v: k for k, v in BAUD_RATES.items()}[baud]
 
 
 def _reading(data: bytes, error: int) -> ServoReading:

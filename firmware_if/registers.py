@@ -25,6 +25,8 @@ EXTENDED_RANGE = 1_048_575
 BAUD_RATES = {0: 9600, 1: 57600, 2: 115200, 3: 1_000_000, 4: 2_000_000, 5: 3_000_000,
               6: 4_000_000, 7: 4_500_000}
 """Baud Rate(8) register value -> bits per second."""
+BAUD_REGISTER = {bps: value for value, bps in BAUD_RATES.items()}
+"""Bits per second -> Baud Rate(8) register value."""
 OPERATING_MODES = {0: "current", 1: "velocity", 3: "position", 4: "extended position",
                    5: "current-based position", 16: "pwm"}
 CURRENT_BASED_POSITION = 5

@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import argparse
 import importlib
-import importlib.util
 import sys
 
 from firmware_if.errors import FirmwareError
@@ -28,8 +27,6 @@ def build_parser() -> argparse.ArgumentParser:
         prog="haptic", description="Haptic localization: a rolling fingertip finds its pose.")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     for name in SUBCOMMAND_MODULES:
-        if importlib.util.find_spec(name) is None:
-            continue  # a subcommand that is not installed in this build
         importlib.import_module(name).register(sub)
     return parser
 

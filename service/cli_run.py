@@ -5,9 +5,11 @@ from __future__ import annotations
 import argparse
 import json
 import math
+from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
 
+from firmware_if.backend import Backend
 from service.cli_options import add_scenario_options, settings_from_args
 from service.episode import StepRecord
 from service.errors import ConfigError
@@ -15,7 +17,7 @@ from service.maps import load_map
 from service.models import HARDWARE_SENSOR_SIGMA
 from service.policies.base import MOVE_NAMES
 from service.registry import BACKENDS
-from service.scenario import RunSettings
+from service.scenario import RunSettings, Truth
 from service.simulate import EpisodeReport, simulate
 
 FIGURE_STEPS = (0, 5, 10)
@@ -46,15 +48,18 @@ def run(args: argparse.Namespace) -> int:
     settings = settings_from_args(args)
     _check_outputs(args)
     height_map = load_map(settings.map, settings.spacing)
-    backend_factory = None
+    backend_factory: Callable[[Truth], Backend] | None = None
     if args.backend != "sim":
         if not args.port or not args.hand:
             raise ConfigError(f"--backend {args.backend} needs --port and --hand")
         if settings.sensor_sigma is None:
             settings = replace(settings, sensor_sigma=HARDWARE_SENSOR_SIGMA)
         cls = BACKENDS.load(args.backend)
-        backend_factory = lambda truth: cls.from_cli(  # noqa: E731
-            port=args.port, hand=args.hand, radius=settings.radius, step=settings.step)
+
+        def backend_factory(truth: Truth) -> Backend:
+            """A hardware hand; the truth is not its to know (the emulator draws its own)."""
+            return cls.from_cli(port=args.port, hand=args.hand, radius=settings.radius,
+                                step=settings.step)
     print(f"map {height_map.name}: {height_map.shape[1]} x {height_map.shape[0]} samples, "
           f"{height_map.extent[0] * 1e3:.0f} x {height_map.extent[1] * 1e3:.0f} mm; "
           f"finger radius {settings.radius * 1e3:g} mm, step {settings.step * 1e3:g} mm; "

@@ -23,6 +23,9 @@ from service.scenario import (
 )
 from service.surface import HeightMap
 
+SNAPSHOT_LIMIT = 4000
+"""Most hypotheses kept per figure snapshot."""
+
 
 @dataclass
 class EpisodeReport:
@@ -31,6 +34,8 @@ class EpisodeReport:
     result: EpisodeResult
     score: Score
     true_pose_eliminated: bool | None
+    height_map: HeightMap
+    """The map the localizer used (for figures; not part of the JSON)."""
     snapshots: dict[int, Hypotheses] = field(default_factory=dict)
     """Hypotheses after the steps asked for (0 = before the first move), for figures."""
 
@@ -86,9 +91,12 @@ def simulate(settings: RunSettings, height_map: HeightMap | None = None, *,
     localizer = build_localizer(settings, surface, loc_rng)
     snapshots: dict[int, Hypotheses] = {}
 
+    def snapshot(index: int) -> None:
+        if index in snapshot_steps:
+            snapshots[index] = localizer.hypotheses(limit=SNAPSHOT_LIMIT)
+
     def record(step: StepRecord) -> None:
-        if step.index in snapshot_steps:
-            snapshots[step.index] = localizer.hypotheses(limit=4000)
+        snapshot(step.index)
         if on_step:
             on_step(step)
 
@@ -97,13 +105,10 @@ def simulate(settings: RunSettings, height_map: HeightMap | None = None, *,
         finger.set_torque(True)
         result = run_episode(finger, localizer, build_policy(settings), surface=surface,
                              step_length=settings.step, max_steps=settings.max_steps,
-                             rng=policy_rng, on_step=record,
-                             on_start=(lambda: snapshots.__setitem__(
-                                 0, localizer.hypotheses(limit=4000)))
-                             if 0 in snapshot_steps else None)
+                             rng=policy_rng, on_step=record, on_start=lambda: snapshot(0))
     finally:
         finger.close()
-    return EpisodeReport(settings=settings, truth=truth, result=result,
+    return EpisodeReport(settings=settings, truth=truth, result=result, height_map=surface.map,
                          score=score(result.estimate, truth, settings.step),
                          true_pose_eliminated=_truth_eliminated(localizer, truth, settings),
                          snapshots=snapshots)

@@ -72,14 +72,15 @@ class HeightMap:
         rows, cols = self.heights.shape
         return ((cols - 1) * self.spacing, (rows - 1) * self.spacing)
 
-    def inside(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
-        """Mask of points inside the map (on its border counts as inside)."""
+    def inside(self, x: np.ndarray, y: np.ndarray, margin: float = 0.0) -> np.ndarray:
+        """Mask of points inside the map (its border counts), allowing `margin` metres
+        beyond it for hypotheses whose positions carry measurement noise."""
         x_max, y_max = self.extent
         x = np.asarray(x)
-        mask = (x >= 0.0) & (x <= x_max)
+        mask = (x >= -margin) & (x <= x_max + margin)
         if not self.is_profile:
             y = np.asarray(y)
-            mask &= (y >= 0.0) & (y <= y_max)
+            mask &= (y >= -margin) & (y <= y_max + margin)
         return mask
 
     def lookup(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

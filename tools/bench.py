@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import argparse
 import importlib
-import importlib.util
 
 SCENARIOS: dict[str, tuple[str, str]] = {
     "paper": ("tools.bench_paper", "B1: the paper's table (103 noise-free runs on peaks)"),
@@ -25,8 +24,6 @@ def register(sub: argparse._SubParsersAction) -> None:
                        description="Seeded benchmark scenarios (see BENCHMARKS.md).")
     scenarios = p.add_subparsers(dest="scenario", metavar="SCENARIO", required=True)
     for name, (module, summary) in SCENARIOS.items():
-        if importlib.util.find_spec(module) is None:
-            continue
         sp = scenarios.add_parser(name, help=summary, description=summary)
         mod = importlib.import_module(module)
         mod.add_arguments(sp)

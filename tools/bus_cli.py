@@ -14,6 +14,7 @@ from firmware_if.errors import CommunicationError
 from firmware_if.hand import Hand, load_hand, presets
 from firmware_if.registers import (
     BAUD_RATES,
+    BAUD_REGISTER,
     CURRENT_BASED_POSITION,
     MODELS,
     OPERATING_MODES,
@@ -110,7 +111,7 @@ def check_lines(bus: DxlBus, hand: Hand, port: str) -> list[tuple[str, str]]:
                             "latency_timer"))
     else:
         out.append(("ok", f"latency timer {timer} ms"))
-    baud_reg = {v: k for k, v in BAUD_RATES.items()}.get(hand.baud)
+    baud_reg = BAUD_REGISTER.get(hand.baud)
     for sid in hand.ids:
         info = bus.ping(sid)
         if info is None:

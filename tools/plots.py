@@ -12,7 +12,6 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from matplotlib.collections import LineCollection  # noqa: E402
 
-from service.maps import load_map  # noqa: E402
 from service.models import rotate  # noqa: E402
 from service.simulate import EpisodeReport  # noqa: E402
 from service.surface import HeightMap  # noqa: E402
@@ -55,7 +54,7 @@ def true_path(report: EpisodeReport) -> np.ndarray:
 
 def episode_figure(report: EpisodeReport, path: Path) -> None:
     """Panels after steps 0, 5, 10 and the last: surface, candidates, true path (Figure 4)."""
-    height_map = load_map(report.settings.map, report.settings.spacing)
+    height_map = report.height_map
     steps = report.result.steps
     shown = sorted(k for k in report.snapshots if k <= len(steps))
     panels = [(k, report.snapshots[k]) for k in shown]

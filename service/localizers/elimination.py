@@ -100,7 +100,7 @@ class Elimination:
         x, y = self.ctx.motion.positions(poses, m.displacement[:2])
         surface = self.ctx.surface
         margin = 5 * self.ctx.motion.position_sigma
-        ok = _inside_with_margin(surface.map, x, y, margin)
+        ok = surface.map.inside(x, y, margin)
         if self.sweep == "full":
             predicted, _ = surface.lookup(x, y)
             residual = predicted - self.z0[idx] - m.displacement[2]
@@ -164,11 +164,3 @@ class Elimination:
         weights = np.full(idx.size, 1.0 / max(idx.size, 1))
         return Hypotheses(poses=self.poses[idx], weights=weights)
 
-
-def _inside_with_margin(height_map, x: np.ndarray, y: np.ndarray, margin: float) -> np.ndarray:
-    """Inside the map, allowing `margin` metres of position noise at its edge."""
-    x_max, y_max = height_map.extent
-    ok = (x >= -margin) & (x <= x_max + margin)
-    if not height_map.is_profile:
-        ok &= (y >= -margin) & (y <= y_max + margin)
-    return ok

@@ -64,15 +64,6 @@ def positions(poses: np.ndarray, history: np.ndarray) -> tuple[np.ndarray, np.nd
     return poses[:, 0:1] + c * dx - s * dy, poses[:, 1:2] + s * dx + c * dy
 
 
-def inside(surface: ContactSurface, x: np.ndarray, y: np.ndarray, margin: float) -> np.ndarray:
-    """Inside the map, allowing `margin` metres of position noise at its edge."""
-    x_max, y_max = surface.map.extent
-    ok = (x >= -margin) & (x <= x_max + margin)
-    if not surface.map.is_profile:
-        ok &= (y >= -margin) & (y <= y_max + margin)
-    return ok
-
-
 def residuals(surface: ContactSurface, poses: np.ndarray, history: np.ndarray, z0: np.ndarray,
               margin: float) -> tuple[np.ndarray, np.ndarray]:
     """Height residuals (N, K) of readings `history` (K, 3) and whether each lies on the map.
@@ -81,7 +72,7 @@ def residuals(surface: ContactSurface, poses: np.ndarray, history: np.ndarray, z
     """
     x, y = positions(poses, history)
     z, _, _ = sample(surface, x, y)
-    return z - z0[:, np.newaxis] - history[np.newaxis, :, 2], inside(surface, x, y, margin)
+    return z - z0[:, np.newaxis] - history[np.newaxis, :, 2], surface.map.inside(x, y, margin)
 
 
 def sigmas(sensor_sigma: float, slope: float, history: np.ndarray, pos_range: float,
@@ -166,4 +157,4 @@ def offset_residuals(surface: ContactSurface, poses: np.ndarray, history: np.nda
     x, y = positions(poses, history)
     z, _, _ = sample(surface, x, y)
     e = z - history[np.newaxis, :, 2]
-    return e - e.mean(axis=1, keepdims=True), inside(surface, x, y, margin)
+    return e - e.mean(axis=1, keepdims=True), surface.map.inside(x, y, margin)

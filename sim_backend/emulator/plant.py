@@ -14,7 +14,7 @@ import numpy as np
 
 from firmware_if import kinematics as kin
 from firmware_if.hand import Hand
-from firmware_if.registers import BAUD_RATES, rad_to_ticks, ticks_to_rad
+from firmware_if.registers import BAUD_REGISTER, rad_to_ticks, ticks_to_rad
 from service.surface import ContactSurface, HeightMap, contact_surface
 from sim_backend.emulator.servo import EmulatedServo
 
@@ -120,7 +120,7 @@ def hand_bus_servos(hand: Hand, plant: FingerPlant | None = None) -> list[Emulat
     servos = [EmulatedServo(j.id, j.model, position=home[j.id]) for j in hand.joints]
     if hand.tip_roll is not None:
         servos.append(EmulatedServo(hand.tip_roll.id, position=hand.tip_roll.zero_ticks))
-    baud = {bps: reg for reg, bps in BAUD_RATES.items()}[hand.baud]
+    baud = BAUD_REGISTER[hand.baud]
     for servo in servos:
         servo.set("baud_rate", baud)  # as the lab set them up for this hand
     return servos
