@@ -27,7 +27,7 @@ from firmware_if.backend import FingerState, StepCommand
 from firmware_if.errors import BusTimeoutError
 from service.localizers.base import Budget, Estimate, Hypotheses, Localizer, Measurement, update
 from service.policies.base import MOVES, Policy, PolicyInput
-from service.scenario import RunSettings, build_localizer, build_policy
+from service.scenario import RunSettings, build_localizer, build_policy, prepare_localizers
 from service.surface import ContactSurface
 
 
@@ -78,6 +78,7 @@ class Explorer:
         self._before = 0
         self._step_started_ns = 0
         self._move = -1
+        prepare_localizers()  # any algorithm may be asked for later, inside a tick
 
     @property
     def running(self) -> bool:

@@ -112,6 +112,14 @@ def draw_truth(settings: RunSettings, height_map: HeightMap, rng: np.random.Gene
     return Truth(float(x), float(y), float(heading))
 
 
+def prepare_localizers() -> None:
+    """Compile the localizers' inner loops now (a second or so on a cold cache), so a
+    process with deadlines never compiles inside one."""
+    from service.localizers import kernels
+
+    kernels.warm_up()
+
+
 def build_localizer(settings: RunSettings, surface: ContactSurface,
                     rng: np.random.Generator) -> Localizer:
     assumed = (settings.noise_spec if settings.sensor_sigma is None

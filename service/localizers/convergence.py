@@ -21,6 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from service.localizers import kernels
 from service.localizers.base import wrap_angle
 from service.localizers.fitting import gauss_newton, log_likelihood, offset_residuals
 from service.localizers.refine import Fit, assess, reading_sigmas, refine
@@ -74,14 +75,8 @@ def distinct(centres: np.ndarray, score: np.ndarray, position_tol: float, headin
     """Indexes of the best-scoring centres, best first, dropping any within tolerance of a
     better one: two rivals polished onto the same pose are one mode, not two."""
     order = np.argsort(-score, kind="stable")
-    c = centres[order]
-    d_pos = np.hypot(c[:, None, 0] - c[None, :, 0], c[:, None, 1] - c[None, :, 1])
-    d_head = np.abs(wrap_angle(c[:, None, 2] - c[None, :, 2]))
-    near = (d_pos <= position_tol) & (d_head <= heading_tol)
-    keep = np.ones(len(c), dtype=bool)
-    for i in range(1, len(c)):  # over a handful of modes
-        keep[i] = not np.any(near[i, :i] & keep[:i])
-    return order[keep]
+    ordered = np.ascontiguousarray(centres[order], dtype=np.float64)
+    return order[kernels.first_of_each_mode(ordered, position_tol, heading_tol)]
 
 
 def spread(poses: np.ndarray, weights: np.ndarray) -> tuple[float, float]:
@@ -96,6 +91,10 @@ def _near(poses: np.ndarray, centre: np.ndarray, position_tol: float, heading_to
     d_pos = np.hypot(poses[:, 0] - centre[0], poses[:, 1] - centre[1])
     d_head = np.abs(wrap_angle(poses[:, 2] - centre[2]))
     return (d_pos <= position_tol) & (d_head <= heading_tol)
+
+
+REFERENCE_AREA_STEPS = 400.0
+"""Area of the map the default rule was measured on (`peaks`, 20 x 20 steps)."""
 
 
 @dataclass(frozen=True)
@@ -116,6 +115,21 @@ class ConvergenceRule:
     """Largest acceptable single residual, in sensor sigmas (noise-free)."""
     max_position_sd: float = 0.06
     max_heading_sd: float = float(np.deg2rad(1.5))
+
+    @classmethod
+    def for_map(cls, extent: tuple[float, float], step_length: float) -> ConvergenceRule:
+        """The default rule, asking one more reading per doubling of the map's area beyond
+        20 x 20 steps (B1's map, where the defaults were measured).
+
+        A sampled localizer may never have held the true pose; the more poses a map
+        offers, the likelier one wrong pose explains a few noisy readings by chance (B3's
+        80-step map, seed 10: seven readings fitted a pose 50 cm off). Each reading halves
+        that chance at least, so the readings needed grow with the log of the area.
+        """
+        area = max(extent[0], step_length) * max(extent[1], step_length) / step_length**2
+        extra = max(0, int(np.ceil(np.log2(area / REFERENCE_AREA_STEPS) - 1e-9)))
+        return cls(min_readings=cls.min_readings + extra,
+                   min_readings_noisy=cls.min_readings_noisy + extra)
 
     def loosened(self, mode_mass: float = 0.5) -> ConvergenceRule:
         """The pre-check on an unrefined fit: the same readings, a leading mode that is
@@ -200,7 +214,7 @@ def judge(surface: ContactSurface, history: np.ndarray, modes: Modes, *, sigma: 
     # pass the rule itself (a few steps an episode).
     # evidence is counted in distinct places read, not readings: a finger pressed against
     # a wall reads the same place again and again, which pins nothing new
-    places = len(np.unique(np.round(history[:, :2] / (0.25 * step_length)), axis=0))
+    places = distinct_places(history, 0.25 * step_length)
     best = centres[order[0]]
     sds = reading_sigmas(surface, history, best, max(sigma, 1e-9), position_sigma)
     fit = _with_floored_spread(surface, history, assess(surface, history, best, sds), sigma,
@@ -240,6 +254,12 @@ def judge(surface: ContactSurface, history: np.ndarray, modes: Modes, *, sigma: 
             rule.max_heading_sd)[0])
     return Verdict(fit, centres[order], mass, runner,
                    float(share[1]) if len(order) > 1 else 0.0, converged)
+
+
+def distinct_places(history: np.ndarray, cell: float) -> int:
+    """How many `cell`-sized squares the readings (K, 3) fall in."""
+    ix, iy = np.round(history[:, :2] / cell).astype(np.int64).T
+    return len(np.unique(ix * (1 << 32) + iy))
 
 
 def _with_floored_spread(surface: ContactSurface, history: np.ndarray, fit: Fit, sigma: float,

@@ -27,6 +27,7 @@ import numpy as np
 from scipy import ndimage
 
 from service.errors import ConfigError
+from service.localizers import kernels
 from service.localizers.base import Budget, Estimate, Hypotheses, LocalizerContext, Measurement
 from service.localizers.convergence import (
     ConvergenceRule,
@@ -56,6 +57,7 @@ class Grid:
             raise ConfigError(f"grid headings must be >= 1, got {headings}")
         if ctx.surface.map.is_profile:
             raise ConfigError("the grid localizers need a 2-D map; use particles for a profile")
+        kernels.warm_up()  # compile before the first update, not during it
         self.ctx = ctx
         self.cell = float(cell or 0.5 * ctx.step_length)
         if not self.cell > 0:
@@ -63,7 +65,7 @@ class Grid:
         self.headings = headings
         self.epsilon, self.heading_sd = epsilon, np.deg2rad(heading_sd_deg)
         self.keep, self.rivals = keep, rivals
-        self.rule = rule or ConvergenceRule()
+        self.rule = rule or ConvergenceRule.for_map(ctx.surface.map.extent, ctx.step_length)
         x_max, y_max = ctx.surface.map.extent
         self.xs = np.arange(0.0, x_max + 1e-12, self.cell)
         self.ys = np.arange(0.0, y_max + 1e-12, self.cell)

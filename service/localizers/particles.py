@@ -33,6 +33,7 @@ from typing import ClassVar
 
 import numpy as np
 
+from service.localizers import kernels
 from service.localizers.base import (
     Budget,
     Estimate,
@@ -61,6 +62,8 @@ from service.localizers.symmetry import images, symmetries
 from service.localizers.tracks import ModeTracks
 
 CHUNK = 4096
+SCREEN_READINGS = 4
+"""Readings a fresh candidate is screened on before it may join the pool."""
 
 
 class Particles:
@@ -70,16 +73,19 @@ class Particles:
 
     def __init__(self, ctx: LocalizerContext, *, initial: int = 20000, capacity: int = 3000,
                  work: int = 2000,
-                 min_capacity: int = 200, children: int = 100, fresh: int = 500,
+                 min_capacity: int = 200, children: int = 100, fresh: int = 200,
+                 scanned: int = 2000,
                  polish: int = 100_000, drop: float = 40.0, contraction: float = 0.6,
                  rivals: int = 32, kept_modes: int = 256,
                  rule: ConvergenceRule | None = None) -> None:
+        kernels.warm_up()  # compile before the first update, not during it
         self.ctx = ctx
         self.initial, self.capacity, self.min_capacity = initial, capacity, min_capacity
         self.work_items = work
         self.children, self.fresh, self.polish, self.drop = children, fresh, polish, drop
+        self.scanned = scanned
         self.contraction, self.rivals = contraction, rivals
-        self.rule = rule or ConvergenceRule()
+        self.rule = rule or ConvergenceRule.for_map(ctx.surface.map.extent, ctx.step_length)
         step = ctx.step_length
         self.sigma = float(ctx.sensor.sigma)
         self.noisy = self.sigma > 1e-6
@@ -96,7 +102,6 @@ class Particles:
         self.outlier_range = float(getattr(ctx.sensor, "outlier_range_m", 1.0))
         self.history = np.zeros((1, 3))
         self.poses = np.empty((0, 3))
-        self.z0 = np.empty(0)
         self.resid = np.empty((0, 0))
         self.on_map = np.empty((0, 0), dtype=bool)
         self.ll = np.empty(0)
@@ -108,14 +113,15 @@ class Particles:
         self.tracks = ModeTracks()
         self.motions = symmetries(ctx.surface)
         self._job: AnytimeJob | None = None
+        self._sd_cache: tuple[tuple[int, float, float] | None, np.ndarray] = (None, np.empty(0))
 
     # -- updates ---------------------------------------------------------------------------
     def start(self, first: Measurement) -> None:
         """The initial pool: uniform over the map and every heading."""
         self.history = np.zeros((1, 3))
+        self._sd_cache = (None, np.empty(0))
         self.tracks = ModeTracks()
         self.poses = self._random(self.initial)
-        self.z0 = self._z0(self.poses)
         self.resid = np.zeros((len(self.poses), 0))
         self.on_map = np.ones((len(self.poses), 0), dtype=bool)
         self.ll = np.zeros(len(self.poses))
@@ -135,14 +141,16 @@ class Particles:
         cursor = 0
         while cursor < n:  # the one pass over every member: sliced for the budget
             stop = min(n, cursor + job.take(CHUNK))
-            r, ok = residuals(self.ctx.surface, self.poses[cursor:stop], reading,
-                              self.z0[cursor:stop], self.margin)
+            r, ok = residuals(self.ctx.surface, self.poses[cursor:stop], reading, self.margin)
             column[cursor:stop], on_map[cursor:stop] = r[:, 0], ok[:, 0]
             yield stop - cursor
             cursor = stop
         self.resid = np.column_stack([self.resid, column])
         self.on_map = np.column_stack([self.on_map, on_map])
-        self._reweight()
+        # the ranges are those of the last full re-weighting (`_contract`): only the new
+        # reading's term is new
+        self.ll = self.ll + log_likelihood(column[:, np.newaxis], on_map[:, np.newaxis],
+                                           self._sd()[-1:], self.outlier_p, self.outlier_range)
         self._discard()
         yield 1
         yield from self._polish(job)
@@ -156,23 +164,26 @@ class Particles:
 
     # -- the steps of one update -----------------------------------------------------------
     def _sd(self) -> np.ndarray:
-        return sigmas(self.sigma, self.slope, self.history[1:], self.pos_range,
-                      self.head_range)
+        """Residual sd per reading at the current ranges; asked for many times an update,
+        computed once per (readings, ranges)."""
+        key = (len(self.history), self.pos_range, self.head_range)
+        if self._sd_cache[0] != key:
+            self._sd_cache = (key, sigmas(self.sigma, self.slope, self.history[1:],
+                                          self.pos_range, self.head_range))
+        return self._sd_cache[1]
 
     def _reweight(self) -> None:
         self.ll = log_likelihood(self.resid, self.on_map, self._sd(), self.outlier_p,
                                  self.outlier_range)
 
     def _keep(self, idx: np.ndarray) -> None:
-        self.poses, self.z0 = self.poses[idx], self.z0[idx]
+        self.poses = self.poses[idx]
         self.resid, self.on_map, self.ll = self.resid[idx], self.on_map[idx], self.ll[idx]
 
     def _add(self, poses: np.ndarray) -> None:
-        z0 = self._z0(poses)
-        r, ok = residuals(self.ctx.surface, poses, self.history[1:], z0, self.margin)
+        r, ok = residuals(self.ctx.surface, poses, self.history[1:], self.margin)
         ll = log_likelihood(r, ok, self._sd(), self.outlier_p, self.outlier_range)
         self.poses = np.vstack([self.poses, poses])
-        self.z0 = np.concatenate([self.z0, z0])
         self.resid = np.vstack([self.resid, r])
         self.on_map = np.vstack([self.on_map, ok])
         self.ll = np.concatenate([self.ll, ll])
@@ -200,12 +211,11 @@ class Particles:
             part = top[cursor:cursor + job.take(self._slice_members())]
             moved = gauss_newton(self.ctx.surface, self.poses[part], self.history, w,
                                  iterations=1, max_move=max_move)
-            z0 = self._z0(moved)
-            r, ok = residuals(self.ctx.surface, moved, self.history[1:], z0, self.margin)
+            r, ok = residuals(self.ctx.surface, moved, self.history[1:], self.margin)
             ll = log_likelihood(r, ok, self._sd(), self.outlier_p, self.outlier_range)
             better = ll > self.ll[part]
             idx = part[better]
-            self.poses[idx], self.z0[idx] = moved[better], z0[better]
+            self.poses[idx] = moved[better]
             self.resid[idx], self.on_map[idx], self.ll[idx] = r[better], ok[better], ll[better]
             cursor += len(part)
             yield len(part)
@@ -245,7 +255,19 @@ class Particles:
                 return
             self.pos_range = max(self.pos_range, 0.25 * self.ctx.step_length)
             self.head_range = max(self.head_range, np.deg2rad(5.0))
-        self._add(self._random(self.fresh))
+        self._add(self._screened(self._random(self.scanned)))
+
+    def _screened(self, candidates: np.ndarray) -> np.ndarray:
+        """The `fresh` candidates that best fit the latest readings: a cheap first look
+        (a few readings each) decides which are worth a full evaluation, so a wide search
+        costs little more than a narrow one."""
+        if len(self.history) <= 1 or len(candidates) <= self.fresh:
+            return candidates[:self.fresh]
+        latest = self.history[-SCREEN_READINGS:]
+        r, ok = residuals(self.ctx.surface, candidates, latest, self.margin)
+        ll = log_likelihood(r, ok, self._sd()[-len(latest):], self.outlier_p,
+                            self.outlier_range)
+        return candidates[np.sort(np.argpartition(-ll, self.fresh - 1)[:self.fresh])]
 
     def _prune(self) -> Iterator[int]:
         """One member per cell, then thin to a capacity that bounds the work per step.
@@ -270,7 +292,9 @@ class Particles:
         cap = max(cap, len(leaders))
         yield len(self.poses)
         if len(self.poses) > cap:
-            rest = np.setdiff1d(np.arange(len(self.poses)), leaders)
+            rest = np.ones(len(self.poses), dtype=bool)
+            rest[leaders] = False
+            rest = np.flatnonzero(rest)
             fill = rest[thin(self._weights()[rest], cap - len(leaders), self.ctx.rng)]
             self._keep(np.sort(np.concatenate([leaders, fill])))
 
@@ -335,10 +359,6 @@ class Particles:
         else:
             heading = rng.uniform(-np.pi, np.pi, count)
         return np.column_stack([x, y, heading])
-
-    def _z0(self, poses: np.ndarray) -> np.ndarray:
-        r, _ = residuals(self.ctx.surface, poses, np.zeros((1, 3)), np.zeros(len(poses)), 0.0)
-        return r[:, 0]
 
     def _weights(self) -> np.ndarray:
         return np.exp(self.ll - self.ll.max()) if len(self.ll) else self.ll

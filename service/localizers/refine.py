@@ -15,7 +15,7 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from service.localizers.base import wrap_angle
-from service.localizers.fitting import positions, sample
+from service.localizers.fitting import heights_and_jacobian
 from service.surface import ContactSurface
 
 
@@ -41,21 +41,14 @@ def reading_sigmas(surface: ContactSurface, history: np.ndarray, pose: np.ndarra
     """Residual sd of each reading at `pose`: the height noise, plus the measured position's
     noise (in this reading and the first) turned into height by the local slope, so steep
     readings weigh less and the covariance is honest."""
-    x, y = positions(np.asarray(pose, dtype=np.float64)[np.newaxis, :], history)
-    _, gx, gy = sample(surface, x[0], y[0])
-    return np.sqrt(sigma**2 + 2 * position_sigma**2 * (gx**2 + gy**2))
+    _, jac = heights_and_jacobian(surface, np.asarray(pose, dtype=np.float64), history)
+    return np.sqrt(sigma**2 + 2 * position_sigma**2 * (jac[:, 0]**2 + jac[:, 1]**2))
 
 
 def _model(surface: ContactSurface, history: np.ndarray, params: np.ndarray
            ) -> tuple[np.ndarray, np.ndarray]:
-    pose = params[np.newaxis, :3]
-    x, y = positions(pose, history)
-    z, gx, gy = sample(surface, x[0], y[0])
-    c, s = np.cos(params[2]), np.sin(params[2])
-    dx, dy = history[:, 0], history[:, 1]
-    gh = gx * (-s * dx - c * dy) + gy * (c * dx - s * dy)
-    jac = np.column_stack([gx, gy, gh, -np.ones_like(gx)])
-    return z - params[3] - history[:, 2], jac
+    z, jac = heights_and_jacobian(surface, params[:3], history)
+    return z - params[3] - history[:, 2], np.column_stack([jac, -np.ones(len(z))])
 
 
 def refine(surface: ContactSurface, history: np.ndarray, start: np.ndarray,
@@ -70,7 +63,7 @@ def refine(surface: ContactSurface, history: np.ndarray, start: np.ndarray,
     map lacks), is dropped and the fit repeated, up to `max_outliers` times.
     """
     start = np.asarray(start, dtype=np.float64)
-    z0, _, _ = sample(surface, np.array([start[0]]), np.array([start[1]]))
+    z0, _ = heights_and_jacobian(surface, start, np.zeros((1, 3)))
     params = np.array([start[0], start[1], start[2], float(z0[0]) - history[0, 2]])
     sigma = np.broadcast_to(np.asarray(sigma, dtype=np.float64), (len(history),))
     use = np.ones(len(history), dtype=bool)
@@ -83,7 +76,7 @@ def refine(surface: ContactSurface, history: np.ndarray, start: np.ndarray,
         use[worst] = False  # the worst reading only: one slip distorts the fit everywhere
     r, j = _model(surface, history[use], params)
     r, j = r / sigma[use], j / sigma[use, np.newaxis]
-    cov = np.linalg.pinv(j.T @ j)
+    cov = _covariance(j)
     pos_sd = float(np.sqrt(max(cov[0, 0] + cov[1, 1], 0.0)))
     head_sd = float(np.sqrt(max(cov[2, 2], 0.0)))
     return Fit(pose=(float(params[0]), float(params[1]), float(wrap_angle(params[2]))),
@@ -98,18 +91,27 @@ def assess(surface: ContactSurface, history: np.ndarray, pose: np.ndarray,
     the height offset fitted, and the covariance the Jacobian implies. Cheap (no solver),
     for steps where no declaration is in reach."""
     pose = np.asarray(pose, dtype=np.float64)
-    x, y = positions(pose[np.newaxis, :], history)
-    z, _, _ = sample(surface, x[0], y[0])
+    z, _ = heights_and_jacobian(surface, pose, history)
     params = np.array([pose[0], pose[1], pose[2], float(np.mean(z - history[:, 2]))])
     sigma = np.broadcast_to(np.asarray(sigma, dtype=np.float64), (len(history),))
     r, j = _model(surface, history, params)
     r, j = r / sigma, j / sigma[:, np.newaxis]
-    cov = np.linalg.pinv(j.T @ j)
+    cov = _covariance(j)
     return Fit(pose=(float(pose[0]), float(pose[1]), float(wrap_angle(pose[2]))),
                position_sd=float(np.sqrt(max(cov[0, 0] + cov[1, 1], 0.0))),
                heading_sd=float(np.sqrt(max(cov[2, 2], 0.0))),
                rms=float(np.sqrt(np.mean(r**2))), max_abs=float(np.max(np.abs(r))),
                readings=len(history))
+
+
+def _covariance(jac: np.ndarray) -> np.ndarray:
+    """(J^T J)^-1 of a Jacobian scaled by the readings' sd: a direct inverse, several times
+    cheaper than the pseudo-inverse, which is kept for a singular one (a flat patch)."""
+    normal = jac.T @ jac
+    try:
+        return np.linalg.inv(normal)
+    except np.linalg.LinAlgError:
+        return np.linalg.pinv(normal)
 
 
 def _solve(surface: ContactSurface, history: np.ndarray, params: np.ndarray, sigma: np.ndarray,

@@ -1,0 +1,284 @@
+"""Compiled inner loops over hypotheses x readings (numba).
+
+Why compiled: an update of a sampled localizer is a dozen passes over a few hundred poses
+x a few dozen readings. In numpy each pass is 20-50 array operations, and at that size
+each operation's fixed cost outweighs its arithmetic: a 16-pose Gauss-Newton step took
+0.2 ms, nearly all of it overhead (BENCHMARKS.md B3). Here each pass is one loop, and the
+bilinear lookup every pass shares is written once (`_bilinear`).
+
+The functions take the contact surface's raw arrays, not objects; `fitting.py` wraps them
+for the rest of the code. They are compiled on first use and cached on disk
+(`cache=True`), so only the first run on a machine pays the compile; `warm_up` does it
+ahead of time for callers with a deadline (the daemon, benchmarks).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+
+_JIT = {"cache": True, "nogil": True}
+
+
+@numba.njit(**_JIT)
+def _bilinear(grid: np.ndarray, spacing: float, x: float, y: float
+              ) -> tuple[float, float, float]:
+    """Height and gradient (d/dx, d/dy) at (x, y), clamped at the edge; a one-row grid is
+    a profile along x."""
+    rows, cols = grid.shape
+    fx = min(max(x / spacing, 0.0), cols - 1.0)
+    ix = min(int(fx), cols - 2)
+    tx = fx - ix
+    if rows == 1:
+        v0, v1 = grid[0, ix], grid[0, ix + 1]
+        return v0 + tx * (v1 - v0), (v1 - v0) / spacing, 0.0
+    fy = min(max(y / spacing, 0.0), rows - 1.0)
+    iy = min(int(fy), rows - 2)
+    ty = fy - iy
+    v00, v01 = grid[iy, ix], grid[iy, ix + 1]
+    v10, v11 = grid[iy + 1, ix], grid[iy + 1, ix + 1]
+    top = v00 + tx * (v01 - v00)
+    bottom = v10 + tx * (v11 - v10)
+    gx = ((1 - ty) * (v01 - v00) + ty * (v11 - v10)) / spacing
+    return top + ty * (bottom - top), gx, (bottom - top) / spacing
+
+
+@numba.njit(**_JIT)
+def sample(grid: np.ndarray, spacing: float, x: np.ndarray, y: np.ndarray
+           ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """`_bilinear` at every point of the flat arrays `x`, `y`."""
+    n = x.shape[0]
+    value, gx, gy = np.empty(n), np.empty(n), np.empty(n)
+    for i in range(n):
+        value[i], gx[i], gy[i] = _bilinear(grid, spacing, x[i], y[i])
+    return value, gx, gy
+
+
+@numba.njit(**_JIT)
+def _inside(x: float, y: float, extent: tuple[float, float], profile: bool,
+            margin: float) -> bool:
+    on_x = -margin <= x <= extent[0] + margin
+    return on_x if profile else on_x and -margin <= y <= extent[1] + margin
+
+
+@numba.njit(**_JIT)
+def relative_residuals(grid: np.ndarray, spacing: float, extent: tuple[float, float],
+                       profile: bool, poses: np.ndarray, readings: np.ndarray, margin: float
+                       ) -> tuple[np.ndarray, np.ndarray]:
+    """Residuals (N, K) of `readings` (K, 3) against each start pose, heights relative to
+    the pose's own first contact, and whether each reading lies on the map."""
+    n, k = poses.shape[0], readings.shape[0]
+    resid = np.empty((n, k))
+    on_map = np.empty((n, k), dtype=np.bool_)
+    for i in range(n):
+        px, py = poses[i, 0], poses[i, 1]
+        c, s = math.cos(poses[i, 2]), math.sin(poses[i, 2])
+        z0 = _bilinear(grid, spacing, px, py)[0]
+        for j in range(k):
+            x = px + c * readings[j, 0] - s * readings[j, 1]
+            y = py + s * readings[j, 0] + c * readings[j, 1]
+            resid[i, j] = _bilinear(grid, spacing, x, y)[0] - z0 - readings[j, 2]
+            on_map[i, j] = _inside(x, y, extent, profile, margin)
+    return resid, on_map
+
+
+@numba.njit(**_JIT)
+def offset_residuals(grid: np.ndarray, spacing: float, extent: tuple[float, float],
+                     profile: bool, poses: np.ndarray, history: np.ndarray, margin: float
+                     ) -> tuple[np.ndarray, np.ndarray]:
+    """Residuals (N, K) of every reading, first contact included, with the height offset
+    between hand and map fitted (their mean removed) per pose."""
+    n, k = poses.shape[0], history.shape[0]
+    resid = np.empty((n, k))
+    on_map = np.empty((n, k), dtype=np.bool_)
+    for i in range(n):
+        c, s = math.cos(poses[i, 2]), math.sin(poses[i, 2])
+        total = 0.0
+        for j in range(k):
+            x = poses[i, 0] + c * history[j, 0] - s * history[j, 1]
+            y = poses[i, 1] + s * history[j, 0] + c * history[j, 1]
+            resid[i, j] = _bilinear(grid, spacing, x, y)[0] - history[j, 2]
+            on_map[i, j] = _inside(x, y, extent, profile, margin)
+            total += resid[i, j]
+        mean = total / k
+        for j in range(k):
+            resid[i, j] -= mean
+    return resid, on_map
+
+
+@numba.njit(**_JIT)
+def heights_and_jacobian(grid: np.ndarray, spacing: float, pose: np.ndarray,
+                         history: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """For one start pose (3,): the map's centre height under each reading (K,) and its
+    derivatives by (x0, y0, heading) (K, 3), for the least-squares refinement."""
+    k = history.shape[0]
+    heights = np.empty(k)
+    jac = np.empty((k, 3))
+    c, s = math.cos(pose[2]), math.sin(pose[2])
+    for j in range(k):
+        dx, dy = history[j, 0], history[j, 1]
+        z, gx, gy = _bilinear(grid, spacing, pose[0] + c * dx - s * dy,
+                              pose[1] + s * dx + c * dy)
+        heights[j] = z
+        jac[j, 0], jac[j, 1] = gx, gy
+        jac[j, 2] = gx * (-s * dx - c * dy) + gy * (c * dx - s * dy)
+    return heights, jac
+
+
+@numba.njit(**_JIT)
+def log_likelihood(resid: np.ndarray, on_map: np.ndarray, sigma: np.ndarray,
+                   outlier_probability: float, outlier_range: float) -> np.ndarray:
+    """Per row, the sum over readings of log(a exp(-z^2 / 2) + b), a Gaussian (sd `sigma`,
+    (K,)) plus a uniform outlier floor b; an off-map reading scores -1000.
+
+    Far from the crossover of its two terms one of them is below 1e-16 of the other, and
+    the log is that of the larger alone, log a - z^2 / 2 or log b: no exp and no log
+    (most of the cost) for a reading a hypothesis plainly misses, or without outliers.
+    """
+    n, k = resid.shape
+    floor = outlier_probability / outlier_range + 1e-300
+    log_floor = math.log(floor)
+    log_peak = np.empty(k)
+    for j in range(k):
+        log_peak[j] = math.log((1 - outlier_probability) / sigma[j])
+    out = np.zeros(n)
+    for i in range(n):
+        total = 0.0
+        for j in range(k):
+            if not on_map[i, j]:
+                total -= 1e3
+                continue
+            z = resid[i, j] / sigma[j]
+            gaussian = log_peak[j] - 0.5 * z * z
+            if gaussian > log_floor + 37.0:
+                total += gaussian
+            elif gaussian < log_floor - 37.0:
+                total += log_floor
+            else:
+                total += math.log(math.exp(gaussian) + floor)
+        out[i] = total
+    return out
+
+
+@numba.njit(**_JIT)
+def gauss_newton(grid: np.ndarray, spacing: float, poses: np.ndarray, history: np.ndarray,
+                 weights: np.ndarray, iterations: int, damping: float, max_move: float,
+                 lever: float) -> np.ndarray:
+    """Damped Gauss-Newton steps on (x0, y0, heading) per pose, the height offset
+    eliminated; a step is capped at `max_move` metres (and max_move / lever radians);
+    max_move <= 0 leaves it uncapped. See `fitting.gauss_newton`."""
+    n, k = poses.shape[0], history.shape[0]
+    w = weights / weights.sum()
+    out = poses.copy()
+    jac = np.empty((4, k))  # d/dx, d/dy, d/dheading, and the height residual
+    for i in range(n):
+        for _ in range(iterations):
+            c, s = math.cos(out[i, 2]), math.sin(out[i, 2])
+            for j in range(k):
+                dx, dy = history[j, 0], history[j, 1]
+                z, gx, gy = _bilinear(grid, spacing, out[i, 0] + c * dx - s * dy,
+                                      out[i, 1] + s * dx + c * dy)
+                jac[0, j], jac[1, j] = gx, gy
+                jac[2, j] = gx * (-s * dx - c * dy) + gy * (c * dx - s * dy)
+                jac[3, j] = z - history[j, 2]
+            for r in range(4):  # centre every column: the free offset, eliminated
+                mean = 0.0
+                for j in range(k):
+                    mean += jac[r, j] * w[j]
+                for j in range(k):
+                    jac[r, j] -= mean
+            normal = np.zeros((3, 4))  # [A | b] of the normal equations
+            for a in range(3):
+                for b in range(a, 4):
+                    acc = 0.0
+                    for j in range(k):
+                        acc += jac[a, j] * jac[b, j] * w[j]
+                    normal[a, b] = acc
+                    if b < 3:
+                        normal[b, a] = acc
+            bump = damping * (1.0 + normal[0, 0] + normal[1, 1] + normal[2, 2]) / 3
+            for a in range(3):
+                normal[a, a] += bump
+            step = _solve3(normal)
+            if max_move > 0:
+                scale = max(math.hypot(step[0], step[1]) / max_move,
+                            abs(step[2]) * lever / max_move, 1.0)
+                step /= scale
+            out[i, 0] -= step[0]
+            out[i, 1] -= step[1]
+            out[i, 2] -= step[2]
+        out[i, 2] = (out[i, 2] + math.pi) % (2 * math.pi) - math.pi
+    return out
+
+
+@numba.njit(**_JIT)
+def _solve3(m: np.ndarray) -> np.ndarray:
+    """Solve the symmetric 3 x 3 system m[:, :3] x = m[:, 3] by Cramer's rule."""
+    c00 = m[1, 1] * m[2, 2] - m[1, 2] * m[2, 1]
+    c01 = m[1, 2] * m[2, 0] - m[1, 0] * m[2, 2]
+    c02 = m[1, 0] * m[2, 1] - m[1, 1] * m[2, 0]
+    det = m[0, 0] * c00 + m[0, 1] * c01 + m[0, 2] * c02
+    if abs(det) <= 1e-300:
+        det = 1e-300
+    c11 = m[0, 0] * m[2, 2] - m[0, 2] * m[2, 0]
+    c12 = m[0, 1] * m[2, 0] - m[0, 0] * m[2, 1]
+    c22 = m[0, 0] * m[1, 1] - m[0, 1] * m[1, 0]
+    b0, b1, b2 = m[0, 3], m[1, 3], m[2, 3]
+    return np.array([(c00 * b0 + c01 * b1 + c02 * b2) / det,
+                     (c01 * b0 + c11 * b1 + c12 * b2) / det,
+                     (c02 * b0 + c12 * b1 + c22 * b2) / det])
+
+
+@numba.njit(**_JIT)
+def first_of_each_mode(poses: np.ndarray, position_tol: float, heading_tol: float
+                       ) -> np.ndarray:
+    """Mask of the poses (N, 3), given best first, that are not within tolerance of a
+    better pose already kept: greedy suppression, O(N x kept)."""
+    n = poses.shape[0]
+    keep = np.zeros(n, dtype=np.bool_)
+    kept = np.empty(n, dtype=np.intp)
+    count = 0
+    for i in range(n):
+        alone = True
+        for m in range(count):
+            j = kept[m]
+            turn = (poses[i, 2] - poses[j, 2] + math.pi) % (2 * math.pi) - math.pi
+            if (math.hypot(poses[i, 0] - poses[j, 0], poses[i, 1] - poses[j, 1])
+                    <= position_tol and abs(turn) <= heading_tol):
+                alone = False
+                break
+        if alone:
+            keep[i] = True
+            kept[count] = i
+            count += 1
+    return keep
+
+
+_warm = False
+
+
+def warm_up() -> None:
+    """Compile (or load from the disk cache) every kernel now, not inside a deadline.
+
+    Once per process; later calls return at once. Localizers that use the kernels call it
+    from their constructors, the daemon at start (`scenario.prepare_localizers`).
+    """
+    global _warm
+    if _warm:
+        return
+    grid, profile = np.zeros((2, 2)), np.zeros((1, 2))
+    for g in (grid, profile):  # contact surfaces are read-only, a type of their own
+        g.flags.writeable = False
+    poses = np.zeros((1, 3))
+    history = np.zeros((2, 3))
+    for g, is_profile in ((grid, False), (profile, True)):
+        sample(g, 1.0, np.zeros(1), np.zeros(1))
+        r, ok = relative_residuals(g, 1.0, (1.0, 1.0), is_profile, poses, history, 0.0)
+        offset_residuals(g, 1.0, (1.0, 1.0), is_profile, poses, history, 0.0)
+        log_likelihood(r, ok, np.ones(2), 0.0, 1.0)
+        gauss_newton(g, 1.0, poses, history, np.ones(2), 1, 1e-4, 0.0, 1.0)
+        heights_and_jacobian(g, 1.0, np.zeros(3), history)
+    first_of_each_mode(poses, 1.0, 1.0)
+    _warm = True
