@@ -60,8 +60,8 @@ class ScenarioConfig:
     spacing: float | None = None
     radius: float = 0.008
     step: float = 0.01
-    localizer: str = "elimination"
-    policy: str = "paper"
+    localizer: str = "particles"
+    policy: str = "info-gain"
     headings: int = 11
     max_steps: int = 100
     noise: bool = False

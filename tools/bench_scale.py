@@ -22,6 +22,8 @@ from tools.bench_common import write_json as _write_json
 DEFAULTS = dataclasses.replace(RunSettings(), noise=True, max_steps=60)
 """The recommended algorithm and policy (RunSettings' defaults), with B2's noise."""
 COMPARED = ("particles", "elimination")
+TARGET_P99_MS = 5.0
+"""The issue's bound on Algorithm IV's p99 per step after the first, drawn on the figure."""
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -103,6 +105,8 @@ def plot_rows(rows: list[dict], path) -> None:
                            ("compute_ms_after_first_p99", "--^")):
             ax.plot(units, [r[key] or 0 for r in mine], style,
                     label=f"{name} {key.rsplit('_', 1)[-1]}")
+    ax.axhline(TARGET_P99_MS, color="grey", linewidth=0.8, linestyle=":",
+               label=f"target: Algorithm IV p99 <= {TARGET_P99_MS:g} ms")
     ax.set(xlabel="map size (units)", ylabel="ms per step after the first", yscale="log",
            title="B3: compute per step as the map grows")
     ax.legend(fontsize=7)

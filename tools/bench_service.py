@@ -26,18 +26,23 @@ import numpy as np
 import zmq
 
 from service.client import Client, Subscriber
+from service.config import LOCALIZER_MODES, LoopConfig, ScenarioConfig
 from service.errors import ConfigError
+from service.registry import LOCALIZERS, POLICIES
 
 CONFIG = """
 [backend]
 name = "sim"
 step_duration_s = {step_s}
 [scenario]
+localizer = "{algorithm}"
+policy = "{policy}"
 noise = true
 max_steps = 60
 seed = {seed}
 [loop]
 rate_hz = {rate}
+localizer_mode = "{localizer_mode}"
 [endpoints]
 pub = "{pub}"
 cmd = "{cmd}"
@@ -55,6 +60,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--step-s", type=float, default=0.02,
                         help="simulated step duration, s (default: %(default)s)")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--algorithm", default=ScenarioConfig.localizer,
+                        choices=LOCALIZERS.names(),
+                        help="the daemon's localizer (default: %(default)s, its own default)")
+    parser.add_argument("--policy", default=ScenarioConfig.policy, choices=POLICIES.names(),
+                        help="the daemon's policy (default: %(default)s)")
+    parser.add_argument("--localizer-mode", default=LoopConfig.localizer_mode,
+                        choices=LOCALIZER_MODES,
+                        help="sliced in the loop's ticks, or on a worker thread "
+                             "(default: %(default)s)")
     parser.add_argument("--ping-hz", type=float, default=20.0,
                         help="command round trips timed per second")
     parser.add_argument("--json", type=Path, metavar="FILE", help="write the figures as JSON")
@@ -91,6 +105,8 @@ def measure(subscribers: int, args: argparse.Namespace) -> dict[str, Any]:
         pub, cmd = f"ipc://{tmp}/pub", f"ipc://{tmp}/cmd"
         cfg = Path(tmp) / "hapticd.toml"
         cfg.write_text(CONFIG.format(step_s=args.step_s, seed=args.seed, rate=args.rate,
+                                     algorithm=args.algorithm, policy=args.policy,
+                                     localizer_mode=args.localizer_mode,
                                      pub=pub, cmd=cmd))
         proc = subprocess.Popen([sys.executable, "-m", "service.daemon", "--config", str(cfg),
                                  "--log-level", "warning"])

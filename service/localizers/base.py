@@ -51,6 +51,10 @@ class Budget:
     def expired(self) -> bool:
         return self.deadline_ns is not None and time.monotonic_ns() >= self.deadline_ns
 
+    def fits(self, duration_ns: int) -> bool:
+        """Whether work expected to take `duration_ns` would still end by the deadline."""
+        return self.deadline_ns is None or time.monotonic_ns() + duration_ns <= self.deadline_ns
+
 
 @dataclass(frozen=True)
 class Estimate:

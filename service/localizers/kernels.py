@@ -259,6 +259,63 @@ def first_of_each_mode(poses: np.ndarray, position_tol: float, heading_tol: floa
 _warm = False
 
 
+@numba.njit(**_JIT)
+def best_per_key(keys: np.ndarray, score: np.ndarray) -> np.ndarray:
+    """Mask of the best-scoring entry for each distinct key (ties: the lowest index), in
+    one pass over an open-addressing hash table: O(N), where sorting took two sorts."""
+    n = keys.shape[0]
+    size = 1
+    while size < 2 * n:
+        size *= 2
+    slot_key = np.empty(size, dtype=np.int64)
+    slot_of = np.full(size, -1, dtype=np.intp)
+    for i in range(n):
+        h = (np.uint64(keys[i]) * np.uint64(0x9E3779B97F4A7C15)) >> np.uint64(32)
+        slot = np.intp(h) & (size - 1)
+        while slot_of[slot] >= 0 and slot_key[slot] != keys[i]:
+            slot = (slot + 1) & (size - 1)
+        if slot_of[slot] < 0:
+            slot_key[slot], slot_of[slot] = keys[i], i
+        elif score[i] > score[slot_of[slot]]:
+            slot_of[slot] = i
+    best = np.zeros(n, dtype=np.bool_)
+    for slot in range(size):
+        if slot_of[slot] >= 0:
+            best[slot_of[slot]] = True
+    return best
+
+
+@numba.njit(**_JIT)
+def information(readings: np.ndarray, weights: np.ndarray, sigma: float) -> np.ndarray:
+    """Per option, -sum_i w_i log sum_j w_j exp(-|z_i - z_j|^2 / (4 sigma^2)) over the
+    readings (options, N, D) that N weighted hypotheses predict (see
+    `policies.info_gain.information`). Each pair is visited once (the kernel is
+    symmetric), and pairs more than sqrt(40) apart add exp(-40) or less: skipped."""
+    options, n, d = readings.shape
+    scale = 1.0 / (4 * sigma * sigma)
+    out = np.zeros(options)
+    density = np.empty(n)
+    for o in range(options):
+        for i in range(n):
+            density[i] = weights[i]  # the pair (i, i)
+        for i in range(n):
+            for j in range(i + 1, n):
+                d2 = 0.0
+                for k in range(d):
+                    diff = readings[o, i, k] - readings[o, j, k]
+                    d2 += diff * diff
+                d2 *= scale
+                if d2 < 40.0:
+                    e = math.exp(-d2)
+                    density[i] += weights[j] * e
+                    density[j] += weights[i] * e
+        total = 0.0
+        for i in range(n):
+            total -= weights[i] * math.log(max(density[i], 1e-300))
+        out[o] = total
+    return out
+
+
 def warm_up() -> None:
     """Compile (or load from the disk cache) every kernel now, not inside a deadline.
 
@@ -281,4 +338,6 @@ def warm_up() -> None:
         gauss_newton(g, 1.0, poses, history, np.ones(2), 1, 1e-4, 0.0, 1.0)
         heights_and_jacobian(g, 1.0, np.zeros(3), history)
     first_of_each_mode(poses, 1.0, 1.0)
+    best_per_key(np.zeros(1, dtype=np.int64), np.zeros(1))
+    information(np.zeros((1, 2, 1)), np.ones(2), 1.0)
     _warm = True

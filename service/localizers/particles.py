@@ -12,7 +12,9 @@ The paper proposed it and never built it. Here:
   Gauss-Newton step onto the readings (kept if it fits better); children are drawn around
   parents chosen by O(N) systematic resampling, more of them when the effective sample
   size is low;
-* fresh random members are injected (and the ranges widened) once every member fits poorly;
+* fresh members are injected (and the ranges widened) once every member fits poorly: the
+  best of `scanned` random poses on the latest few readings, so a search of the whole
+  map costs a few lookups per pose tried;
 * one member per small (position, heading) cell is kept, so one mode's offspring cannot
   crowd out other modes; the best member of each plausible coarse cell is never cut for
   room; the rest is thinned to a capacity of `work / readings`, so the pool shrinks as
@@ -28,6 +30,7 @@ map's area (BENCHMARKS.md B3).
 
 from __future__ import annotations
 
+import time
 from collections.abc import Iterator
 from typing import ClassVar
 
@@ -113,6 +116,8 @@ class Particles:
         self.tracks = ModeTracks()
         self.motions = symmetries(ctx.surface)
         self._job: AnytimeJob | None = None
+        self._judge_ns = 0
+        """How long the last judgement took: a hint for slicing, never for results."""
         self._sd_cache: tuple[tuple[int, float, float] | None, np.ndarray] = (None, np.empty(0))
 
     # -- updates ---------------------------------------------------------------------------
@@ -159,8 +164,11 @@ class Particles:
         yield 1
         yield from self._prune()
         self._contract()
+        job.expect(self._judge_ns)  # the judgement is one slice: start it in a fresh call
         yield len(self.poses)
+        started = time.monotonic_ns()
         self._judge()
+        self._judge_ns = time.monotonic_ns() - started
 
     # -- the steps of one update -----------------------------------------------------------
     def _sd(self) -> np.ndarray:
@@ -279,15 +287,15 @@ class Particles:
         if len(self.poses) == 0:
             return
         before = len(self.poses)
-        self._keep(niche(self.poses, self.ll, *self.cells))
+        self._keep(niche(self.poses, self.ll, *self.cells, ordered=False))
         yield before
         self._discard()
         readings = len(self.history)  # what the next update will test each member on
         # the best member of every plausible coarse cell is a mode the pool must not lose
         # for want of room: only evidence may remove it (a periodic surface keeps many)
         plausible = np.flatnonzero(self.ll >= self.ll.max() - self.mode_drop)
-        leaders = plausible[niche(self.poses[plausible], self.ll[plausible], *self.mode_cells)]
-        leaders = leaders[:self.kept_modes]
+        leaders = plausible[niche(self.poses[plausible], self.ll[plausible], *self.mode_cells,
+                                  limit=self.kept_modes)]
         cap = int(np.clip(self.work_items // readings, self.min_capacity, self.capacity))
         cap = max(cap, len(leaders))
         yield len(self.poses)
@@ -321,8 +329,9 @@ class Particles:
                                                np.deg2rad(20.0), 1).masses[0])
             return
         plausible = np.flatnonzero(self.ll >= self.ll.max() - self.mode_drop)
-        leaders = plausible[niche(self.poses[plausible], self.ll[plausible], *self.mode_cells)]
-        self.tracks.update(self.ctx.surface, self.history, self.poses[leaders[:self.rivals]],
+        leaders = plausible[niche(self.poses[plausible], self.ll[plausible], *self.mode_cells,
+                                  limit=self.rivals)]
+        self.tracks.update(self.ctx.surface, self.history, self.poses[leaders],
                            sd=max(self.sigma, 0.002 * step), position_tol=0.25 * step,
                            heading_tol=np.deg2rad(5.0), margin=self.margin,
                            outlier_probability=self.outlier_p,

@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import time
 from collections.abc import Callable, Iterator
 
 import numpy as np
 
+from service.localizers import kernels
 from service.localizers.base import Budget
 
 
@@ -52,21 +54,27 @@ def effective_sample_size(weights: np.ndarray) -> float:
     return float(1.0 / np.sum(w * w))
 
 
-def niche(poses: np.ndarray, score: np.ndarray, position_cell: float, heading_cell: float
-          ) -> np.ndarray:
-    """Indexes of the best-scoring member in each (position, heading) cell, best first.
+def niche(poses: np.ndarray, score: np.ndarray, position_cell: float, heading_cell: float,
+          limit: int | None = None, *, ordered: bool = True) -> np.ndarray:
+    """Indexes of the best-scoring member in each (position, heading) cell.
 
     Keeping one member per cell stops one mode's offspring from crowding every other mode
-    out of a bounded pool: modes die from evidence, not from sampling drift.
+    out of a bounded pool: modes die from evidence, not from sampling drift. Best first
+    (the `limit` best, if given); with `ordered=False`, in pool order, which spares a sort
+    of what may be the whole pool.
     """
-    order = np.argsort(-score, kind="stable")
     span = 1 << 20
-    kx = np.floor(poses[order, 0] / position_cell).astype(np.int64) % span
-    ky = np.floor(poses[order, 1] / position_cell).astype(np.int64) % span
-    kh = np.floor((poses[order, 2] % (2 * np.pi)) / heading_cell).astype(np.int64)
+    kx = np.floor(poses[:, 0] / position_cell).astype(np.int64) % span
+    ky = np.floor(poses[:, 1] / position_cell).astype(np.int64) % span
+    kh = np.floor((poses[:, 2] % (2 * np.pi)) / heading_cell).astype(np.int64)
     keys = (kx * span + ky) * 4096 + kh
-    _, first = np.unique(keys, return_index=True)
-    return order[np.sort(first)]
+    best = np.flatnonzero(kernels.best_per_key(keys, np.ascontiguousarray(score,
+                                                                          dtype=np.float64)))
+    if not ordered:
+        return best
+    if limit is not None and limit < len(best):
+        best = best[np.argpartition(-score[best], limit - 1)[:limit]]
+    return best[np.argsort(-score[best], kind="stable")]
 
 
 class AnytimeJob:
@@ -79,16 +87,27 @@ class AnytimeJob:
 
     def __init__(self, make: Callable[[AnytimeJob], Iterator[int]]) -> None:
         self._allowance: int | None = None
+        self._expected_ns = 0
         self._steps = make(self)
         self.done = False
+
+    def expect(self, duration_ns: int) -> None:
+        """Called by the generator before a yield: its next slice will take about this
+        long (work it cannot split, such as a judgement), so `work` starts it only when
+        that fits what is left of the budget."""
+        self._expected_ns = duration_ns
 
     def take(self, default: int) -> int:
         """Size of the next slice: `default`, or less when the call's budget is smaller."""
         return default if self._allowance is None else max(1, min(default, self._allowance))
 
     def work(self, budget: Budget) -> bool:
+        """Run slices until done or the budget is spent. A slice is started only if it
+        would end by the deadline, judged by the last slice's length (or the generator's
+        `expect`), so a call overshoots by a misjudgement, not by a whole slice."""
         self._allowance = budget.max_items
         while not self.done:
+            started = time.monotonic_ns()
             try:
                 used = next(self._steps)
             except StopIteration:
@@ -98,6 +117,8 @@ class AnytimeJob:
                 self._allowance -= max(1, used)
                 if self._allowance <= 0:
                     break
-            if budget.expired():
+            expected = max(time.monotonic_ns() - started, self._expected_ns)
+            self._expected_ns = 0
+            if not budget.fits(expected):
                 break
         return self.done

@@ -22,6 +22,7 @@ from typing import ClassVar
 
 import numpy as np
 
+from service.localizers import kernels
 from service.models import rotate
 from service.policies.base import MOVES, PolicyInput, allowed_moves, predicted_heights
 
@@ -34,6 +35,7 @@ class InfoGainPolicy:
 
     def __init__(self, samples: int = 200, lookahead: int = 1, reach: int = 4,
                  noise_floor: float = 0.03) -> None:
+        kernels.warm_up()  # compile before the first decision, not during it
         self.samples = samples
         self.lookahead = lookahead
         self.reach = reach
@@ -157,9 +159,9 @@ def _current_heights(view: PolicyInput, poses: np.ndarray) -> np.ndarray:
 def information(readings: np.ndarray, weights: np.ndarray, sigma: float) -> np.ndarray:
     """Mutual information (nats) between hypothesis and reading, per option.
 
-    `readings` is (options, N, D): the D readings each of N hypotheses predicts.
+    `readings` is (options, N, D): the D readings each of N hypotheses predicts. The
+    pairwise sum is a compiled loop (`kernels.information`): as a (options, N, N, D)
+    array it took 11 ms a decision at N = 200, ten times the localizer's update.
     """
-    diff = readings[:, :, np.newaxis, :] - readings[:, np.newaxis, :, :]
-    d2 = np.sum(diff * diff, axis=-1) / (4 * sigma * sigma)
-    density = np.exp(-d2) @ weights  # (options, N)
-    return -np.log(np.maximum(density, 1e-300)) @ weights
+    return kernels.information(np.ascontiguousarray(readings, dtype=np.float64),
+                               np.ascontiguousarray(weights, dtype=np.float64), float(sigma))

@@ -39,5 +39,8 @@ def test_daemon_localizes_through_the_dynamixel_backend_on_the_emulator() -> Non
                 "episode_done", "fault"), 60.0)
             assert done is not None and done["event"] == "episode_done", done
             assert done["converged"]
-            np.testing.assert_allclose(done["pose"], truth, atol=1e-9)
+            # encoder rounding is noise: the refined pose is within a millimetre and a degree
+            np.testing.assert_allclose(done["pose"][:2], truth[:2], atol=1e-3)
+            turn = (done["pose"][2] - truth[2] + np.pi) % (2 * np.pi) - np.pi
+            assert abs(turn) < np.deg2rad(1.0)
             ctl.call("deactivate")

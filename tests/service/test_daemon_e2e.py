@@ -52,13 +52,16 @@ def test_hapticd_sim_localizes_at_the_true_pose_and_shuts_down_cleanly(daemon) -
         done = sub.wait_for(lambda m: (estimates.append(m) if m.topic == "estimate" else None)
                             or (m.topic == "estimate" and m["converged"]), 60.0)
         assert done is not None, "no converged estimate"
-        assert len(estimates) >= 3 and estimates[-1]["candidates"] == 1
+        assert len(estimates) >= 3 and estimates[-1]["converged"]
+        assert estimates[0]["candidates"] > estimates[-1]["candidates"] > 0  # the pool shrank
         assert [m.seq for m in estimates] == sorted(m.seq for m in estimates)
         # The truth, derived independently the way `haptic run --seed 0` hides it.
         settings = RunSettings()
         truth_rng = np.random.default_rng(settings.seed).spawn(4)[0]
         truth = draw_truth(settings, surface_for(settings).map, truth_rng).as_tuple()
-        np.testing.assert_allclose(done["pose"], truth, atol=1e-9)
+        # the default (Algorithm IV) refines a continuous pose: noise-free, it lands on
+        # the hidden pose to well under a micrometre and a thousandth of a degree
+        np.testing.assert_allclose(done["pose"], truth, atol=1e-6)
         assert ctl.status()["sim_truth"] == pytest.approx(list(truth))
         proc.send_signal(signal.SIGTERM)
         final = sub.wait_for(lambda m: m.topic == "event" and m["event"] == "shutdown", 10.0)
@@ -148,7 +151,7 @@ def test_thread_mode_localizes_off_the_control_path() -> None:
         done = sub.wait_for(lambda m: (clouds.append(m) if m.topic == "cloud" else None)
                             or (m.topic == "estimate" and m["converged"]), 30.0)
         assert done is not None
-        np.testing.assert_allclose(done["pose"], ctl.status()["sim_truth"], atol=1e-9)
+        np.testing.assert_allclose(done["pose"], ctl.status()["sim_truth"], atol=1e-6)
         assert clouds and all(c["poses"].shape[1] == 3 for c in clouds)
         assert ctl.status()["timing"]["localizer_p99_ms"] == 0.0  # never on the loop thread
 

@@ -168,3 +168,16 @@ def test_warm_up_compiles_every_variant_the_localizers_call(surface):
     distinct(poses, np.arange(20.0), 0.01, 0.1)
     after = {name: len(getattr(kernels, name).signatures) for name in before}
     assert after == before  # nothing compiled on the way: no stall inside a deadline
+
+
+def test_best_per_key_matches_a_dictionary():
+    rng = np.random.default_rng(12)
+    keys = rng.integers(0, 300, 5000).astype(np.int64) * 7919  # collisions and spread
+    score = rng.normal(size=5000).round(1)  # ties happen: the lowest index must win
+    best: dict[int, int] = {}
+    for i, (k, v) in enumerate(zip(keys.tolist(), score.tolist(), strict=True)):
+        if k not in best or v > score[best[k]]:
+            best[k] = i
+    expected = np.zeros(5000, dtype=bool)
+    expected[list(best.values())] = True
+    np.testing.assert_array_equal(kernels.best_per_key(keys, score), expected)

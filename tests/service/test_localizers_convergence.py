@@ -57,6 +57,21 @@ def test_rule_needs_readings_mass_fit_and_tightness():
     assert rule.loosened().holds(**{**ok, "fit": _fit(position_sd=1e-3)})
 
 
+def test_a_larger_map_asks_one_more_reading_per_doubling_of_its_area():
+    step = 0.01
+    assert ConvergenceRule.for_map((0.2, 0.2), step) == ConvergenceRule()  # B1's map
+    assert ConvergenceRule.for_map((0.1, 0.1), step) == ConvergenceRule()
+    assert ConvergenceRule.for_map((1.0, 0.0), step) == ConvergenceRule()  # a profile
+    for extent, extra in [((0.4, 0.2), 1), ((0.4, 0.4), 2), ((0.8, 0.8), 4)]:
+        rule = ConvergenceRule.for_map(extent, step)
+        assert rule.min_readings_noisy == ConvergenceRule.min_readings_noisy + extra
+        assert rule.min_readings == ConvergenceRule.min_readings + extra
+        ok = dict(readings=rule.min_readings_noisy, noisy=True, mode_mass=0.9999, fit=_fit(),
+                  step_length=step)
+        assert rule.holds(**ok)
+        assert not rule.holds(**{**ok, "readings": rule.min_readings_noisy - 1})
+
+
 def test_modes_group_and_merge():
     poses = np.array([[0.1, 0.1, 0.0], [0.1005, 0.1, 0.01], [0.15, 0.1, 0.0]])
     modes = group_modes(poses, np.array([3.0, 2.0, 1.0]), 0.0025, np.deg2rad(5))

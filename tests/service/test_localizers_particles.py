@@ -5,10 +5,15 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from service.localizers.base import LocalizerContext, Measurement, update
+from service.localizers.fitting import log_likelihood, residuals
+from service.localizers.particles import Particles
 from service.localizers.pool import effective_sample_size, niche, systematic_resample, thin
 from service.maps import bumps
+from service.models import NoiseSpec, models_for
 from service.scenario import RunSettings
 from service.simulate import simulate
+from service.surface import contact_surface
 
 
 def test_systematic_resample_follows_the_weights():
@@ -39,6 +44,8 @@ def test_niche_keeps_the_best_member_per_cell():
     score = np.array([1.0, 2.0, 0.5])
     kept = niche(poses, score, 0.001, np.deg2rad(2.0))
     assert kept.tolist() == [1, 2]
+    assert niche(poses, score, 0.001, np.deg2rad(2.0), limit=1).tolist() == [1]
+    assert niche(poses, -score, 0.001, np.deg2rad(2.0), ordered=False).tolist() == [0, 2]
 
 
 def test_compute_per_step_does_not_grow_with_the_map():
@@ -51,3 +58,28 @@ def test_compute_per_step_does_not_grow_with_the_map():
                                       max_steps=6), m)
         sizes[units] = max(s.candidates for s in report.result.steps[1:])
     assert sizes[60] <= 1.1 * max(sizes[20], 3000)
+
+
+def test_fresh_members_are_screened_to_fit_the_latest_readings_better_than_chance():
+    surface = contact_surface(bumps(40, seed=1), 0.008)
+    motion, sensor = models_for(NoiseSpec.realistic(unit=0.01))
+    ctx = LocalizerContext(surface=surface, motion=motion, sensor=sensor, step_length=0.01,
+                           rng=np.random.default_rng(4))
+    loc = Particles(ctx, initial=2000)
+    loc.start(Measurement(step=0, displacement=np.zeros(3)))
+    truth = np.array([[0.2, 0.2, 0.5]])
+    moves = np.cumsum(np.array([[0.01, 0, 0], [0, 0.01, 0], [0.01, 0, 0], [0, 0.01, 0],
+                                [-0.01, 0, 0]]), axis=0)
+    heights, _ = residuals(surface, truth, moves, 0.0)  # relative heights along the path
+    for k, move in enumerate(moves):
+        update(loc, Measurement(step=k + 1, displacement=np.array([*move[:2],
+                                                                   heights[0, k]])))
+    candidates = loc._random(loc.scanned)
+    chosen = loc._screened(candidates)
+    assert len(chosen) == loc.fresh
+
+    def fit(poses):
+        r, ok = residuals(surface, poses, loc.history[1:], loc.margin)
+        return log_likelihood(r, ok, loc._sd(), 0.0, 1.0)
+
+    assert np.median(fit(chosen)) > np.percentile(fit(candidates), 90)
