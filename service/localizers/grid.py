@@ -20,6 +20,7 @@ by least squares and declared only when `convergence.py` agrees.
 
 from __future__ import annotations
 
+import time
 from collections.abc import Iterator
 from typing import ClassVar
 
@@ -83,7 +84,10 @@ class Grid:
         self.prob = np.zeros((headings, *self.gx.shape))
         self.history = np.zeros((1, 3))
         self.verdict = Verdict(None, np.empty((0, 3)), 0.0, None, 0.0, False)
+        self.motions = symmetries(ctx.surface)  # found once, not inside an update's slice
         self._job: AnytimeJob | None = None
+        self._judge_ns = 0
+        """How long the last judgement took: a hint for slicing, never for results."""
 
     # -- updates ---------------------------------------------------------------------------
     def start(self, first: Measurement) -> None:
@@ -91,20 +95,23 @@ class Grid:
         self.prob[:] = 1.0 / self.prob.size
 
     def begin_update(self, measurement: Measurement) -> None:
-        self._job = AnytimeJob(lambda job: self._update(measurement))
+        self._job = AnytimeJob(lambda job: self._update(job, measurement))
 
     def work(self, budget: Budget) -> bool:
         """Sliced between heading layers (or ring directions), then the judgement."""
         return True if self._job is None else self._job.work(budget)
 
-    def _update(self, m: Measurement) -> Iterator[int]:
+    def _update(self, job: AnytimeJob, m: Measurement) -> Iterator[int]:
         previous = self.history[-1]
         self.history = np.vstack([self.history, np.asarray(m.displacement, dtype=np.float64)])
         step = self.history[-1] - previous
         yield from self._predict_and_weigh(step[:2], step[2])
-        self._after_update()
+        yield from self._after_update()
+        job.expect(self._judge_ns)  # the judgement is one slice: start it in a fresh call
         yield self.prob.size
+        started = time.monotonic_ns()
         self.verdict = self._judge()
+        self._judge_ns = time.monotonic_ns() - started
 
     def _likelihood(self, dz_cells: np.ndarray, dz: float) -> np.ndarray:
         z = (dz_cells - dz) / self.grid_sigma
@@ -131,10 +138,18 @@ class Grid:
                 vx, vy = length * np.cos(angle), length * np.sin(angle)
                 new[0] += self._carry(self.prob[0], float(vx), float(vy), dz) / RING
                 yield layer
+        # the spread of Eq. 2: over position layer by layer, then over heading in blocks
+        # of rows, so no slice filters the whole grid at once
         spread = max(self.epsilon * length / self.cell, 0.3)
-        heading_spread = self.heading_sd / (2 * np.pi / self.headings) if self.headings > 1 else 0
-        new = ndimage.gaussian_filter(new, sigma=(heading_spread, spread, spread),
-                                      mode=("wrap", "constant", "constant"))
+        for h in range(len(new)):
+            new[h] = ndimage.gaussian_filter(new[h], sigma=spread, mode="constant")
+            yield layer
+        if self.headings > 1:
+            heading_spread = self.heading_sd / (2 * np.pi / self.headings)
+            for rows in np.array_split(np.arange(new.shape[1]), len(new)):
+                new[:, rows] = ndimage.gaussian_filter1d(new[:, rows], heading_spread, axis=0,
+                                                         mode="wrap")
+                yield len(rows) * new.shape[2] * len(new)
         total = new.sum()
         self.prob = new / total if total > 0 else np.full_like(new, 1.0 / new.size)
 
@@ -144,8 +159,9 @@ class Grid:
         before = sample(self.ctx.surface, self.gx - vx, self.gy - vy)[0]
         return moved * self._likelihood(self.c_here - before, dz)
 
-    def _after_update(self) -> None:
-        """Hook for Algorithm II."""
+    def _after_update(self) -> Iterator[int]:
+        """Hook for Algorithm II: more anytime work after the grid's own."""
+        yield from ()
 
     # -- hypotheses ------------------------------------------------------------------------
     def _start_poses(self, limit: int) -> tuple[np.ndarray, np.ndarray]:
@@ -178,7 +194,7 @@ class Grid:
                      outlier_probability=self.outlier_p, outlier_range=self.outlier_range,
                      position_sigma=self.ctx.motion.position_sigma,
                      previous=None if self.verdict.fit is None else self.verdict.fit.pose,
-                     motions=symmetries(self.ctx.surface), polish=6)
+                     motions=self.motions, polish=6)
 
     # -- belief ----------------------------------------------------------------------------
     def estimate(self) -> Estimate:

@@ -10,6 +10,7 @@ location dominates and fits (`convergence.py`).
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from typing import ClassVar
 
 import numpy as np
@@ -22,6 +23,8 @@ from service.surface import ContactSurface
 
 SCAN = 48
 """Candidate headings per cell in the rotation scan."""
+SCAN_LOOKUPS = 20_000
+"""Map lookups per anytime slice of the rotation scan (about a millisecond)."""
 
 
 def best_headings(surface: ContactSurface, history: np.ndarray, x: np.ndarray, y: np.ndarray,
@@ -50,9 +53,30 @@ class Match(Grid):
         self.matched = matched
         self.gate = gate
         self.dropped = 0
+        self._scanned = (-1, np.full(self.gx.size, np.nan))
+        """(readings, best heading per cell or NaN): the scan's results for this history,
+        reused by `_fit_headings` so the judgement does not scan again."""
 
-    def _after_update(self) -> None:
-        """Pattern matching: drop the leading cells whose best rotation cannot fit."""
+    def _fit_headings(self, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+        """The rotation scan's heading per cell, scanning only cells not yet scanned for
+        the current readings."""
+        readings, known = self._scanned
+        if readings != len(self.history):
+            known = np.full(self.gx.size, np.nan)
+            self._scanned = (len(self.history), known)
+        cells = np.ravel_multi_index((rows, cols), self.gx.shape)
+        missing = np.isnan(known[cells])
+        if missing.any():
+            known[cells[missing]] = best_headings(self.ctx.surface, self.history,
+                                                  self.xs[cols[missing]],
+                                                  self.ys[rows[missing]])[0]
+        return known[cells]
+
+    def _after_update(self) -> Iterator[int]:
+        """Pattern matching: drop the leading cells whose best rotation cannot fit.
+
+        The rotation scan is sliced by blocks of cells for the anytime budget.
+        """
         if len(self.history) < 4:
             return
         flat = self.prob.reshape(self.headings, -1)
@@ -62,7 +86,12 @@ class Match(Grid):
             return
         cells = np.argpartition(-total, k - 1)[:k]
         r, c = np.unravel_index(cells, self.gx.shape)
-        heading, _ = best_headings(self.ctx.surface, self.history, self.xs[c], self.ys[r])
+        per_slice = max(1, SCAN_LOOKUPS // (SCAN * len(self.history)))
+        for block in range(0, k, per_slice):
+            part = slice(block, block + per_slice)
+            self._fit_headings(r[part], c[part])
+            yield len(cells[part]) * SCAN
+        heading = self._fit_headings(r, c)
         d = self.history[-1]
         dx, dy = rotate(heading, d[0], d[1])
         starts = np.column_stack([self.xs[c] - dx, self.ys[r] - dy, heading])
