@@ -10,6 +10,8 @@ import argparse
 import importlib
 import sys
 
+from threadpoolctl import threadpool_limits
+
 from firmware_if.errors import FirmwareError
 from service.errors import InputError, ServiceError
 
@@ -35,7 +37,8 @@ def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
-        return int(args.handler(args) or 0)
+        with threadpool_limits(limits=1):  # as in the daemon: no BLAS thread handovers
+            return int(args.handler(args) or 0)
     except (InputError, FirmwareError) as exc:
         print(f"haptic {args.command}: error: {exc}", file=sys.stderr)
         return 2

@@ -20,6 +20,7 @@ from typing import Any
 
 import numpy as np
 import zmq
+from threadpoolctl import threadpool_limits
 
 from firmware_if.backend import Backend, FingerState
 from firmware_if.errors import FirmwareError
@@ -72,6 +73,8 @@ class Node:
         self.lifecycle = Lifecycle()
         self.ready = threading.Event()
         self._stop = threading.Event()
+        self._settled = False
+        """Whether the first episode's long-lived objects have been frozen (`gc.freeze`)."""
         self.endpoints: dict[str, str] = {}
         self.backend: Backend | None = None
         self.truth: Truth | None = None
@@ -112,6 +115,9 @@ class Node:
             self.pub.event("started", state=self.lifecycle.state.value)
             gc.collect()
             gc.freeze()  # start-up objects leave the collector's view: shorter GC pauses
+            # BLAS threads buy nothing at our sizes and cost a core-handover stall (10 ms
+            # when the other core is busy) in calls as small as a 20,000-vector product
+            threadpool_limits(limits=1)
             self.ready.set()
             self.loop.run(self._stop.is_set)
         except BaseException as exc:
@@ -203,6 +209,12 @@ class Node:
                 self._next_cloud_ns = 0  # viewers get the final cloud now, not in 1/cloud_hz
         for name, fields in out.events:
             self._event(name, **fields)
+            if name == "episode_done" and not self._settled:
+                # the first episode loads what start-up did not (lazy imports, caches):
+                # freeze that too, or every full collection scans it (12-50 ms pauses)
+                self._settled = True
+                gc.collect()
+                gc.freeze()
 
     def _publish_state(self, tick: Tick) -> None:
         if tick.index % 20 == 0 or not self._timing_cache:

@@ -96,8 +96,9 @@ def plot_rows(rows: list[dict], path) -> None:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.ticker import LogLocator, NullFormatter, ScalarFormatter
 
-    fig, ax = plt.subplots(figsize=(6, 4))
+    fig, ax = plt.subplots(figsize=(8, 4))
     for name in dict.fromkeys(r["algorithm"] for r in rows):
         mine = [r for r in rows if r["algorithm"] == name]
         units = [r["map_units"] for r in mine]
@@ -109,7 +110,10 @@ def plot_rows(rows: list[dict], path) -> None:
                label=f"target: Algorithm IV p99 <= {TARGET_P99_MS:g} ms")
     ax.set(xlabel="map size (units)", ylabel="ms per step after the first", yscale="log",
            title="B3: compute per step as the map grows")
-    ax.legend(fontsize=7)
+    ax.yaxis.set_major_locator(LogLocator(subs=(1.0, 2.0, 5.0)))  # 0.5, 1, 2, 5 ms
+    ax.yaxis.set_major_formatter(ScalarFormatter())
+    ax.yaxis.set_minor_formatter(NullFormatter())
+    ax.legend(fontsize=7, loc="center left", bbox_to_anchor=(1.01, 0.5))
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)

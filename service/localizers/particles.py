@@ -351,6 +351,10 @@ class Particles:
                   outlier_probability=self.outlier_p, outlier_range=self.outlier_range,
                   polish=0, position_sigma=self.ctx.motion.position_sigma,
                   previous=None if previous is None else previous.pose,
+                  # the leader's images are judged too: tracks hold at most 64 modes, a
+                  # periodic map has up to hundreds of images, and the one that decides
+                  # may be the one left out (egg-crate, seed 2: a half turn, declared)
+                  motions=self.motions,
                   refined_rivals=0, loose_mass=0.99)  # tracks are polished every update
         self.fit, self.converged, self.mode_mass = v.fit, v.converged, v.mode_mass
         self.runner_up, self.runner_up_mass = v.runner_up, v.runner_up_mass

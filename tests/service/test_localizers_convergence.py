@@ -18,7 +18,7 @@ from service.surface import contact_surface
 @pytest.mark.parametrize("noise", [False, True])
 def test_egg_crate_gets_no_wrong_declaration(name, noise):
     crate = eggcrate()
-    for seed in (1, 3):
+    for seed in (1, 2, 3):  # seed 2, noise-free: particles once declared a half-turn image
         report = simulate(RunSettings(map="eggcrate", algorithm=name, policy="info-gain",
                                       seed=seed, noise=noise, max_steps=25), crate)
         assert not report.score.wrong_declaration, f"{name} seed {seed} declared wrongly"
