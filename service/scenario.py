@@ -115,7 +115,7 @@ def draw_truth(settings: RunSettings, height_map: HeightMap, rng: np.random.Gene
 def prepare_localizers() -> None:
     """Compile the localizers' inner loops now (a second or so on a cold cache), so a
     process with deadlines never compiles inside one."""
-    from service.localizers import kernels
+    from service import kernels
 
     kernels.warm_up()
 

@@ -21,7 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from service.localizers import kernels
+from service import kernels
 from service.localizers.base import wrap_angle
 from service.localizers.fitting import gauss_newton, log_likelihood, offset_residuals
 from service.localizers.refine import Fit, assess, reading_sigmas, refine

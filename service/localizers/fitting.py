@@ -15,7 +15,7 @@ import weakref
 
 import numpy as np
 
-from service.localizers import kernels
+from service import kernels
 from service.surface import ContactSurface
 
 _SLOPES: weakref.WeakKeyDictionary[ContactSurface, float] = weakref.WeakKeyDictionary()

@@ -27,8 +27,8 @@ from typing import ClassVar
 import numpy as np
 from scipy import ndimage
 
+from service import kernels
 from service.errors import ConfigError
-from service.localizers import kernels
 from service.localizers.base import Budget, Estimate, Hypotheses, LocalizerContext, Measurement
 from service.localizers.convergence import (
     ConvergenceRule,

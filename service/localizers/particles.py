@@ -36,7 +36,7 @@ from typing import ClassVar
 
 import numpy as np
 
-from service.localizers import kernels
+from service import kernels
 from service.localizers.base import (
     Budget,
     Estimate,

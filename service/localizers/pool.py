@@ -7,7 +7,7 @@ from collections.abc import Callable, Iterator
 
 import numpy as np
 
-from service.localizers import kernels
+from service import kernels
 from service.localizers.base import Budget
 
 

@@ -22,7 +22,7 @@ from typing import ClassVar
 
 import numpy as np
 
-from service.localizers import kernels
+from service import kernels
 from service.models import rotate
 from service.policies.base import MOVES, PolicyInput, allowed_moves, predicted_heights
 

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from scipy.ndimage import map_coordinates
 
-from service.localizers import kernels
+from service import kernels
 from service.localizers.convergence import distinct
 from service.localizers.fitting import (
     gauss_newton,

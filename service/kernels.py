@@ -1,4 +1,4 @@
-"""Compiled inner loops over hypotheses x readings (numba).
+"""Compiled inner loops over hypotheses x readings, shared by localizers and policies (numba).
 
 Why compiled: an update of a sampled localizer is a dozen passes over a few hundred poses
 x a few dozen readings. In numpy each pass is 20-50 array operations, and at that size
@@ -6,10 +6,11 @@ each operation's fixed cost outweighs its arithmetic: a 16-pose Gauss-Newton ste
 0.2 ms, nearly all of it overhead (BENCHMARKS.md B3). Here each pass is one loop, and the
 bilinear lookup every pass shares is written once (`_bilinear`).
 
-The functions take the contact surface's raw arrays, not objects; `fitting.py` wraps them
-for the rest of the code. They are compiled on first use and cached on disk
-(`cache=True`), so only the first run on a machine pays the compile; `warm_up` does it
-ahead of time for callers with a deadline (the daemon, benchmarks).
+The functions take raw arrays, not objects: `localizers/fitting.py` wraps the surface
+ones for the rest of the code; `localizers/pool.niche`, `localizers/convergence.distinct`
+and `policies/info_gain.information` call the others. They are compiled on first use and
+cached on disk (`cache=True`), so only the first run on a machine pays the compile;
+`warm_up` does it ahead of time for callers with a deadline (the daemon, benchmarks).
 """
 
 from __future__ import annotations
