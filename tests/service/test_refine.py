@@ -63,6 +63,15 @@ def test_one_bad_reading_is_dropped(surface):
     np.testing.assert_allclose(fit.pose[:2], TRUTH[:2], atol=2e-4)
 
 
+def test_a_reading_a_few_sigmas_off_is_kept_not_explained_away(surface):
+    """Dropping 5-sigma readings let a wrong pose fit the rest and be declared (B3)."""
+    h = _history(surface, steps=12)
+    h[5, 2] += 7.5e-4  # 4.7 sigmas after the fit (sigma = 0.1 mm): a misfit, not a slip
+    fit = refine(surface, h, TRUTH + np.array([0.001, 0.001, 0.02]), 1e-4)
+    assert fit.readings == len(h)
+    assert fit.max_abs > 4.0  # the convergence rule (at most 3 with noise) sees the misfit
+
+
 def test_steep_readings_get_larger_sigmas(surface):
     s = reading_sigmas(surface, _history(surface), TRUTH, 2e-4, 1e-4)
     assert np.all(s >= 2e-4) and s.max() > s.min()
