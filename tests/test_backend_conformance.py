@@ -198,7 +198,11 @@ def test_dynamixel_on_the_emulator_localizes_like_the_simulated_finger(seed):
         for bus in buses:
             bus.stop()
     assert sim.score.success and hil.score.success
-    assert hil.result.estimate.pose == sim.result.estimate.pose
+    # with noise the survivor is refined on the readings, which differ by the noise and
+    # the encoders' rounding: the same pose, to a millimetre and a degree
+    hil_pose, sim_pose = np.asarray(hil.result.estimate.pose), np.asarray(sim.result.estimate.pose)
+    np.testing.assert_allclose(hil_pose[:2], sim_pose[:2], atol=1e-3)
+    assert abs((hil_pose[2] - sim_pose[2] + np.pi) % (2 * np.pi) - np.pi) < np.deg2rad(1.0)
     assert buses[0].stats["rx_packets"] > 3 * len(hil.result.steps)  # it really used the bus
 
 
@@ -230,6 +234,9 @@ def test_haptic_run_dynamixel_on_haptic_emulate(tmp_path, capsys, noise):
     hil = json.loads((tmp_path / "hil.json").read_text())
     sim = json.loads((tmp_path / "sim.json").read_text())
     assert hil["success"] and sim["success"]
-    assert hil["estimate"]["x"] == sim["estimate"]["x"]
-    assert hil["estimate"]["y"] == sim["estimate"]["y"]
-    assert hil["estimate"]["heading"] == sim["estimate"]["heading"]
+    # the hardware run assumes the encoders' noise, so its survivor is refined on readings
+    # that differ from the simulator's: the same pose, to a millimetre and a degree
+    assert abs(hil["estimate"]["x"] - sim["estimate"]["x"]) < 1e-3
+    assert abs(hil["estimate"]["y"] - sim["estimate"]["y"]) < 1e-3
+    turn = hil["estimate"]["heading"] - sim["estimate"]["heading"]
+    assert abs((turn + np.pi) % (2 * np.pi) - np.pi) < np.deg2rad(1.0)
