@@ -41,6 +41,10 @@ def add_scenario_options(parser: argparse.ArgumentParser, *, defaults: RunSettin
     g.add_argument("--sweep", choices=("paper", "full"), default=None,
                    help="elimination only: the paper's band test plus 5 exact tests per "
                         "step (paper, default), or the exact test on every candidate (full)")
+    g.add_argument("--localizer-option", action="append", default=[], metavar="NAME=VALUE",
+                   dest="localizer_option",
+                   help="a keyword of the localizer's constructor, e.g. work=4000 for "
+                        "particles (repeatable; numbers and true/false are converted)")
 
 
 def parse_start(text: str | None) -> tuple[float, float, float] | None:
@@ -58,8 +62,28 @@ def parse_start(text: str | None) -> tuple[float, float, float] | None:
     return (x, y, math.radians(heading_deg))
 
 
-def settings_from_args(args: argparse.Namespace, **overrides: Any) -> RunSettings:
+def parse_localizer_options(items: list[str]) -> dict[str, Any]:
+    """['work=4000', 'drop=30.5'] to {'work': 4000, 'drop': 30.5}."""
     options: dict[str, Any] = {}
+    for item in items:
+        name, sep, text = item.partition("=")
+        if not sep or not name.isidentifier():
+            raise ConfigError(f"--localizer-option takes NAME=VALUE, got '{item}'")
+        options[name] = _literal(text)
+    return options
+
+
+def _literal(text: str) -> Any:
+    for kind in (int, float):
+        try:
+            return kind(text)
+        except ValueError:
+            pass
+    return {"true": True, "false": False}.get(text.lower(), text)
+
+
+def settings_from_args(args: argparse.Namespace, **overrides: Any) -> RunSettings:
+    options = parse_localizer_options(getattr(args, "localizer_option", None) or [])
     if getattr(args, "sweep", None):
         if args.algorithm != "elimination":
             raise ConfigError("--sweep applies only to --algorithm elimination")

@@ -95,7 +95,7 @@ def _print_step(step: StepRecord) -> None:
 def _pose_text(pose: tuple[float, float, float]) -> str:
     x, y, heading = pose
     return (f"x {x * 1e3:7.2f} mm  y {y * 1e3:7.2f} mm  "
-            f"heading {math.degrees(heading) % 360:6.1f} deg")
+            f"heading {round(math.degrees(heading), 1) % 360:6.1f} deg")  # never "360.0"
 
 
 def _print_summary(report: EpisodeReport) -> None:

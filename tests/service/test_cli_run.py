@@ -84,6 +84,8 @@ def test_plot_is_written(tmp_path):
     (["--start", "5,5,0"], "outside the map"),
     (["--json", "/no/such/dir/x.json"], "does not exist"),
     (["--sweep", "full", "--algorithm", "elimination", "--max-steps", "0"], "--max-steps"),
+    (["--localizer-option", "work"], "NAME=VALUE"),
+    (["--localizer-option", "wrok=4000"], "unexpected keyword argument 'wrok'"),
 ])
 def test_bad_input_is_one_line_and_status_2(args, message, capsys):
     assert run_cli(*args) == 2
@@ -118,3 +120,18 @@ def test_unknown_option_exits_2(capsys):
     with pytest.raises(SystemExit) as exc:
         main(["run", "--algorithm", "magic"])
     assert exc.value.code == 2
+
+
+def test_localizer_options_reach_the_localizer(tmp_path):
+    out = tmp_path / "e.json"
+    assert run_cli("--localizer-option", "initial=500", "--localizer-option", "drop=30.5",
+                   "--json", str(out)) == 0
+    episode = json.loads(out.read_text())
+    assert episode["initial_candidates"] == 500
+    assert episode["settings"]["localizer_options"] == {"initial": 500, "drop": 30.5}
+
+
+def test_a_heading_just_below_zero_prints_as_zero():
+    from service.cli_run import _pose_text
+
+    assert "heading    0.0 deg" in _pose_text((0.1, 0.1, -1e-9))
