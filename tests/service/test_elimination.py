@@ -7,7 +7,7 @@ from service.errors import ConfigError
 from service.localizers.base import Budget, LocalizerContext, Measurement
 from service.localizers.elimination import Elimination
 from service.localizers.pose_table import pose_table
-from service.maps import peaks
+from service.maps import bumps, peaks
 from service.models import NoiseSpec, models_for
 from service.scenario import RunSettings
 from service.simulate import simulate
@@ -96,3 +96,14 @@ def test_spread_of_identical_headings_is_zero_not_nan():
     pos_sd, head_sd = pose_spread(poses, np.full(7, 1 / 7))
     assert pos_sd == pytest.approx(0.0, abs=1e-12) and head_sd == pytest.approx(0.0, abs=1e-6)
     assert not np.isnan(head_sd)
+
+
+@pytest.mark.parametrize("seed", [2, 5])
+def test_with_noise_the_last_survivor_is_judged_not_declared_for_standing_alone(seed):
+    """bumps:20:1 with B2's noise, seeds 2 and 5: the paper's rule (declare the last
+    candidate standing) declared a wrong pose; judged, the survivor must fit first."""
+    report = simulate(RunSettings(map="bumps:20:1", algorithm="elimination", policy="paper",
+                                  noise=True, seed=seed, max_steps=60), bumps(20, seed=1))
+    assert not report.score.wrong_declaration
+    if report.result.estimate.converged:  # a declaration is a refined, continuous pose
+        assert report.score.success
