@@ -17,7 +17,7 @@ from dynamixel_sdk.group_sync_write import GroupSyncWrite
 from dynamixel_sdk.robotis_def import BROADCAST_ID, COMM_SUCCESS
 
 from firmware_if.errors import BusTimeoutError, CommunicationError, HardwareFault, NotReadyError
-from firmware_if.packets import PacketError
+from firmware_if.packets import PacketError, split_fast_read
 from firmware_if.registers import (
     ALERT_BIT,
     REG,
@@ -26,7 +26,7 @@ from firmware_if.registers import (
     describe_hardware_error,
     describe_status_error,
 )
-from firmware_if.sdk_fixes import FixedPacketHandler, PacedPortHandler, decode_fast_read
+from firmware_if.sdk_fixes import FixedPacketHandler, PacedPortHandler
 
 FAST_READ_MIN_FIRMWARE = 45
 SETUP_TIMEOUT_MS = 34.0
@@ -275,7 +275,7 @@ class DxlBus:
             cls = BusTimeoutError if result in _TIMEOUT_RESULTS else CommunicationError
             raise cls(f"fast sync read: {self._ph.getTxRxResult(result)}", self.ids, bytes(rx))
         try:
-            decoded = decode_fast_read(rx, [(sid, SYNC_READ_LENGTH) for sid in self.ids])
+            decoded = split_fast_read(bytes(rx), [(sid, SYNC_READ_LENGTH) for sid in self.ids])
         except PacketError as exc:
             raise CommunicationError(f"fast sync read: {exc}", self.ids, bytes(rx)) from None
         return {sid: _reading(data, error) for sid, (error, data) in decoded.items()}

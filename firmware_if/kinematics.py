@@ -52,9 +52,14 @@ def forward(hand: Hand, q: np.ndarray | tuple[float, ...]) -> np.ndarray:
 def jacobian(hand: Hand, q: np.ndarray | tuple[float, ...]) -> np.ndarray:
     """d centre / d q: (N, 3, n), or (3, n) for one joint vector."""
     qb, single = _batch(q)
-    positions, axes, centre = _chain(hand, qb)
-    jac = np.cross(axes, centre[:, None, :] - positions).transpose(0, 2, 1)
+    jac = _centre_and_jacobian(hand, qb)[1]
     return jac[0] if single else jac
+
+
+def _centre_and_jacobian(hand: Hand, qb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Centres (N, 3) and Jacobians (N, 3, n) of a batch, from one pass down the chain."""
+    positions, axes, centre = _chain(hand, qb)
+    return centre, np.cross(axes, centre[:, None, :] - positions).transpose(0, 2, 1)
 
 
 @dataclass(frozen=True)
@@ -83,10 +88,10 @@ def inverse(hand: Hand, target: np.ndarray, q0: np.ndarray | tuple[float, ...], 
     q = np.clip(qb.copy(), lo, hi)
     eye = np.eye(3)
     for _ in range(iterations):
-        err = tb - forward(hand, q)
+        centre, jac = _centre_and_jacobian(hand, q)
+        err = tb - centre
         if np.all(np.linalg.norm(err, axis=1) <= tolerance):
             break
-        jac = jacobian(hand, q)
         jjt = jac @ jac.transpose(0, 2, 1) + damping**2 * eye
         dq = (jac.transpose(0, 2, 1) @ np.linalg.solve(jjt, err[:, :, None]))[:, :, 0]
         q = np.clip(q + dq, lo, hi)

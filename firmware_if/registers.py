@@ -167,16 +167,8 @@ def rad_to_ticks(angle: float, zero: int = POSITION_CENTRE, direction: int = 1) 
     return int(round(zero + direction * angle / RAD_PER_TICK))
 
 
-def velocity_to_rad_s(raw: int, direction: int = 1) -> float:
-    return direction * raw * RAD_S_PER_VEL
-
-
 def rad_s_to_velocity(rad_s: float) -> int:
     return int(round(abs(rad_s) / RAD_S_PER_VEL))
-
-
-def current_to_amp(raw: int, direction: int = 1) -> float:
-    return direction * raw * AMP_PER_CURRENT
 
 
 def amp_to_current(amp: float) -> int:

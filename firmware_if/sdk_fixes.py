@@ -12,7 +12,7 @@ Each defect has a test in tests/firmware_if/test_sdk_fixes.py that fails on the 
 3. Fast Bulk Read is decoded with `param.index(dxl_id)`, which finds the first *byte* equal
    to the id anywhere in the request (an address or a length byte), so data lengths and ids
    are mismatched. Both fast decoders also drop every servo's error byte (the hardware
-   alert). Fix: walk the request in 5-byte records; `decode_fast_read` keeps error bytes.
+   alert). Fix: walk the request in 5-byte records; `packets.split_fast_read` keeps error bytes.
 4. The port busy-polls with `timeout=0` reads and times packets with the wall clock
    (`time.time`), with a fixed 2 x 16 ms latency allowance. Fix: `PacedPortHandler` waits
    in `select()` for bytes until a monotonic deadline bounded by the caller's budget.
@@ -61,12 +61,6 @@ class FixedPacketHandler(Protocol2PacketHandler):
         return {sid: list(data) for sid, (_, data) in decoded.items()}, COMM_SUCCESS
 
 
-def decode_fast_read(raw: list[int] | bytes, lengths: list[tuple[int, int]]
-                     ) -> dict[int, tuple[int, bytes]]:
-    """{id: (error byte, data)} from a Fast Sync/Bulk Read status (raises PacketError)."""
-    return packets.split_fast_read(bytes(raw), lengths)
-
-
 class PacedPortHandler(PortHandler):
     """A PortHandler that sleeps in select() instead of spinning, on a monotonic clock.
 
@@ -85,9 +79,6 @@ class PacedPortHandler(PortHandler):
         super().setPacketTimeout(packet_length)
         transfer = self.tx_time_per_byte * packet_length
         self.packet_timeout = min(self.packet_timeout, transfer + self.budget_ms)
-
-    def setPacketTimeoutMillis(self, msec: float) -> None:  # noqa: N802
-        super().setPacketTimeoutMillis(msec)
 
     def readPort(self, length: int) -> bytes:  # noqa: N802
         if self.ser.in_waiting == 0 and length > 0:

@@ -165,7 +165,7 @@ class Client:
                 if not self._sock.poll(max(1, int(left * 1000))):
                     break
                 try:
-                    reply = wire.unpack_map(self._sock.recv(), max_bytes=16 * 1024 * 1024)
+                    reply = wire.unpack_map(self._sock.recv(), max_bytes=wire.MAX_FRAME_BYTES)
                 except wire.WireError:
                     continue
                 if reply.get("id") == rid:

@@ -28,7 +28,7 @@ from service import wire
 from service.errors import InputError, StateError
 from service.security import bind_server_socket
 
-MAX_FRAME_BYTES = 16 * 1024 * 1024
+MAX_FRAME_BYTES = wire.MAX_FRAME_BYTES
 """Above this libzmq drops the sender's connection (ZMQ_MAXMSGSIZE) instead of replying."""
 
 
@@ -196,10 +196,6 @@ class CommandServer:
         self._recent: OrderedDict[tuple[str, Any], tuple[bytes, bytes]] = OrderedDict()
         self._poller = zmq.Poller()
         self._poller.register(self._sock, zmq.POLLIN)
-
-    @property
-    def socket(self) -> zmq.Socket:
-        return self._sock
 
     def poll(self, timeout_ms: float = 0, max_requests: int = 16) -> int:
         """Answer up to `max_requests` waiting requests, waiting up to `timeout_ms` for one."""

@@ -19,6 +19,7 @@ from service.errors import ConfigError
 from service.models import HARDWARE_SENSOR_SIGMA
 from service.registry import BACKENDS, LOCALIZERS, POLICIES
 from service.scenario import RunSettings
+from service.wire import MAX_FRAME_BYTES
 
 OVERRUN_POLICIES = ("skip", "catch_up")
 LOCALIZER_MODES = ("sliced", "thread")
@@ -155,7 +156,7 @@ class EndpointConfig:
         if not (isinstance(self.sndhwm, int) and self.sndhwm >= 1):
             raise ConfigError("endpoints.sndhwm must be an integer >= 1")
         if not (isinstance(self.max_request_bytes, int)
-                and 256 <= self.max_request_bytes <= 16 * 1024 * 1024):
+                and 256 <= self.max_request_bytes <= MAX_FRAME_BYTES):
             raise ConfigError("endpoints.max_request_bytes must be 256 .. 16 MiB")
 
 
@@ -234,9 +235,7 @@ def _section(cls: type, name: str, values: Any, base: Any = None) -> Any:
     if unknown:
         raise ConfigError(f"[{name}] has unknown key(s) {', '.join(unknown)}; known: "
                           f"{', '.join(sorted(known))}")
-    values = {k: tuple(v) if isinstance(v, list) and k == "start" else v
-              for k, v in values.items()}
-    try:
+    try:  # ScenarioConfig turns a `start` list into a tuple itself
         return dataclasses.replace(base, **values) if base is not None else cls(**values)
     except TypeError as exc:
         raise ConfigError(f"[{name}]: {exc}") from None

@@ -83,6 +83,13 @@ def surface_for(settings: RunSettings, height_map: HeightMap | None = None) -> C
     return contact_surface(height_map, settings.radius)
 
 
+def episode_streams(seed: int) -> list[np.random.Generator]:
+    """The four independent random streams of a seeded episode: truth, world, localizer,
+    policy. `haptic run`, `hapticd` and `haptic emulate` split a seed only here, so the same
+    seed hides the same start pose in all three."""
+    return np.random.default_rng(seed).spawn(4)
+
+
 def draw_truth(settings: RunSettings, height_map: HeightMap, rng: np.random.Generator) -> Truth:
     """The hidden start pose: a pose-table entry (noise-free, B1) or continuous (noise, B2).
 

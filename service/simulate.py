@@ -18,6 +18,7 @@ from service.scenario import (
     build_localizer,
     build_policy,
     draw_truth,
+    episode_streams,
     score,
     surface_for,
 )
@@ -81,8 +82,7 @@ def simulate(settings: RunSettings, height_map: HeightMap | None = None, *,
     hand); the truth is still drawn from the seed, for scoring.
     """
     surface = surface_for(settings, height_map)
-    rng = np.random.default_rng(settings.seed)
-    truth_rng, world_rng, loc_rng, policy_rng = rng.spawn(4)
+    truth_rng, world_rng, loc_rng, policy_rng = episode_streams(settings.seed)
     truth = draw_truth(settings, surface.map, truth_rng)
     if backend_factory is None:
         finger = _sim_finger(settings, surface.map, truth, world_rng)

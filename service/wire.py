@@ -23,6 +23,8 @@ VERSION = 1
 
 MAX_MESSAGE_BYTES = 64 * 1024
 """Default size limit of one decoded message (commands are small)."""
+MAX_FRAME_BYTES = 16 * 1024 * 1024
+"""The largest frame any socket accepts (a stream message, a reply, a request's cap)."""
 
 DTYPES = frozenset({"<f8", "<f4", "<i8", "<i4", "<i2", "<u8", "<u4", "<u2", "|u1", "|i1",
                     "|b1"})
@@ -165,7 +167,7 @@ def check_envelope(obj: dict[str, Any], *, need_seq: bool = True) -> None:
                 raise WireError("malformed", f"envelope field '{key}' must be an integer")
 
 
-def decode(data: bytes, max_bytes: int = 16 * 1024 * 1024, topic: str = "") -> Message:
+def decode(data: bytes, max_bytes: int = MAX_FRAME_BYTES, topic: str = "") -> Message:
     """Bytes from the stream to a Message (arrays as read-only numpy arrays)."""
     obj = unpack_map(data, max_bytes)
     check_envelope(obj)

@@ -1,13 +1,12 @@
 """Bus cycle time on the emulator: one Sync Read + one Sync Write of 3 servos, p50/p99.
 
 Both read paths are timed in the same run (Fast Sync Read and plain Sync Read), so their
-ratio is meaningful. The lead hooks `add_arguments`/`run` into `haptic bench bus`.
+ratio is meaningful. Run as `haptic bench bus`.
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 import time
 from pathlib import Path
 from typing import Any
@@ -16,6 +15,7 @@ import numpy as np
 
 from firmware_if.dxl_bus import DxlBus
 from sim_backend.emulator import EmulatedServo, ServoBus
+from tools.bench_common import write_json
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -56,18 +56,6 @@ def run(args: argparse.Namespace) -> int:
               f"failures {r['failures']}")
     ratio = results[1]["p50_ms"] / results[0]["p50_ms"]
     print(f"sync read / fast sync read p50 ratio: {ratio:.2f}")
-    if args.json:
-        args.json.write_text(json.dumps({"scenario": "bus", "results": results,
-                                         "p50_ratio_plain_over_fast": ratio}, indent=1))
-        print(f"written to {args.json}")
+    write_json(args.json, {"scenario": "bus", "results": results,
+                           "p50_ratio_plain_over_fast": ratio})
     return 0
-
-
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__)
-    add_arguments(parser)
-    return run(parser.parse_args(argv))
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())

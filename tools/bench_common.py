@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
@@ -79,7 +80,11 @@ def run_seeded_scenario(args: argparse.Namespace, *, scenario: str, label: str,
     return reports
 
 
-def _percentile(values: Iterable[float], q: float) -> float | None:
+B2_DEFAULTS = dataclasses.replace(RunSettings(), noise=True, max_steps=60)
+"""The recommended algorithm and policy (RunSettings' defaults), with B2's noise."""
+
+
+def percentile(values: Iterable[float], q: float) -> float | None:
     arr = np.asarray(list(values), dtype=float)
     return None if arr.size == 0 else float(np.percentile(arr, q))
 
@@ -92,6 +97,7 @@ def summarize(reports: Sequence[EpisodeReport]) -> dict[str, Any]:
     first_ms = [r.result.steps[0].compute_ms for r in reports if r.result.steps]
     all_ms = [s.compute_ms for r in reports for s in r.result.steps]
     later_ms = [s.compute_ms for r in reports for s in r.result.steps[1:]]
+    policy_ms = [s.policy_ms for r in reports for s in r.result.steps]
     eliminated = [r.true_pose_eliminated for r in reports]
     ok = [r for r in reports if r.score.position_error is not None]
     return {
@@ -108,16 +114,18 @@ def summarize(reports: Sequence[EpisodeReport]) -> dict[str, Any]:
                                       else int(sum(bool(e) for e in eliminated))),
         "first_step_elimination_mean": float(np.mean(first_drop)) if first_drop else None,
         "first_step_elimination_max": float(np.max(first_drop)) if first_drop else None,
-        "compute_ms_first_median": _percentile(first_ms, 50),
-        "compute_ms_median": _percentile(all_ms, 50),
-        "compute_ms_p99": _percentile(all_ms, 99),
-        "compute_ms_after_first_median": _percentile(later_ms, 50),
-        "compute_ms_after_first_p99": _percentile(later_ms, 99),
-        "final_position_error_median": _percentile((r.score.position_error for r in ok), 50),
-        "final_position_error_p90": _percentile((r.score.position_error for r in ok), 90),
-        "final_heading_error_deg_median": _percentile(
+        "compute_ms_first_median": percentile(first_ms, 50),
+        "compute_ms_median": percentile(all_ms, 50),
+        "compute_ms_p99": percentile(all_ms, 99),
+        "compute_ms_after_first_median": percentile(later_ms, 50),
+        "compute_ms_after_first_p99": percentile(later_ms, 99),
+        "policy_ms_median": percentile(policy_ms, 50),
+        "policy_ms_p99": percentile(policy_ms, 99),
+        "final_position_error_median": percentile((r.score.position_error for r in ok), 50),
+        "final_position_error_p90": percentile((r.score.position_error for r in ok), 90),
+        "final_heading_error_deg_median": percentile(
             (np.degrees(r.score.heading_error) for r in ok), 50),
-        "final_heading_error_deg_p90": _percentile(
+        "final_heading_error_deg_p90": percentile(
             (np.degrees(r.score.heading_error) for r in ok), 90),
     }
 

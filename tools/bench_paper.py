@@ -45,6 +45,8 @@ def print_table(s: dict, base: RunSettings) -> None:
         ("compute per step", f"first {fmt(s['compute_ms_first_median'])} ms (median), "
                              f"median {fmt(s['compute_ms_median'])} ms, "
                              f"p99 {fmt(s['compute_ms_p99'])} ms", PAPER["compute"]),
+        ("policy per step", f"median {fmt(s['policy_ms_median'])} ms, "
+                            f"p99 {fmt(s['policy_ms_p99'])} ms", ""),
     ]
     print(f"B1 paper: {base.algorithm} + {base.policy} on {base.map}, {s['runs']} runs")
     width = max(len(r[0]) for r in rows)

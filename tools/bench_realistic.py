@@ -8,13 +8,11 @@ does not know, noisy steps and readings. Works on any map given with --map.
 from __future__ import annotations
 
 import argparse
-import dataclasses
 
 from service.scenario import RunSettings
+from tools.bench_common import B2_DEFAULTS as DEFAULTS
 from tools.bench_common import add_bench_options, fmt, run_seeded_scenario
 
-DEFAULTS = dataclasses.replace(RunSettings(), noise=True, max_steps=60)
-"""The recommended algorithm and policy (RunSettings' defaults), with B2's noise."""
 TARGETS = {"successes": ">= 198/200", "wrong_declarations": "<= 1", "steps_median": "<= 12",
            "final_position_error_median": "<= 0.5 mm",
            "final_heading_error_deg_median": "<= 1.5 deg"}
@@ -49,6 +47,8 @@ def print_table(s: dict, base: RunSettings) -> None:
         ("compute per step", f"first {fmt(s['compute_ms_first_median'])} ms (median), "
                              f"after it median {fmt(s['compute_ms_after_first_median'])} ms, "
                              f"p99 {fmt(s['compute_ms_after_first_p99'])} ms"),
+        ("policy per step", f"median {fmt(s['policy_ms_median'])} ms, "
+                            f"p99 {fmt(s['policy_ms_p99'])} ms"),
     ]
     width = max(len(r[0]) for r in rows)
     for name, value in rows:

@@ -9,18 +9,21 @@ unit, with B2's noise; one row per algorithm and map size. A bounded-pool locali
 from __future__ import annotations
 
 import argparse
-import dataclasses
 
 from service.cli_options import settings_from_args
 from service.errors import ConfigError
 from service.maps import load_map
 from service.registry import LOCALIZERS
-from service.scenario import RunSettings
-from tools.bench_common import add_bench_options, check_bench_args, fmt, run_episodes, summarize
-from tools.bench_common import write_json as _write_json
+from tools.bench_common import B2_DEFAULTS as DEFAULTS
+from tools.bench_common import (
+    add_bench_options,
+    check_bench_args,
+    fmt,
+    run_episodes,
+    summarize,
+    write_json,
+)
 
-DEFAULTS = dataclasses.replace(RunSettings(), noise=True, max_steps=60)
-"""The recommended algorithm and policy (RunSettings' defaults), with B2's noise."""
 COMPARED = ("particles", "elimination")
 TARGET_P99_MS = 5.0
 """The issue's bound on Algorithm IV's p99 per step after the first, drawn on the figure."""
@@ -74,7 +77,7 @@ def run(args: argparse.Namespace) -> int:
                 "compute_ms_after_first_p99": s["compute_ms_after_first_p99"],
             })
             print_row(rows[-1])
-    _write_json(args.json, {"scenario": "scale", "settings": settings_from_args(
+    write_json(args.json, {"scenario": "scale", "settings": settings_from_args(
         args, algorithm=algorithms[0], noise=True).to_json(), "rows": rows})
     if args.plot:
         plot_rows(rows, args.plot)

@@ -12,7 +12,6 @@ daemon reports tick period, overruns and localizer work per tick over the measur
 from __future__ import annotations
 
 import argparse
-import json
 import signal
 import subprocess
 import sys
@@ -22,13 +21,13 @@ import time
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import zmq
 
 from service.client import Client, Subscriber
 from service.config import LOCALIZER_MODES, LoopConfig, ScenarioConfig
 from service.errors import ConfigError
 from service.registry import LOCALIZERS, POLICIES
+from tools.bench_common import percentile, write_json
 
 CONFIG = """
 [backend]
@@ -92,11 +91,8 @@ class Reader(threading.Thread):
 
 
 def _percentiles(values: list[float]) -> dict[str, float | None]:
-    if not values:
-        return {"p50": None, "p99": None, "max": None}
-    a = np.asarray(values)
-    return {"p50": float(np.percentile(a, 50)), "p99": float(np.percentile(a, 99)),
-            "max": float(a.max())}
+    return {"p50": percentile(values, 50), "p99": percentile(values, 99),
+            "max": max(values, default=None)}
 
 
 def measure(subscribers: int, args: argparse.Namespace) -> dict[str, Any]:
@@ -188,6 +184,5 @@ def run(args: argparse.Namespace) -> int:
               f", episodes {r['episodes_started']}, published {sum(r['published'].values())}"
               f", reader gaps {r['reader_gaps']['max']}, rtt p50 {rtt['p50']:.3f} "
               f"p99 {rtt['p99']:.3f} ms")
-    if args.json:
-        args.json.write_text(json.dumps({"scenario": "service", "runs": results}, indent=2))
+    write_json(args.json, {"scenario": "service", "runs": results})
     return 0

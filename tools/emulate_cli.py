@@ -15,7 +15,7 @@ import numpy as np
 
 from firmware_if.hand import load_hand, presets
 from service.cli_options import add_scenario_options, settings_from_args
-from service.scenario import RunSettings, Truth, draw_truth, surface_for
+from service.scenario import RunSettings, Truth, draw_truth, episode_streams, surface_for
 from service.surface import HeightMap
 from sim_backend.emulator import ServoBus
 from sim_backend.emulator.plant import FingerPlant, hand_bus_servos
@@ -41,8 +41,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 def emulator_truth(settings: RunSettings) -> tuple[Truth, HeightMap]:
     """The start pose `simulate` draws for these settings (same seed, same draw), and the map."""
     surface = surface_for(settings)
-    truth_rng = np.random.default_rng(settings.seed).spawn(4)[0]
-    return draw_truth(settings, surface.map, truth_rng), surface.map
+    return draw_truth(settings, surface.map, episode_streams(settings.seed)[0]), surface.map
 
 
 def start_emulator(args: argparse.Namespace) -> tuple[ServoBus, Truth]:

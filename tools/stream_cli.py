@@ -24,10 +24,11 @@ import zmq
 
 from service import wire
 from service.client import Client, CommandFailed, CommandTimeout, Subscriber
+from service.config import EndpointConfig
 from service.errors import InputError
 from service.stream import TOPICS
 
-PUB, CMD = "tcp://127.0.0.1:5560", "tcp://127.0.0.1:5561"
+PUB, CMD = EndpointConfig.pub, EndpointConfig.cmd  # the daemon's defaults
 RECORD_FORMAT = "haptic-record"
 
 
@@ -293,9 +294,9 @@ def _surface_for_view(args: argparse.Namespace, config: dict[str, Any] | None):
         except (CommandFailed, CommandTimeout):
             config = None
     scen = (config or {}).get("scenario", {})
-    settings = RunSettings(map=args.map or scen.get("map", "peaks"),
+    settings = RunSettings(map=args.map or scen.get("map", RunSettings.map),
                            spacing=None if args.map else scen.get("spacing"),
-                           radius=scen.get("radius", 0.008))
+                           radius=scen.get("radius", RunSettings.radius))
     return surface_for(settings)
 
 

@@ -31,10 +31,8 @@ class ViewModel:
     episode: int = 0
     path: list[tuple[float, float]] = field(default_factory=list)
     state: str = "?"
-    messages: int = 0
 
     def update(self, msg: Message) -> None:
-        self.messages += 1
         if msg.topic == "cloud":
             if msg["episode"] != self.episode:
                 self._new_episode(msg["episode"])

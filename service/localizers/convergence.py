@@ -23,9 +23,8 @@ import numpy as np
 
 from service import kernels
 from service.localizers.base import wrap_angle
-from service.localizers.fitting import gauss_newton, log_likelihood, offset_residuals
+from service.localizers.fitting import fit_log_likelihood, gauss_newton
 from service.localizers.refine import Fit, assess, reading_sigmas, refine
-from service.localizers.spread import pose_spread
 from service.localizers.symmetry import images
 from service.surface import ContactSurface
 
@@ -77,13 +76,6 @@ def distinct(centres: np.ndarray, score: np.ndarray, position_tol: float, headin
     order = np.argsort(-score, kind="stable")
     ordered = np.ascontiguousarray(centres[order], dtype=np.float64)
     return order[kernels.first_of_each_mode(ordered, position_tol, heading_tol)]
-
-
-def spread(poses: np.ndarray, weights: np.ndarray) -> tuple[float, float]:
-    """`pose_spread`, with round-off (a resultant a hair above 1) read as no spread."""
-    with np.errstate(invalid="ignore"):
-        pos_sd, head_sd = pose_spread(poses, weights)
-    return pos_sd, (0.0 if np.isnan(head_sd) and len(poses) else head_sd)
 
 
 def _near(poses: np.ndarray, centre: np.ndarray, position_tol: float, heading_tol: float
@@ -198,16 +190,14 @@ def judge(surface: ContactSurface, history: np.ndarray, modes: Modes, *, sigma: 
     centres = modes.centres if polish == 0 else gauss_newton(
         surface, modes.centres, history, np.ones(len(history)), iterations=polish,
         max_move=tol_pos)
-    r, ok = offset_residuals(surface, centres, history, margin)
-    ll = log_likelihood(r, ok, np.full(r.shape[1], sd), outlier_probability, outlier_range)
-    ll = np.where(np.isfinite(ll), ll, -np.inf)
+    ll = fit_log_likelihood(surface, centres, history, sd, margin, outlier_probability,
+                            outlier_range)
     if motions is not None and len(motions):  # a periodic surface: the best one's images
         mirrored = images(surface, centres[int(np.argmax(ll))], motions)  # fit as well
-        r, ok = offset_residuals(surface, mirrored, history, margin)
-        more = log_likelihood(r, ok, np.full(r.shape[1], sd), outlier_probability,
-                              outlier_range)
+        more = fit_log_likelihood(surface, mirrored, history, sd, margin,
+                                  outlier_probability, outlier_range)
         centres = np.vstack([centres, mirrored])
-        ll = np.concatenate([ll, np.where(np.isfinite(more), more, -np.inf)])
+        ll = np.concatenate([ll, more])
     order = distinct(centres, ll, tol_pos, tol_head)
     share = np.exp(ll[order] - ll[order[0]])
     share /= share.sum()
@@ -237,11 +227,8 @@ def judge(surface: ContactSurface, history: np.ndarray, modes: Modes, *, sigma: 
         fits = [fit] + [refine(surface, history, centres[i], sds, max_outliers=outliers)
                         for i in rivals]
         poses = np.array([f.pose for f in fits])
-        r, ok = offset_residuals(surface, poses, history, margin)
-        fine = max(sigma, 0.002 * step_length)
-        ll_fit = log_likelihood(r, ok, np.full(r.shape[1], fine), outlier_probability,
-                                outlier_range)
-        ll_fit = np.where(np.isfinite(ll_fit), ll_fit, -np.inf)
+        ll_fit = fit_log_likelihood(surface, poses, history, max(sigma, 0.002 * step_length),
+                                    margin, outlier_probability, outlier_range)
         rest = share[1 + len(rivals):].sum() if len(share) > 1 + len(rivals) else 0.0
         w = np.exp(ll_fit - ll_fit.max())
         refined = float(w[0] / w.sum()) * (1.0 - rest)

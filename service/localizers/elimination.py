@@ -122,10 +122,7 @@ class Elimination:
         margin = 5 * self.ctx.motion.position_sigma
         ok = surface.map.inside(x, y, margin)
         if self.sweep == "full":
-            predicted, _ = surface.lookup(x, y)
-            residual = predicted - self.z0[idx] - m.displacement[2]
-            ok &= self.ctx.sensor.consistent(residual)
-            self.sse[idx] += residual**2
+            ok &= self._exact_test(idx, x, y, m)
         else:
             ok &= self._band_test(idx, x, y, m)
         self.alive[idx[~ok]] = False
@@ -149,10 +146,16 @@ class Elimination:
             return
         few = live[np.argpartition(-self._suspicion[live], k - 1)[:k]]
         x, y = self.ctx.motion.positions(self.poses[few], m.displacement[:2])
+        self.alive[few[~self._exact_test(few, x, y, m)]] = False
+
+    def _exact_test(self, idx: np.ndarray, x: np.ndarray, y: np.ndarray, m: Measurement
+                    ) -> np.ndarray:
+        """The contact-surface test: whether each candidate predicts the reading, within
+        the sensor's tolerance; the squared residuals rank the survivors."""
         predicted, _ = self.ctx.surface.lookup(x, y)
-        residual = predicted - self.z0[few] - m.displacement[2]
-        self.alive[few[~self.ctx.sensor.consistent(residual)]] = False
-        self.sse[few] += residual**2
+        residual = predicted - self.z0[idx] - m.displacement[2]
+        self.sse[idx] += residual**2
+        return self.ctx.sensor.consistent(residual)
 
     def _judge(self) -> Verdict:
         """With noise: the few survivors refined on every reading and judged."""
@@ -177,16 +180,16 @@ class Elimination:
         idx = np.flatnonzero(self.alive)
         if idx.size == 0:
             return Estimate(pose=None, candidates=0, converged=False)
-        order = idx[np.argsort(self.sse[idx], kind="stable")]
-        best = tuple(float(v) for v in self.poses[order[0]])
-        runner = tuple(float(v) for v in self.poses[order[1]]) if idx.size > 1 else None
-        pos_sd, head_sd = pose_spread(self.poses[idx])
         v = self.verdict
         if self.noisy and v.fit is not None:  # the refined survivor, judged
             return Estimate(pose=v.fit.pose, candidates=int(idx.size), converged=v.converged,
                             position_sd=v.fit.position_sd, heading_sd=v.fit.heading_sd,
                             mode_mass=v.mode_mass, runner_up=v.runner_up,
                             runner_up_mass=v.runner_up_mass)
+        order = idx[np.argsort(self.sse[idx], kind="stable")]
+        best = tuple(float(v) for v in self.poses[order[0]])
+        runner = tuple(float(v) for v in self.poses[order[1]]) if idx.size > 1 else None
+        pos_sd, head_sd = pose_spread(self.poses[idx])
         return Estimate(pose=best, candidates=int(idx.size),
                         converged=idx.size == 1 and not self.noisy,  # the paper's rule
                         position_sd=pos_sd, heading_sd=head_sd, mode_mass=1.0 / idx.size,

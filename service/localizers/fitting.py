@@ -41,13 +41,6 @@ def typical_slope(surface: ContactSurface) -> float:
     return cached
 
 
-def positions(poses: np.ndarray, history: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Map (x, y) of the centre for each pose (N, 3) at each reading (K): arrays (N, K)."""
-    c, s = np.cos(poses[:, 2:3]), np.sin(poses[:, 2:3])
-    dx, dy = history[np.newaxis, :, 0], history[np.newaxis, :, 1]
-    return poses[:, 0:1] + c * dx - s * dy, poses[:, 1:2] + s * dx + c * dy
-
-
 def residuals(surface: ContactSurface, poses: np.ndarray, readings: np.ndarray,
               margin: float) -> tuple[np.ndarray, np.ndarray]:
     """Height residuals (N, K) of `readings` (K, 3), the rows after first contact, relative
@@ -76,6 +69,16 @@ def log_likelihood(residual: np.ndarray, on_map: np.ndarray, sigma: np.ndarray,
         sigma = np.full(residual.shape[-1], sigma, dtype=np.float64)
     return kernels.log_likelihood(_rows(residual), _rows(on_map, np.bool_), _rows(sigma),
                                   float(outlier_probability), float(outlier_range))
+
+
+def fit_log_likelihood(surface: ContactSurface, poses: np.ndarray, history: np.ndarray,
+                       sd: float, margin: float, outlier_probability: float,
+                       outlier_range: float) -> np.ndarray:
+    """Log likelihood of each pose (N, 3) on every reading at one sd, the height offset
+    fitted; a pose whose score is not finite gets -inf (it can never lead)."""
+    r, ok = offset_residuals(surface, poses, history, margin)
+    ll = log_likelihood(r, ok, sd, outlier_probability, outlier_range)
+    return np.where(np.isfinite(ll), ll, -np.inf)
 
 
 def gauss_newton(surface: ContactSurface, poses: np.ndarray, history: np.ndarray,

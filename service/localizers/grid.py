@@ -35,10 +35,10 @@ from service.localizers.convergence import (
     Verdict,
     group_modes,
     judge,
-    spread,
 )
 from service.localizers.fitting import sample, typical_slope
 from service.localizers.pool import AnytimeJob
+from service.localizers.spread import pose_spread
 from service.localizers.symmetry import symmetries
 from service.models import rotate
 
@@ -204,7 +204,7 @@ class Grid:
             pose, pos_sd, head_sd = v.fit.pose, v.fit.position_sd, v.fit.heading_sd
         else:
             pose = tuple(float(p) for p in poses[0])
-            pos_sd, head_sd = spread(poses, w)
+            pos_sd, head_sd = pose_spread(poses, w)
         return Estimate(pose=pose, candidates=int(np.count_nonzero(self.prob > 1e-9)),
                         converged=v.converged, position_sd=pos_sd, heading_sd=head_sd,
                         mode_mass=v.mode_mass if v.fit is not None else float(w[0] / w.sum()),

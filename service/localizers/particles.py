@@ -45,7 +45,7 @@ from service.localizers.base import (
     Measurement,
     wrap_angle,
 )
-from service.localizers.convergence import ConvergenceRule, Modes, group_modes, judge, spread
+from service.localizers.convergence import ConvergenceRule, Modes, group_modes, judge
 from service.localizers.fitting import (
     gauss_newton,
     log_likelihood,
@@ -61,6 +61,7 @@ from service.localizers.pool import (
     thin,
 )
 from service.localizers.refine import Fit
+from service.localizers.spread import pose_spread
 from service.localizers.symmetry import images, symmetries
 from service.localizers.tracks import ModeTracks
 
@@ -293,9 +294,7 @@ class Particles:
         readings = len(self.history)  # what the next update will test each member on
         # the best member of every plausible coarse cell is a mode the pool must not lose
         # for want of room: only evidence may remove it (a periodic surface keeps many)
-        plausible = np.flatnonzero(self.ll >= self.ll.max() - self.mode_drop)
-        leaders = plausible[niche(self.poses[plausible], self.ll[plausible], *self.mode_cells,
-                                  limit=self.kept_modes)]
+        leaders = self._leaders(self.kept_modes)
         cap = int(np.clip(self.work_items // readings, self.min_capacity, self.capacity))
         cap = max(cap, len(leaders))
         yield len(self.poses)
@@ -305,6 +304,12 @@ class Particles:
             rest = np.flatnonzero(rest)
             fill = rest[thin(self._weights()[rest], cap - len(leaders), self.ctx.rng)]
             self._keep(np.sort(np.concatenate([leaders, fill])))
+
+    def _leaders(self, limit: int) -> np.ndarray:
+        """The best member of each plausible coarse cell, best first, at most `limit`."""
+        plausible = np.flatnonzero(self.ll >= self.ll.max() - self.mode_drop)
+        return plausible[niche(self.poses[plausible], self.ll[plausible], *self.mode_cells,
+                               limit=limit)]
 
     def _contract(self) -> None:
         self.pos_range = max(self.pos_floor, self.pos_range * self.contraction)
@@ -328,21 +333,15 @@ class Particles:
             self.mode_mass = float(group_modes(self.poses, self._weights(), step,
                                                np.deg2rad(20.0), 1).masses[0])
             return
-        plausible = np.flatnonzero(self.ll >= self.ll.max() - self.mode_drop)
-        leaders = plausible[niche(self.poses[plausible], self.ll[plausible], *self.mode_cells,
-                                  limit=self.rivals)]
-        self.tracks.update(self.ctx.surface, self.history, self.poses[leaders],
-                           sd=max(self.sigma, 0.002 * step), position_tol=0.25 * step,
-                           heading_tol=np.deg2rad(5.0), margin=self.margin,
-                           outlier_probability=self.outlier_p,
-                           outlier_range=self.outlier_range)
+        track = dict(sd=max(self.sigma, 0.002 * step), position_tol=0.25 * step,
+                     heading_tol=np.deg2rad(5.0), margin=self.margin,
+                     outlier_probability=self.outlier_p, outlier_range=self.outlier_range)
+        self.tracks.update(self.ctx.surface, self.history,
+                           self.poses[self._leaders(self.rivals)], **track)
         if len(self.motions) and len(self.tracks.centres):  # a periodic surface's images
             self.tracks.update(self.ctx.surface, self.history,
                                images(self.ctx.surface, self.tracks.centres[0], self.motions),
-                               sd=max(self.sigma, 0.002 * step), position_tol=0.25 * step,
-                               heading_tol=np.deg2rad(5.0), margin=self.margin,
-                               outlier_probability=self.outlier_p,
-                               outlier_range=self.outlier_range)
+                               **track)
         shares = self.tracks.shares()
         modes = Modes(centres=self.tracks.centres, masses=shares,
                       labels=np.full(len(self.poses), -1))
@@ -386,7 +385,7 @@ class Particles:
             pos_sd, head_sd = self.fit.position_sd, self.fit.heading_sd
         else:
             pose = tuple(float(v) for v in self.poses[int(np.argmax(w))])
-            pos_sd, head_sd = spread(self.poses, w)
+            pos_sd, head_sd = pose_spread(self.poses, w)
         return Estimate(pose=pose, candidates=len(self.poses), converged=self.converged,
                         position_sd=pos_sd, heading_sd=head_sd, mode_mass=self.mode_mass,
                         runner_up=self.runner_up, runner_up_mass=self.runner_up_mass)

@@ -15,7 +15,7 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from service.localizers.base import wrap_angle
-from service.localizers.fitting import heights_and_jacobian
+from service.localizers.fitting import heights_and_jacobian, sample
 from service.surface import ContactSurface
 
 
@@ -68,8 +68,8 @@ def refine(surface: ContactSurface, history: np.ndarray, start: np.ndarray,
     dropped and B2's results are unchanged.
     """
     start = np.asarray(start, dtype=np.float64)
-    z0, _ = heights_and_jacobian(surface, start, np.zeros((1, 3)))
-    params = np.array([start[0], start[1], start[2], float(z0[0]) - history[0, 2]])
+    z0 = float(sample(surface, start[0], start[1])[0])
+    params = np.array([start[0], start[1], start[2], z0 - history[0, 2]])
     sigma = np.broadcast_to(np.asarray(sigma, dtype=np.float64), (len(history),))
     use = np.ones(len(history), dtype=bool)
     for _ in range(1 + max_outliers):
@@ -79,15 +79,7 @@ def refine(surface: ContactSurface, history: np.ndarray, start: np.ndarray,
         if r[worst] <= outlier_gate or use.sum() - 1 < 6 or (~use).sum() >= max_outliers:
             break
         use[worst] = False  # the worst reading only: one slip distorts the fit everywhere
-    r, j = _model(surface, history[use], params)
-    r, j = r / sigma[use], j / sigma[use, np.newaxis]
-    cov = _covariance(j)
-    pos_sd = float(np.sqrt(max(cov[0, 0] + cov[1, 1], 0.0)))
-    head_sd = float(np.sqrt(max(cov[2, 2], 0.0)))
-    return Fit(pose=(float(params[0]), float(params[1]), float(wrap_angle(params[2]))),
-               position_sd=pos_sd, heading_sd=head_sd,
-               rms=float(np.sqrt(np.mean(r**2))), max_abs=float(np.max(np.abs(r))),
-               readings=int(use.sum()))
+    return _fit_at(surface, history[use], params, sigma[use])
 
 
 def assess(surface: ContactSurface, history: np.ndarray, pose: np.ndarray,
@@ -99,10 +91,17 @@ def assess(surface: ContactSurface, history: np.ndarray, pose: np.ndarray,
     z, _ = heights_and_jacobian(surface, pose, history)
     params = np.array([pose[0], pose[1], pose[2], float(np.mean(z - history[:, 2]))])
     sigma = np.broadcast_to(np.asarray(sigma, dtype=np.float64), (len(history),))
+    return _fit_at(surface, history, params, sigma)
+
+
+def _fit_at(surface: ContactSurface, history: np.ndarray, params: np.ndarray,
+            sigma: np.ndarray) -> Fit:
+    """The `Fit` of the parameters (x0, y0, heading, offset) on these readings: residuals
+    in sigmas, and the covariance their Jacobian implies."""
     r, j = _model(surface, history, params)
     r, j = r / sigma, j / sigma[:, np.newaxis]
     cov = _covariance(j)
-    return Fit(pose=(float(pose[0]), float(pose[1]), float(wrap_angle(pose[2]))),
+    return Fit(pose=(float(params[0]), float(params[1]), float(wrap_angle(params[2]))),
                position_sd=float(np.sqrt(max(cov[0, 0] + cov[1, 1], 0.0))),
                heading_sd=float(np.sqrt(max(cov[2, 2], 0.0))),
                rms=float(np.sqrt(np.mean(r**2))), max_abs=float(np.max(np.abs(r))),

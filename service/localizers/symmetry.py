@@ -80,5 +80,4 @@ def images(surface: ContactSurface, pose: np.ndarray, motions: np.ndarray) -> np
             x[mask], y[mask] = x_max - y[mask], x[mask].copy()
         elif turn == 2:  # a half turn on a rectangle: (x, y) -> (X - x, Y - y)
             x[mask], y[mask] = x_max - x[mask], y_max - y[mask]
-    on_map = (x >= 0) & (x <= x_max) & (y >= 0) & (y <= y_max)
-    return np.column_stack([x, y, heading])[on_map]
+    return np.column_stack([x, y, heading])[surface.map.inside(x, y)]

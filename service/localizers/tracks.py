@@ -15,7 +15,7 @@ import numpy as np
 
 from service.localizers.base import wrap_angle
 from service.localizers.convergence import distinct
-from service.localizers.fitting import gauss_newton, log_likelihood, offset_residuals
+from service.localizers.fitting import fit_log_likelihood, gauss_newton
 from service.surface import ContactSurface
 
 
@@ -42,9 +42,8 @@ class ModeTracks:
             return
         self.centres = gauss_newton(surface, self.centres, history, np.ones(len(history)),
                                     iterations=2, max_move=position_tol)
-        r, ok = offset_residuals(surface, self.centres, history, margin)
-        ll = log_likelihood(r, ok, np.full(r.shape[1], sd), outlier_probability, outlier_range)
-        ll = np.where(np.isfinite(ll), ll, -np.inf)
+        ll = fit_log_likelihood(surface, self.centres, history, sd, margin,
+                                outlier_probability, outlier_range)
         keep = distinct(self.centres, ll, position_tol, heading_tol)
         keep = keep[ll[keep] >= ll[keep[0]] - self.drop]
         self.centres, self.ll = self.centres[keep], ll[keep]

@@ -79,7 +79,6 @@ class EmulatedServo:
                  firmware_version: int | None = None, position: int = 2048) -> None:
         self.model_number, self.table_def = MODELS[model]
         self.model = model
-        self._by_address: dict[int, Register] = {r.address: r for r in self.table_def}
         self._owner: dict[int, Register] = {}
         for r in self.table_def:
             for a in range(r.address, r.address + r.size):

@@ -87,3 +87,11 @@ def test_hardware_backends_assume_encoder_noise_unless_told() -> None:
     told = DaemonConfig(backend=BackendConfig(name="dynamixel"),
                         scenario=ScenarioConfig(sensor_sigma=0.0005))
     assert told.run_settings().sensor_sigma == 0.0005
+
+
+def test_the_daemon_and_haptic_run_share_their_defaults():
+    """ScenarioConfig mirrors RunSettings field by field: its defaults must not drift."""
+    from service.config import ScenarioConfig
+    from service.scenario import RunSettings
+
+    assert ScenarioConfig().run_settings() == RunSettings()

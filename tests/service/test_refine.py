@@ -5,9 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from service.localizers.fitting import gauss_newton, positions, sample
+from service.localizers.fitting import gauss_newton, sample
 from service.localizers.refine import assess, reading_sigmas, refine
 from service.maps import peaks
+from service.models import rotate
 from service.surface import contact_surface
 
 TRUTH = np.array([0.15, 0.17, 0.3])
@@ -23,8 +24,8 @@ def _history(surface, truth=TRUTH, steps=8, noise=0.0, seed=1) -> np.ndarray:
     spiral = [(1, 0), (0, 1), (-1, 0), (-1, 0), (0, -1), (0, -1), (1, 0), (1, 0), (1, 0),
               (0, 1), (0, 1), (0, 1), (-1, 0), (-1, 0)]  # a square spiral: turns every side
     d = np.vstack([np.zeros(2), np.cumsum(np.array(spiral[:steps]) * 0.01, axis=0)])
-    x, y = positions(truth[np.newaxis, :], np.column_stack([d, np.zeros(len(d))]))
-    z, _, _ = sample(surface, x[0], y[0])
+    dx, dy = rotate(truth[2], d[:, 0], d[:, 1])
+    z, _, _ = sample(surface, truth[0] + dx, truth[1] + dy)
     h = np.column_stack([d, z - z[0]])
     return h + noise * rng.standard_normal(h.shape) * (np.arange(len(h)) > 0)[:, None]
 
