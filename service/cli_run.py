@@ -6,7 +6,6 @@ import argparse
 import json
 import math
 from collections.abc import Callable
-from dataclasses import replace
 from pathlib import Path
 
 from firmware_if.backend import Backend
@@ -14,10 +13,9 @@ from service.cli_options import add_scenario_options, settings_from_args
 from service.episode import StepRecord
 from service.errors import ConfigError
 from service.maps import load_map
-from service.models import HARDWARE_SENSOR_SIGMA
 from service.policies.base import MOVE_NAMES
 from service.registry import BACKENDS
-from service.scenario import RunSettings, Truth
+from service.scenario import RunSettings, Truth, for_backend
 from service.simulate import EpisodeReport, simulate
 
 FIGURE_STEPS = (0, 5, 10)
@@ -52,8 +50,7 @@ def run(args: argparse.Namespace) -> int:
     if args.backend != "sim":
         if not args.port or not args.hand:
             raise ConfigError(f"--backend {args.backend} needs --port and --hand")
-        if settings.sensor_sigma is None:
-            settings = replace(settings, sensor_sigma=HARDWARE_SENSOR_SIGMA)
+        settings = for_backend(settings, args.backend)
         cls = BACKENDS.load(args.backend)
 
         def backend_factory(truth: Truth) -> Backend:

@@ -16,9 +16,8 @@ from pathlib import Path
 from typing import Any
 
 from service.errors import ConfigError
-from service.models import HARDWARE_SENSOR_SIGMA
 from service.registry import BACKENDS, LOCALIZERS, POLICIES
-from service.scenario import RunSettings
+from service.scenario import RunSettings, for_backend
 from service.wire import MAX_FRAME_BYTES
 
 OVERRUN_POLICIES = ("skip", "catch_up")
@@ -201,10 +200,7 @@ class DaemonConfig:
 
     def run_settings(self) -> RunSettings:
         """The scenario's settings; on hardware the localizer assumes encoder-level noise."""
-        settings = self.scenario.run_settings()
-        if self.backend.name != "sim" and settings.sensor_sigma is None:
-            settings = dataclasses.replace(settings, sensor_sigma=HARDWARE_SENSOR_SIGMA)
-        return settings
+        return for_backend(self.scenario.run_settings(), self.backend.name)
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)

@@ -61,6 +61,9 @@ class Explorer:
         self._pool: ThreadPoolExecutor | None = None
         self._future: Future | None = None
         self._cloud: Hypotheses | None = None
+        self._cloud_current = False
+        """Whether `_cloud` shows the belief as it is: between updates it cannot change,
+        so the 4 Hz cloud is not re-sorted in every tick that publishes it."""
         self.surface = surface
         self._rng = rng
         self.step_timeout_ns = int(step_timeout_s * 1e9)
@@ -119,13 +122,16 @@ class Explorer:
             return None
         if self.offload and self._future is not None:
             return self._cloud
-        self._cloud = self.localizer.hypotheses(limit=self.cloud_points)
+        if not self._cloud_current:
+            self._cloud = self.localizer.hypotheses(limit=self.cloud_points)
+            self._cloud_current = self.phase is not Phase.UPDATING
         return self._cloud
 
     def _begin(self, state: FingerState) -> TickOutput:
         loc_rng, policy_rng = self._rng.spawn(2)
         self._future = None
         self.localizer = build_localizer(self.settings, self.surface, loc_rng)
+        self._cloud_current = False
         self.policy = build_policy(self.settings)
         self._policy_rng = policy_rng
         self.origin = np.asarray(state.centre, dtype=np.float64)
@@ -151,6 +157,7 @@ class Explorer:
         if self.phase is Phase.UPDATING and self.offload:
             if self._future is not None and self._future.done():
                 self.estimate, self._cloud = self._future.result()  # a worker error raises
+                self._cloud_current = True
                 self._future = None
                 out.estimate_updated = True
                 self.phase = Phase.DECIDE
@@ -183,6 +190,7 @@ class Explorer:
                                                      self.cloud_points)
             else:
                 self.localizer.begin_update(m)
+            self._cloud_current = False
             self.phase = Phase.UPDATING
         elif time.monotonic_ns() - self._step_started_ns > self.step_timeout_ns:
             raise BusTimeoutError(f"step {self.steps} did not finish within "

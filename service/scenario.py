@@ -6,7 +6,7 @@ finger, localizer and policy through here, so a setting means the same thing eve
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -15,7 +15,7 @@ from service.errors import ConfigError
 from service.localizers.base import Estimate, Localizer, LocalizerContext, wrap_angle
 from service.localizers.pose_table import grid_positions
 from service.maps import load_map
-from service.models import NoiseSpec, models_for
+from service.models import HARDWARE_SENSOR_SIGMA, NoiseSpec, models_for
 from service.registry import LOCALIZERS, POLICIES
 from service.surface import ContactSurface, HeightMap, contact_surface
 
@@ -81,6 +81,15 @@ def surface_for(settings: RunSettings, height_map: HeightMap | None = None) -> C
     """The contact surface of the settings' map (loaded unless given)."""
     height_map = height_map or load_map(settings.map, settings.spacing)
     return contact_surface(height_map, settings.radius)
+
+
+def for_backend(settings: RunSettings, backend: str) -> RunSettings:
+    """`settings` for a run on `backend`: on hardware, unless told otherwise, the localizer
+    assumes the encoders' rounding as noise (`HARDWARE_SENSOR_SIGMA`); exact readings
+    would eliminate the truth."""
+    if backend == "sim" or settings.sensor_sigma is not None:
+        return settings
+    return replace(settings, sensor_sigma=HARDWARE_SENSOR_SIGMA)
 
 
 def episode_streams(seed: int) -> list[np.random.Generator]:

@@ -21,6 +21,7 @@ from firmware_if.registers import (
     TABLE_SIZE,
     TICKS_PER_REV,
     Register,
+    by_name,
 )
 
 ERR_RESULT_FAIL, ERR_INSTRUCTION, ERR_CRC, ERR_RANGE, ERR_LENGTH, ERR_LIMIT, ERR_ACCESS = \
@@ -79,6 +80,7 @@ class EmulatedServo:
                  firmware_version: int | None = None, position: int = 2048) -> None:
         self.model_number, self.table_def = MODELS[model]
         self.model = model
+        self._by_name = by_name(self.table_def)
         self._owner: dict[int, Register] = {}
         for r in self.table_def:
             for a in range(r.address, r.address + r.size):
@@ -105,10 +107,9 @@ class EmulatedServo:
             self.set(name, value)
 
     def reg(self, name: str) -> Register:
-        for r in self.table_def:
-            if r.name == name:
-                return r
-        raise KeyError(name)
+        """The register called `name` (KeyError if the model has none): a dict lookup, as
+        every packet reads and writes a dozen of them."""
+        return self._by_name[name]
 
     def get(self, name: str) -> int:
         r = self.reg(name)
