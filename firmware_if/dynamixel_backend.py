@@ -84,7 +84,6 @@ class DynamixelBackend:
         self._step: _Step | None = None
         self._joints_moving = False
         self._nominal_xy: np.ndarray | None = None
-        self._blocked_touch = False
 
     @classmethod
     def from_cli(cls, *, port: str, hand: str, radius: float, step: float) -> DynamixelBackend:
@@ -196,8 +195,8 @@ class DynamixelBackend:
         # encoder rounding does not accumulate into a drift over many steps.
         xy = self._nominal_xy + np.array([step.dx, step.dy])
         target = np.array([xy[0], xy[1], centre[2] - self.settings.press])
-        self._step = _Step(start_q=q, start_centre=centre, target=target, depth=0.0,
-                           t0=time.monotonic(), phase="move")
+        self._step = _Step(start_q=q, target=target, depth=0.0, t0=time.monotonic(),
+                           phase="move")
         self._aim(target, q)
 
     # -- internals -------------------------------------------------------------------------
@@ -206,12 +205,16 @@ class DynamixelBackend:
         step = self._step
         assert step is not None
         if not bool(ik.reachable):
-            step.phase, step.blocked = "retreat", True
-            self._pending_goals = self._goal_ticks(step.start_q)
-        else:
-            self._pending_goals = self._goal_ticks(ik.q)
-        step.goal_q = ik.q if bool(ik.reachable) else step.start_q
-        step.last, step.cycles = None, 0
+            self._retreat(step)
+            return
+        self._pending_goals = self._goal_ticks(ik.q)
+        step.goal_q, step.last, step.cycles = ik.q, None, 0
+
+    def _retreat(self, step: _Step) -> None:
+        """Head back to where the step began: it is blocked (unreachable or no contact)."""
+        step.phase = "retreat"
+        self._pending_goals = self._goal_ticks(step.start_q)
+        step.goal_q, step.last, step.cycles = step.start_q, None, 0
 
     def _advance_step(self, state: FingerState) -> None:
         step = self._step
@@ -238,10 +241,8 @@ class DynamixelBackend:
             step.target = step.target - np.array([0.0, 0.0, self.settings.press])
             self._aim(step.target, np.asarray(state.joints))
         else:
-            step.phase, step.blocked = "retreat", True
             step.t0 = time.monotonic()
-            self._pending_goals = self._goal_ticks(step.start_q)
-            step.goal_q, step.last, step.cycles = step.start_q, None, 0
+            self._retreat(step)
 
     def _finish(self, blocked: bool) -> None:
         step = self._step
@@ -259,10 +260,10 @@ class DynamixelBackend:
         while self._steps_done == done and time.monotonic() < deadline and not self._fault:
             self.read_state()
         self._steps_done = done  # touching down is not a step
-        self._blocked_touch, self._blocked = self._blocked, False
+        no_surface, self._blocked = self._blocked, False
         if self._fault:
             raise HardwareFault(self._fault)
-        if self._blocked_touch:
+        if no_surface:
             raise HardwareFault(f"no surface found within {self.settings.max_press} m below "
                                 "the fingertip; move the hand closer and retry")
 
@@ -308,7 +309,6 @@ class DynamixelBackend:
 @dataclass
 class _Step:
     start_q: np.ndarray
-    start_centre: np.ndarray
     target: np.ndarray
     depth: float
     t0: float
@@ -317,4 +317,3 @@ class _Step:
     last: tuple[float, ...] | None = None
     cycles: int = 0
     """Bus cycles since the last goals were sent."""
-    blocked: bool = False

@@ -31,7 +31,7 @@ from service.explorer import Explorer, TickOutput
 from service.lifecycle import Lifecycle, State
 from service.loop import RateLoop, Samples, Tick
 from service.registry import BACKENDS
-from service.scenario import Truth, draw_truth, episode_streams, surface_for
+from service.scenario import RunSettings, Truth, draw_truth, episode_streams, surface_for
 from service.security import CurveServer, check_binds
 from service.stream import Publisher
 
@@ -40,13 +40,13 @@ QUIET_COMMANDS = frozenset({"ping", "status", "get_config", "acquire"})
 """Commands not echoed as `command` events (they change nothing)."""
 
 
-def make_backend(config: DaemonConfig, surface: Any) -> tuple[Backend, Truth | None, Any]:
+def make_backend(config: DaemonConfig, settings: RunSettings, surface: Any
+                 ) -> tuple[Backend, Truth | None, Any]:
     """The configured backend (not yet opened), the sim's hidden truth, and an rng for search.
 
     The seed is split by `scenario.episode_streams`, as `haptic run` splits it, so both
     hide the same start pose for the same seed.
     """
-    settings = config.run_settings()
     truth_rng, world_rng, loc_rng, _ = episode_streams(settings.seed)
     cls = BACKENDS.load(config.backend.name)
     if config.backend.name != "sim":
@@ -312,8 +312,9 @@ class Node:
     def configure(self, changes: dict[str, Any]) -> dict[str, Any]:
         self.lifecycle.check("configure")
         new = self.config.updated(changes)
-        surface = surface_for(new.run_settings())
-        backend, truth, rng = make_backend(new, surface)
+        settings = new.run_settings()  # built and checked once
+        surface = surface_for(settings)
+        backend, truth, rng = make_backend(new, settings, surface)
         try:
             backend.open()
         except BaseException:
@@ -325,7 +326,7 @@ class Node:
         if self.explorer is not None:
             self.explorer.close()
         offload = new.loop.localizer_mode == "thread"
-        self.explorer = Explorer(new.run_settings(), surface, rng, offload=offload,
+        self.explorer = Explorer(settings, surface, rng, offload=offload,
                                  cloud_points=new.loop.cloud_points)
         if offload:  # let the loop thread take the GIL back from the worker promptly
             sys.setswitchinterval(min(sys.getswitchinterval(), 0.0005))
