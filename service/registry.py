@@ -40,21 +40,21 @@ class Registry:
 
 
 LOCALIZERS = Registry("algorithm", {
-    "elimination": Entry("service.localizers.elimination:Elimination",
+    "elimination": Entry("service.localization.localizers.elimination:Elimination",
                          "Algorithm III, process of elimination over a pose table"),
-    "grid": Entry("service.localizers.grid:Grid",
+    "grid": Entry("service.localization.localizers.grid:Grid",
                   "Algorithm I, position (and heading) probability grid"),
-    "match": Entry("service.localizers.match:Match",
+    "match": Entry("service.localization.localizers.match:Match",
                    "Algorithm II, probability grid plus pattern matching of the readings"),
-    "particles": Entry("service.localizers.particles:Particles",
+    "particles": Entry("service.localization.localizers.particles:Particles",
                        "Algorithm IV, evolutionary Monte Carlo with a bounded pool"),
 })
 
 POLICIES = Registry("policy", {
-    "paper": Entry("service.policies.paper:PaperPolicy",
+    "paper": Entry("service.localization.policies.paper:PaperPolicy",
                    "the paper's heuristic: the move 10 sampled candidates disagree on most"),
-    "random": Entry("service.policies.paper:RandomPolicy", "a random unblocked move"),
-    "info-gain": Entry("service.policies.info_gain:InfoGainPolicy",
+    "random": Entry("service.localization.policies.paper:RandomPolicy", "a random unblocked move"),
+    "info-gain": Entry("service.localization.policies.info_gain:InfoGainPolicy",
                        "the move with the largest expected information about the pose"),
 })
 

@@ -16,8 +16,8 @@ import numpy as np
 from firmware_if.backend import FingerState, StepCommand, check_can_step
 from firmware_if.errors import HardwareFault, NotReadyError
 from service.errors import ConfigError
-from service.models import NoiseSpec, rotate
-from service.surface import ContactSurface, HeightMap, contact_surface
+from service.localization.models import NoiseSpec, rotate
+from service.localization.surface import ContactSurface, HeightMap, contact_surface
 from sim_backend.clock import Clock, MonotonicClock
 from sim_backend.world import perturbed
 

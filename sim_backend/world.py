@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 from scipy import ndimage
 
-from service.surface import HeightMap
+from service.localization.surface import HeightMap
 
 
 def perturbed(height_map: HeightMap, sigma: float, correlation: float,

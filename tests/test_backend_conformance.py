@@ -19,11 +19,11 @@ from firmware_if.backend import Backend, FingerState, StepCommand
 from firmware_if.dynamixel_backend import DynamixelBackend
 from firmware_if.errors import HardwareFault, NotReadyError
 from firmware_if.hand import load_hand
-from service.episode import execute_step
-from service.maps import load_map
-from service.scenario import RunSettings, draw_truth
-from service.simulate import simulate
-from service.surface import contact_surface
+from service.episode.runner import execute_step
+from service.episode.scenario import RunSettings, draw_truth
+from service.episode.simulate import simulate
+from service.localization.maps import load_map
+from service.localization.surface import contact_surface
 from sim_backend.emulator import ServoBus
 from sim_backend.emulator.plant import FingerPlant, hand_bus_servos
 from sim_backend.finger import SimConfig, SimulatedFinger
@@ -213,7 +213,7 @@ def test_haptic_run_dynamixel_on_haptic_emulate(tmp_path, capsys, noise):
     Noise-free, the simulator's exact tolerance would eliminate the truth on encoder
     readings; hardware runs assume `HARDWARE_SENSOR_SIGMA` instead.
     """
-    from service import cli
+    from tools import cli
     from tools.emulate_cli import start_emulator
 
     x, y, heading = _grid_settings(3).start

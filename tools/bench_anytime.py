@@ -13,10 +13,10 @@ from pathlib import Path
 
 import numpy as np
 
-from service.localizers.base import Budget, Measurement
+from service.episode.scenario import RunSettings, build_localizer, surface_for
+from service.episode.simulate import simulate
+from service.localization.localizers.base import Budget, Measurement
 from service.registry import LOCALIZERS
-from service.scenario import RunSettings, build_localizer, surface_for
-from service.simulate import simulate
 from tools.bench_common import write_json
 
 

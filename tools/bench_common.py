@@ -12,12 +12,12 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
-from service.cli_options import add_scenario_options, settings_from_args
+from service.episode.scenario import RunSettings
+from service.episode.simulate import EpisodeReport, simulate
 from service.errors import ConfigError
-from service.maps import load_map
-from service.scenario import RunSettings
-from service.simulate import EpisodeReport, simulate
-from service.surface import HeightMap
+from service.localization.maps import load_map
+from service.localization.surface import HeightMap
+from tools.scenario_options import add_scenario_options, settings_from_args
 
 
 def add_bench_options(parser: argparse.ArgumentParser, *, defaults: RunSettings,

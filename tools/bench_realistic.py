@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import argparse
 
-from service.scenario import RunSettings
+from service.episode.scenario import RunSettings
 from tools.bench_common import B2_DEFAULTS as DEFAULTS
 from tools.bench_common import add_bench_options, fmt, run_seeded_scenario
 

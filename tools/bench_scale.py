@@ -10,9 +10,8 @@ from __future__ import annotations
 
 import argparse
 
-from service.cli_options import settings_from_args
 from service.errors import ConfigError
-from service.maps import load_map
+from service.localization.maps import load_map
 from service.registry import LOCALIZERS
 from tools.bench_common import B2_DEFAULTS as DEFAULTS
 from tools.bench_common import (
@@ -23,6 +22,7 @@ from tools.bench_common import (
     summarize,
     write_json,
 )
+from tools.scenario_options import settings_from_args
 
 COMPARED = ("particles", "elimination")
 TARGET_P99_MS = 5.0

@@ -23,10 +23,10 @@ from typing import Any
 
 import zmq
 
-from service.client import Client, Subscriber
-from service.config import LOCALIZER_MODES, LoopConfig, ScenarioConfig
+from service.daemon.config import LOCALIZER_MODES, LoopConfig, ScenarioConfig
 from service.errors import ConfigError
 from service.registry import LOCALIZERS, POLICIES
+from service.wire.client import Client, Subscriber
 from tools.bench_common import percentile, write_json
 
 CONFIG = """
@@ -104,7 +104,7 @@ def measure(subscribers: int, args: argparse.Namespace) -> dict[str, Any]:
                                      algorithm=args.algorithm, policy=args.policy,
                                      localizer_mode=args.localizer_mode,
                                      pub=pub, cmd=cmd))
-        proc = subprocess.Popen([sys.executable, "-m", "service.daemon", "--config", str(cfg),
+        proc = subprocess.Popen([sys.executable, "-m", "service.daemon.main", "--config", str(cfg),
                                  "--log-level", "warning"])
         ctx = zmq.Context()
         readers: list[Reader] = []

@@ -14,11 +14,11 @@ from collections.abc import Callable
 import numpy as np
 
 from firmware_if.hand import load_hand, presets
-from service.cli_options import add_scenario_options, settings_from_args
-from service.scenario import RunSettings, Truth, draw_truth, episode_streams, surface_for
-from service.surface import HeightMap
+from service.episode.scenario import RunSettings, Truth, draw_truth, episode_streams, surface_for
+from service.localization.surface import HeightMap
 from sim_backend.emulator import ServoBus
 from sim_backend.emulator.plant import FingerPlant, hand_bus_servos
+from tools.scenario_options import add_scenario_options, settings_from_args
 
 
 def register(sub: argparse._SubParsersAction) -> None:

@@ -12,9 +12,9 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from matplotlib.collections import LineCollection  # noqa: E402
 
-from service.models import rotate  # noqa: E402
-from service.simulate import EpisodeReport  # noqa: E402
-from service.surface import HeightMap  # noqa: E402
+from service.episode.simulate import EpisodeReport  # noqa: E402
+from service.localization.models import rotate  # noqa: E402
+from service.localization.surface import HeightMap  # noqa: E402
 
 
 def draw_surface(ax: plt.Axes, height_map: HeightMap) -> None:

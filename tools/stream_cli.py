@@ -22,11 +22,11 @@ import msgpack
 import numpy as np
 import zmq
 
-from service import wire
-from service.client import Client, CommandFailed, CommandTimeout, Subscriber
-from service.config import EndpointConfig
+from service.daemon.config import EndpointConfig
 from service.errors import InputError
-from service.stream import TOPICS
+from service.wire import envelope as wire
+from service.wire.client import Client, CommandFailed, CommandTimeout, Subscriber
+from service.wire.stream import TOPICS
 
 PUB, CMD = EndpointConfig.pub, EndpointConfig.cmd  # the daemon's defaults
 RECORD_FORMAT = "haptic-record"
@@ -260,8 +260,8 @@ def cmd_replay(args: argparse.Namespace) -> int:
         for r in records:
             print(format_message(wire.decode(r["payload"], topic=r["topic"])))
         return 0
-    from service.config import SecurityConfig
-    from service.security import check_binds
+    from service.daemon.config import SecurityConfig
+    from service.wire.security import check_binds
 
     check_binds([args.publish], SecurityConfig())
     if not args.speed > 0:
@@ -285,7 +285,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
 
 
 def _surface_for_view(args: argparse.Namespace, config: dict[str, Any] | None):
-    from service.scenario import RunSettings, surface_for
+    from service.episode.scenario import RunSettings, surface_for
 
     if config is None and args.map is None and args.source is None:
         try:
@@ -341,7 +341,7 @@ def cmd_view(args: argparse.Namespace) -> int:
 
 
 def cmd_keygen(args: argparse.Namespace) -> int:
-    from service.security import generate_keys
+    from service.wire.security import generate_keys
 
     public, secret = generate_keys(Path(args.directory), args.name)
     print(f"public key (give to peers): {public}\nsecret key (keep private): {secret}")

@@ -14,9 +14,9 @@ from typing import Any
 
 import numpy as np
 
-from service.models import rotate
-from service.surface import ContactSurface
-from service.wire import Message
+from service.localization.models import rotate
+from service.localization.surface import ContactSurface
+from service.wire.envelope import Message
 
 
 @dataclass

@@ -15,7 +15,7 @@ import numpy as np
 from firmware_if import kinematics as kin
 from firmware_if.hand import Hand
 from firmware_if.registers import BAUD_REGISTER, rad_to_ticks, ticks_to_rad
-from service.surface import ContactSurface, HeightMap, contact_surface
+from service.localization.surface import ContactSurface, HeightMap, contact_surface
 from sim_backend.emulator.servo import EmulatedServo
 
 

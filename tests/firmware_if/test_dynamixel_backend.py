@@ -10,8 +10,8 @@ from firmware_if.backend import StepCommand
 from firmware_if.dynamixel_backend import DynamixelBackend
 from firmware_if.errors import CommunicationError, HandConfigError, HardwareFault
 from firmware_if.hand import load_hand
-from service.episode import execute_step
-from service.maps import load_map
+from service.episode.runner import execute_step
+from service.localization.maps import load_map
 from sim_backend.emulator import ServoBus
 from sim_backend.emulator.plant import FingerPlant, hand_bus_servos
 
@@ -79,7 +79,7 @@ def test_the_rolling_tip_is_reported(rig):
 def test_planar_hand_steps_along_its_plane_only():
     hand = load_hand("planar")
     profile = MAP.heights[100:101, :]
-    from service.surface import HeightMap
+    from service.localization.surface import HeightMap
 
     world = HeightMap(profile, MAP.spacing, name="peaks-row")
     plant = FingerPlant(hand, world, (0.1, 0.0, 0.0))

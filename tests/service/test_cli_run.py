@@ -7,7 +7,7 @@ import sys
 import numpy as np
 import pytest
 
-from service.cli import main
+from tools.cli import main
 
 
 def run_cli(*args: str) -> int:
@@ -109,7 +109,7 @@ def test_bad_map_files_from_a_real_process(tmp_path, content, message):
         np.save(path, np.zeros((1, 1)))
     else:
         path.write_bytes(content)
-    proc = subprocess.run([sys.executable, "-m", "service.cli", "run", "--map", str(path),
+    proc = subprocess.run([sys.executable, "-m", "tools.cli", "run", "--map", str(path),
                            "--spacing", "0.001"], capture_output=True, text=True, timeout=120)
     assert proc.returncode == 2
     assert message in proc.stderr and "Traceback" not in proc.stderr
@@ -132,6 +132,6 @@ def test_localizer_options_reach_the_localizer(tmp_path):
 
 
 def test_a_heading_just_below_zero_prints_as_zero():
-    from service.cli_run import _pose_text
+    from tools.run_cli import _pose_text
 
     assert "heading    0.0 deg" in _pose_text((0.1, 0.1, -1e-9))

@@ -13,10 +13,10 @@ import zmq
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from service.client import Client, CommandFailed, Subscriber
-from service.commands import TABLE, CommandServer, Lease, validate
-from service.harness import loopback_config, running_node
-from service.node import Node
+from service.daemon.harness import loopback_config, running_node
+from service.daemon.node import Node
+from service.wire.client import Client, CommandFailed, Subscriber
+from service.wire.commands import TABLE, CommandServer, Lease, validate
 
 
 @pytest.fixture()

@@ -6,9 +6,9 @@ from pathlib import Path
 
 import pytest
 
-from service.config import DaemonConfig, from_dict, load_config
+from service.daemon.config import DaemonConfig, from_dict, load_config
+from service.daemon.lifecycle import Lifecycle, State
 from service.errors import ConfigError, StateError
-from service.lifecycle import Lifecycle, State
 
 SAMPLE = Path(__file__).resolve().parents[2] / "config" / "hapticd.toml"
 
@@ -78,8 +78,8 @@ def test_lifecycle_table() -> None:
 
 
 def test_hardware_backends_assume_encoder_noise_unless_told() -> None:
-    from service.config import BackendConfig, DaemonConfig, ScenarioConfig
-    from service.models import HARDWARE_SENSOR_SIGMA
+    from service.daemon.config import BackendConfig, DaemonConfig, ScenarioConfig
+    from service.localization.models import HARDWARE_SENSOR_SIGMA
 
     assert DaemonConfig().run_settings().sensor_sigma is None
     hw = DaemonConfig(backend=BackendConfig(name="dynamixel"))
@@ -91,7 +91,7 @@ def test_hardware_backends_assume_encoder_noise_unless_told() -> None:
 
 def test_the_daemon_and_haptic_run_share_their_defaults():
     """ScenarioConfig mirrors RunSettings field by field: its defaults must not drift."""
-    from service.config import ScenarioConfig
-    from service.scenario import RunSettings
+    from service.daemon.config import ScenarioConfig
+    from service.episode.scenario import RunSettings
 
     assert ScenarioConfig().run_settings() == RunSettings()

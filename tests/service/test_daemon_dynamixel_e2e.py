@@ -5,16 +5,16 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from service.client import Client, Subscriber
-from service.harness import loopback_config, running_node
+from service.daemon.harness import loopback_config, running_node
 from service.registry import BACKENDS
+from service.wire.client import Client, Subscriber
 
 pytest.importorskip("sim_backend.emulator")
 if "dynamixel" not in BACKENDS.names():
     pytest.skip("no dynamixel backend registered", allow_module_level=True)
 
 from firmware_if.hand import load_hand  # noqa: E402
-from service.maps import load_map  # noqa: E402
+from service.localization.maps import load_map  # noqa: E402
 from sim_backend.emulator import ServoBus  # noqa: E402
 from sim_backend.emulator.plant import FingerPlant, hand_bus_servos  # noqa: E402
 

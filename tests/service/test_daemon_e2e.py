@@ -12,17 +12,17 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from service.client import Client, Subscriber
-from service.harness import loopback_config, running_node
-from service.scenario import RunSettings, draw_truth, surface_for
-from service.wire import Message
+from service.daemon.harness import loopback_config, running_node
+from service.episode.scenario import RunSettings, draw_truth, surface_for
+from service.wire.client import Client, Subscriber
+from service.wire.envelope import Message
 
 ROOT = Path(__file__).resolve().parents[2]
 
 
 def hapticd_command() -> list[str]:
     script = Path(sys.executable).parent / "hapticd"
-    return [str(script)] if script.exists() else [sys.executable, "-m", "service.daemon"]
+    return [str(script)] if script.exists() else [sys.executable, "-m", "service.daemon.main"]
 
 
 @pytest.fixture()
@@ -73,7 +73,7 @@ def test_hapticd_sim_localizes_at_the_true_pose_and_shuts_down_cleanly(daemon) -
 
 CONTROLLER = """
 import sys
-from service.client import Client
+from service.wire.client import Client
 c = Client(sys.argv[1], client_id="doomed")
 c.call("activate")
 c.call("start_exploration", repeat=True)
@@ -126,7 +126,7 @@ def test_controller_dies_lease_expires_finger_holds_then_stops() -> None:
 
 
 def test_bad_config_is_one_line_and_exit_2(tmp_path: Path, capsys) -> None:
-    from service.daemon import main
+    from service.daemon.main import main
 
     cfg = tmp_path / "hapticd.toml"
     cfg.write_text("[loop]\nrate_hz = 200\nrate_hx = 5\n")
@@ -157,7 +157,7 @@ def test_thread_mode_localizes_off_the_control_path() -> None:
 
 
 def test_lease_keeper_holds_control_through_long_waits() -> None:
-    from service.client import LeaseKeeper
+    from service.wire.client import LeaseKeeper
 
     config = loopback_config({"lease": {"ttl_s": 0.3, "hold_s": 0.1}})
     with running_node(config) as node, Client(node.endpoints["cmd"]) as ctl, \

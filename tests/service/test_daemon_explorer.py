@@ -8,9 +8,15 @@ import numpy as np
 import pytest
 
 from firmware_if.backend import StepCommand
-from service.episode import run_episode
-from service.explorer import Explorer, Phase
-from service.scenario import RunSettings, build_localizer, build_policy, draw_truth, surface_for
+from service.daemon.explorer import Explorer, Phase
+from service.episode.runner import run_episode
+from service.episode.scenario import (
+    RunSettings,
+    build_localizer,
+    build_policy,
+    draw_truth,
+    surface_for,
+)
 from sim_backend.finger import SimConfig, SimulatedFinger
 
 

@@ -3,15 +3,15 @@
 import numpy as np
 import pytest
 
+from service.episode.scenario import RunSettings
+from service.episode.simulate import simulate
 from service.errors import ConfigError
-from service.localizers.base import Budget, LocalizerContext, Measurement
-from service.localizers.elimination import Elimination
-from service.localizers.pose_table import pose_table
-from service.maps import bumps, peaks
-from service.models import NoiseSpec, models_for
-from service.scenario import RunSettings
-from service.simulate import simulate
-from service.surface import contact_surface
+from service.localization.localizers.base import Budget, LocalizerContext, Measurement
+from service.localization.localizers.elimination import Elimination
+from service.localization.localizers.pose_table import pose_table
+from service.localization.maps import bumps, peaks
+from service.localization.models import NoiseSpec, models_for
+from service.localization.surface import contact_surface
 
 PEAKS = peaks()
 
@@ -30,7 +30,7 @@ def test_paper_pose_table_has_3564_entries():
 
 
 def test_too_small_map_for_table_is_a_clear_error():
-    from service.surface import HeightMap
+    from service.localization.surface import HeightMap
 
     with pytest.raises(ConfigError, match="too small"):
         pose_table(HeightMap(np.zeros((5, 5)), 0.001), 0.01, 11)
@@ -90,7 +90,7 @@ def test_unknown_sweep_is_rejected():
 
 
 def test_spread_of_identical_headings_is_zero_not_nan():
-    from service.localizers.spread import pose_spread
+    from service.localization.localizers.spread import pose_spread
 
     poses = np.tile([0.1, 0.1, 0.3], (7, 1))
     pos_sd, head_sd = pose_spread(poses, np.full(7, 1 / 7))

@@ -7,17 +7,17 @@ import numpy as np
 import pytest
 from scipy.ndimage import map_coordinates
 
-from service import kernels
-from service.localizers.convergence import distinct
-from service.localizers.fitting import (
+from service.localization import kernels
+from service.localization.localizers.convergence import distinct
+from service.localization.localizers.fitting import (
     gauss_newton,
     log_likelihood,
     offset_residuals,
     residuals,
     sample,
 )
-from service.maps import bumps, peaks
-from service.surface import HeightMap, contact_surface
+from service.localization.maps import bumps, peaks
+from service.localization.surface import HeightMap, contact_surface
 
 
 @pytest.fixture(scope="module")

@@ -10,13 +10,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from service.localizers.base import Budget, LocalizerContext, Measurement, update
-from service.maps import peaks
-from service.models import NoiseSpec, models_for, rotate
+from service.episode.scenario import RunSettings
+from service.episode.simulate import simulate
+from service.localization.localizers.base import Budget, LocalizerContext, Measurement, update
+from service.localization.maps import peaks
+from service.localization.models import NoiseSpec, models_for, rotate
+from service.localization.surface import contact_surface
 from service.registry import LOCALIZERS
-from service.scenario import RunSettings
-from service.simulate import simulate
-from service.surface import contact_surface
 
 NAMES = LOCALIZERS.names()
 STEP = 0.01

@@ -5,13 +5,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from service.localizers.convergence import ConvergenceRule, distinct, group_modes
-from service.localizers.refine import Fit
-from service.localizers.symmetry import images, symmetries
-from service.maps import bumps, eggcrate, peaks
-from service.scenario import RunSettings
-from service.simulate import simulate
-from service.surface import contact_surface
+from service.episode.scenario import RunSettings
+from service.episode.simulate import simulate
+from service.localization.localizers.convergence import ConvergenceRule, distinct, group_modes
+from service.localization.localizers.refine import Fit
+from service.localization.localizers.symmetry import images, symmetries
+from service.localization.maps import bumps, eggcrate, peaks
+from service.localization.surface import contact_surface
 
 
 @pytest.mark.parametrize("name", ["particles", "grid"])

@@ -5,15 +5,15 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from service.episode.scenario import RunSettings
+from service.episode.simulate import simulate
 from service.errors import ConfigError
-from service.localizers.base import LocalizerContext
-from service.localizers.grid import Grid
-from service.localizers.match import Match, best_headings
-from service.maps import peaks
-from service.models import NoiseSpec, models_for
-from service.scenario import RunSettings
-from service.simulate import simulate
-from service.surface import HeightMap, contact_surface
+from service.localization.localizers.base import LocalizerContext
+from service.localization.localizers.grid import Grid
+from service.localization.localizers.match import Match, best_headings
+from service.localization.maps import peaks
+from service.localization.models import NoiseSpec, models_for
+from service.localization.surface import HeightMap, contact_surface
 
 
 @pytest.fixture(scope="module")

@@ -5,15 +5,20 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from service.localizers.base import LocalizerContext, Measurement, update
-from service.localizers.fitting import log_likelihood, residuals
-from service.localizers.particles import Particles
-from service.localizers.pool import effective_sample_size, niche, systematic_resample, thin
-from service.maps import bumps
-from service.models import NoiseSpec, models_for
-from service.scenario import RunSettings
-from service.simulate import simulate
-from service.surface import contact_surface
+from service.episode.scenario import RunSettings
+from service.episode.simulate import simulate
+from service.localization.localizers.base import LocalizerContext, Measurement, update
+from service.localization.localizers.fitting import log_likelihood, residuals
+from service.localization.localizers.particles import Particles
+from service.localization.localizers.pool import (
+    effective_sample_size,
+    niche,
+    systematic_resample,
+    thin,
+)
+from service.localization.maps import bumps
+from service.localization.models import NoiseSpec, models_for
+from service.localization.surface import contact_surface
 
 
 def test_systematic_resample_follows_the_weights():

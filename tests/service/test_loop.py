@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from service.daemon.loop import RateLoop, Samples, Tick
 from service.errors import ConfigError
-from service.loop import RateLoop, Samples, Tick
 
 MS = 1_000_000
 

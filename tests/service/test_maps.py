@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from service.errors import MapError
-from service.maps import load_map, peaks
+from service.localization.maps import load_map, peaks
 
 
 def test_peaks_matches_the_benchmark_definition():

@@ -5,13 +5,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from service.localizers.base import Hypotheses
-from service.maps import peaks
-from service.policies.base import PolicyInput, predicted_heights
-from service.policies.info_gain import InfoGainPolicy, information
-from service.scenario import RunSettings
-from service.simulate import simulate
-from service.surface import contact_surface
+from service.episode.scenario import RunSettings
+from service.episode.simulate import simulate
+from service.localization.localizers.base import Hypotheses
+from service.localization.maps import peaks
+from service.localization.policies.base import PolicyInput, predicted_heights
+from service.localization.policies.info_gain import InfoGainPolicy, information
+from service.localization.surface import contact_surface
 
 
 @pytest.fixture(scope="module")
@@ -77,11 +77,11 @@ def test_deterministic_and_beats_random_on_average(lookahead):
 
 def test_paper_policy_samples_only_candidates_with_weight():
     """Fewer nonzero weights than the 10 samples must not crash the paper's heuristic."""
-    from service.localizers.base import Hypotheses
-    from service.maps import peaks
-    from service.policies.base import PolicyInput
-    from service.policies.paper import PaperPolicy
-    from service.surface import contact_surface
+    from service.localization.localizers.base import Hypotheses
+    from service.localization.maps import peaks
+    from service.localization.policies.base import PolicyInput
+    from service.localization.policies.paper import PaperPolicy
+    from service.localization.surface import contact_surface
 
     poses = np.array([[0.05, 0.05, 0.0], [0.1, 0.1, 1.0], [0.15, 0.1, 2.0]] * 5)
     weights = np.zeros(len(poses))

@@ -13,7 +13,7 @@ import msgpack
 import pytest
 import zmq
 
-from service.harness import loopback_config, running_node
+from service.daemon.harness import loopback_config, running_node
 
 
 @pytest.fixture()

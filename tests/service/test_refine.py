@@ -5,11 +5,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from service.localizers.fitting import gauss_newton, sample
-from service.localizers.refine import assess, reading_sigmas, refine
-from service.maps import peaks
-from service.models import rotate
-from service.surface import contact_surface
+from service.localization.localizers.fitting import gauss_newton, sample
+from service.localization.localizers.refine import assess, reading_sigmas, refine
+from service.localization.maps import peaks
+from service.localization.models import rotate
+from service.localization.surface import contact_surface
 
 TRUTH = np.array([0.15, 0.17, 0.3])
 

@@ -8,11 +8,11 @@ from pathlib import Path
 import pytest
 import zmq
 
-from service.client import Client, CommandTimeout
-from service.config import SecurityConfig
+from service.daemon.config import SecurityConfig
+from service.daemon.harness import loopback_config, running_node
 from service.errors import ConfigError
-from service.harness import loopback_config, running_node
-from service.security import check_binds, client_curve_options, generate_keys, is_loopback
+from service.wire.client import Client, CommandTimeout
+from service.wire.security import check_binds, client_curve_options, generate_keys, is_loopback
 
 
 @pytest.mark.parametrize("endpoint, local", [

@@ -6,7 +6,7 @@ from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
 from service.errors import MapError
-from service.surface import HeightMap, contact_surface
+from service.localization.surface import HeightMap, contact_surface
 
 
 def brute_force_contact(heights: np.ndarray, spacing: float, radius: float,

@@ -8,8 +8,7 @@ import threading
 
 import pytest
 
-from service import cli
-from tools import bench_bus, emulate_cli
+from tools import bench_bus, cli, emulate_cli
 
 
 @pytest.fixture

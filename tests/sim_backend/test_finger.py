@@ -6,9 +6,9 @@ import pytest
 from firmware_if.backend import StepCommand
 from firmware_if.errors import HardwareFault, NotReadyError
 from service.errors import ConfigError
-from service.maps import peaks
-from service.models import NoiseSpec
-from service.surface import contact_surface
+from service.localization.maps import peaks
+from service.localization.models import NoiseSpec
+from service.localization.surface import contact_surface
 from sim_backend.clock import ManualClock
 from sim_backend.finger import SimConfig, SimulatedFinger
 

@@ -2,7 +2,7 @@
 
 import json
 
-from service.cli import main
+from tools.cli import main
 
 
 def test_anytime_bench_reports_slices(tmp_path):

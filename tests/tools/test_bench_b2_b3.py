@@ -2,7 +2,7 @@
 
 import json
 
-from service.cli import main
+from tools.cli import main
 
 
 def test_realistic_summary_has_the_accuracy_keys(tmp_path):

@@ -2,7 +2,7 @@
 
 import json
 
-from service.cli import main
+from tools.cli import main
 
 SUMMARY_KEYS = {"runs", "successes", "wrong_declarations", "steps_mean", "steps_sd",
                 "steps_max", "true_pose_eliminated_runs", "first_step_elimination_mean",

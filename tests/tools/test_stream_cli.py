@@ -10,9 +10,9 @@ from pathlib import Path
 
 import pytest
 
-from service.client import Subscriber
-from service.harness import loopback_config, running_node
-from service.node import Node
+from service.daemon.harness import loopback_config, running_node
+from service.daemon.node import Node
+from service.wire.client import Subscriber
 from tools import stream_cli
 
 

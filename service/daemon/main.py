@@ -1,0 +1,84 @@
+"""`hapticd`: the haptic localization daemon.
+
+    hapticd --sim                  simulated finger, default config, loopback endpoints
+    hapticd --config hapticd.toml  as configured (config/hapticd.toml is the sample)
+
+Logs are JSON lines on stderr (the first, `listening`, names the bound endpoints).
+SIGINT/SIGTERM stop the loop; shutdown turns torque off, publishes a final `shutdown`
+event and closes the sockets. Exit status: 0 after a clean stop, 2 for a bad config.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import logging
+import signal
+import sys
+
+from firmware_if.errors import FirmwareError
+from service.daemon.config import DaemonConfig, load_config
+from service.daemon.node import Node, json_line
+from service.errors import InputError
+
+
+class JsonFormatter(logging.Formatter):
+    def format(self, record: logging.LogRecord) -> str:
+        return json_line(record)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="hapticd", description="Haptic localization daemon.")
+    p.add_argument("--config", metavar="FILE", help="TOML config (see config/hapticd.toml)")
+    p.add_argument("--sim", action="store_true",
+                   help="use the simulated backend whatever the config says")
+    p.add_argument("--pub", metavar="ENDPOINT", help="override endpoints.pub")
+    p.add_argument("--cmd", metavar="ENDPOINT", help="override endpoints.cmd")
+    p.add_argument("--log-level", default="info", choices=["debug", "info", "warning"])
+    return p
+
+
+def config_from_args(args: argparse.Namespace) -> DaemonConfig:
+    config = load_config(args.config) if args.config else DaemonConfig()
+    if args.sim and config.backend.name != "sim":
+        config = config.updated({"backend": {"name": "sim", "options": {}}})
+    if args.pub or args.cmd:
+        ep = dataclasses.replace(config.endpoints, pub=args.pub or config.endpoints.pub,
+                                 cmd=args.cmd or config.endpoints.cmd)
+        config = dataclasses.replace(config, endpoints=ep)
+    return config
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    logger = logging.getLogger("hapticd")
+    if not logger.handlers:
+        handler = logging.StreamHandler(sys.stderr)
+        handler.setFormatter(JsonFormatter())
+        logger.addHandler(handler)
+    logger.setLevel(args.log_level.upper())
+    logger.propagate = False
+    try:
+        config = config_from_args(args)
+    except InputError as exc:
+        print(f"hapticd: error: {exc}", file=sys.stderr)
+        return 2
+    node = Node(config)
+
+    def on_signal(signum: int, frame: object) -> None:
+        node.stop()
+
+    previous = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        node.serve()
+    except (InputError, FirmwareError) as exc:
+        print(f"hapticd: error: {exc}", file=sys.stderr)
+        return 2
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

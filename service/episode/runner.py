@@ -1,0 +1,102 @@
+"""The episode runner: backend + localizer + policy, one step at a time, everything recorded."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from firmware_if.backend import Backend, FingerState, StepCommand
+from firmware_if.errors import BusTimeoutError
+from service.localization.localizers.base import Estimate, Localizer, Measurement, update
+from service.localization.policies.base import MOVES, Policy, PolicyInput
+from service.localization.surface import ContactSurface
+
+
+@dataclass(frozen=True)
+class StepRecord:
+    index: int
+    move: int
+    command: tuple[float, float]
+    measurement: tuple[float, float, float]
+    blocked: bool
+    candidates: int
+    compute_ms: float
+    """Localizer update time for this step."""
+    policy_ms: float
+    estimate: tuple[float, float, float] | None
+
+
+@dataclass
+class EpisodeResult:
+    steps: list[StepRecord] = field(default_factory=list)
+    initial_candidates: int = 0
+    estimate: Estimate | None = None
+
+    @property
+    def converged(self) -> bool:
+        return bool(self.estimate and self.estimate.converged)
+
+
+def execute_step(backend: Backend, step: StepCommand, timeout_s: float = 10.0) -> FingerState:
+    """Command a step and poll until the backend reports it finished."""
+    before = backend.read_state().steps_done
+    backend.command_step(step)
+    deadline = time.monotonic() + timeout_s
+    while True:
+        state = backend.read_state()
+        if not state.moving and state.steps_done > before:
+            return state
+        if time.monotonic() > deadline:
+            raise BusTimeoutError(f"step did not finish within {timeout_s} s")
+        time.sleep(0.001)
+
+
+def run_episode(backend: Backend, localizer: Localizer, policy: Policy, *,
+                surface: ContactSurface, step_length: float, max_steps: int,
+                rng: np.random.Generator,
+                on_step: Callable[[StepRecord], None] | None = None,
+                on_start: Callable[[], None] | None = None) -> EpisodeResult:
+    """Explore until the localizer converges or `max_steps` steps are taken."""
+    origin = np.asarray(backend.read_state().centre)
+    localizer.start(Measurement(step=0, displacement=np.zeros(3)))
+    result = EpisodeResult()
+    estimate = localizer.estimate()
+    result.initial_candidates = estimate.candidates
+    if on_start:
+        on_start()
+    displacement = np.zeros(3)
+    blocked_here: set[int] = set()
+    for index in range(1, max_steps + 1):
+        if estimate.converged or estimate.candidates == 0:
+            break
+        t0 = time.perf_counter()
+        view = PolicyInput(hypotheses=localizer.hypotheses(), displacement=displacement[:2],
+                           blocked=frozenset(blocked_here), surface=surface,
+                           step_length=step_length, rng=rng)
+        move = policy.next_move(view)
+        policy_ms = (time.perf_counter() - t0) * 1e3
+        command = MOVES[move] * step_length
+        state = execute_step(backend, StepCommand(float(command[0]), float(command[1])))
+        displacement = np.asarray(state.centre) - origin
+        if state.blocked:
+            blocked_here.add(move)
+        else:
+            blocked_here.clear()
+        t0 = time.perf_counter()
+        update(localizer, Measurement(step=index, displacement=displacement,
+                                      blocked=state.blocked, t_ns=state.t_ns))
+        compute_ms = (time.perf_counter() - t0) * 1e3
+        estimate = localizer.estimate()
+        record = StepRecord(index=index, move=move,
+                            command=(float(command[0]), float(command[1])),
+                            measurement=tuple(float(v) for v in displacement),
+                            blocked=state.blocked, candidates=estimate.candidates,
+                            compute_ms=compute_ms, policy_ms=policy_ms, estimate=estimate.pose)
+        result.steps.append(record)
+        if on_step:
+            on_step(record)
+    result.estimate = estimate
+    return result

@@ -1,0 +1,177 @@
+"""One localization scenario, declared once: settings, how to build its parts, how to score it.
+
+`haptic run`, every `haptic bench` scenario and the daemon build their map, simulated
+finger, localizer and policy through here, so a setting means the same thing everywhere.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field, replace
+from typing import Any
+
+import numpy as np
+
+from service.errors import ConfigError
+from service.localization.localizers.base import Estimate, Localizer, LocalizerContext, wrap_angle
+from service.localization.localizers.pose_table import grid_positions
+from service.localization.maps import load_map
+from service.localization.models import HARDWARE_SENSOR_SIGMA, NoiseSpec, models_for
+from service.localization.surface import ContactSurface, HeightMap, contact_surface
+from service.registry import LOCALIZERS, POLICIES
+
+
+@dataclass(frozen=True)
+class RunSettings:
+    """Everything that defines an episode. Defaults are BENCHMARKS.md B1 on `peaks`."""
+
+    map: str = "peaks"
+    spacing: float | None = None
+    radius: float = 0.008
+    step: float = 0.01
+    algorithm: str = "particles"
+    policy: str = "info-gain"
+    seed: int = 0
+    noise: bool = False
+    start: tuple[float, float, float] | None = None
+    """(x, y, heading) in metres and radians; None draws one from the seed."""
+    max_steps: int = 100
+    headings: int = 11
+    sensor_sigma: float | None = None
+    """Measurement noise (metres) the localizer assumes; None: what `noise` implies."""
+    localizer_options: dict[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        if not (np.isfinite(self.radius) and self.radius > 0):
+            raise ConfigError(f"--radius must be a positive number of metres, got {self.radius}")
+        if not (np.isfinite(self.step) and self.step > 0):
+            raise ConfigError(f"--step must be a positive number of metres, got {self.step}")
+        if self.max_steps < 1:
+            raise ConfigError(f"--max-steps must be at least 1, got {self.max_steps}")
+        if self.headings < 1:
+            raise ConfigError(f"headings must be at least 1, got {self.headings}")
+        if self.sensor_sigma is not None and not (np.isfinite(self.sensor_sigma)
+                                                  and self.sensor_sigma > 0):
+            raise ConfigError(f"--sensor-sigma must be a positive number of metres, "
+                              f"got {self.sensor_sigma}")
+        if self.seed < 0:
+            raise ConfigError(f"--seed must be >= 0, got {self.seed}")
+        LOCALIZERS.load(self.algorithm)
+        POLICIES.load(self.policy)
+
+    @property
+    def noise_spec(self) -> NoiseSpec:
+        """B2's models scaled to the step (the paper's unit) when noise is on."""
+        return NoiseSpec.realistic(unit=self.step) if self.noise else NoiseSpec()
+
+    def to_json(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+@dataclass(frozen=True)
+class Truth:
+    x: float
+    y: float
+    heading: float
+
+    def as_tuple(self) -> tuple[float, float, float]:
+        return (self.x, self.y, self.heading)
+
+
+def surface_for(settings: RunSettings, height_map: HeightMap | None = None) -> ContactSurface:
+    """The contact surface of the settings' map (loaded unless given)."""
+    height_map = height_map or load_map(settings.map, settings.spacing)
+    return contact_surface(height_map, settings.radius)
+
+
+def for_backend(settings: RunSettings, backend: str) -> RunSettings:
+    """`settings` for a run on `backend`: on hardware, unless told otherwise, the localizer
+    assumes the encoders' rounding as noise (`HARDWARE_SENSOR_SIGMA`); exact readings
+    would eliminate the truth."""
+    if backend == "sim" or settings.sensor_sigma is not None:
+        return settings
+    return replace(settings, sensor_sigma=HARDWARE_SENSOR_SIGMA)
+
+
+def episode_streams(seed: int) -> list[np.random.Generator]:
+    """The four independent random streams of a seeded episode: truth, world, localizer,
+    policy. `haptic run`, `hapticd` and `haptic emulate` split a seed only here, so the same
+    seed hides the same start pose in all three."""
+    return np.random.default_rng(seed).spawn(4)
+
+
+def draw_truth(settings: RunSettings, height_map: HeightMap, rng: np.random.Generator) -> Truth:
+    """The hidden start pose: a pose-table entry (noise-free, B1) or continuous (noise, B2).
+
+    Continuous starts lie at least two step lengths inside the map's edge.
+    """
+    if settings.start is not None:
+        x, y, heading = settings.start
+        if not height_map.inside(np.array(x), np.array(y)):
+            x_max, y_max = height_map.extent
+            raise ConfigError(f"--start ({x:.4g}, {y:.4g}) m lies outside the map "
+                              f"(0..{x_max:.4g}, 0..{y_max:.4g} m)")
+        return Truth(float(x), 0.0 if height_map.is_profile else float(y), float(heading))
+    if not settings.noise:
+        xs, ys = grid_positions(height_map, settings.step)
+        headings = (np.array([0.0, np.pi]) if height_map.is_profile
+                    else np.arange(settings.headings) * 2 * np.pi / settings.headings)
+        return Truth(float(rng.choice(xs)), float(rng.choice(ys)), float(rng.choice(headings)))
+    x_max, y_max = height_map.extent
+    margin = 2 * settings.step
+    if x_max <= 2 * margin or (not height_map.is_profile and y_max <= 2 * margin):
+        raise ConfigError("the map is too small for starts two steps inside its edge; "
+                          "use a smaller --step")
+    x = rng.uniform(margin, x_max - margin)
+    y = 0.0 if height_map.is_profile else rng.uniform(margin, y_max - margin)
+    heading = float(rng.choice([0.0, np.pi])) if height_map.is_profile else rng.uniform(
+        0, 2 * np.pi)
+    return Truth(float(x), float(y), float(heading))
+
+
+def prepare_localizers() -> None:
+    """Compile the localizers' inner loops now (a second or so on a cold cache), so a
+    process with deadlines never compiles inside one."""
+    from service.localization import kernels
+
+    kernels.warm_up()
+
+
+def build_localizer(settings: RunSettings, surface: ContactSurface,
+                    rng: np.random.Generator) -> Localizer:
+    assumed = (settings.noise_spec if settings.sensor_sigma is None
+               else NoiseSpec(measurement_sigma=settings.sensor_sigma))
+    motion, sensor = models_for(assumed)
+    ctx = LocalizerContext(surface=surface, motion=motion, sensor=sensor,
+                           step_length=settings.step, rng=rng)
+    cls = LOCALIZERS.load(settings.algorithm)
+    options = dict(settings.localizer_options)
+    if settings.algorithm == "elimination":
+        options.setdefault("headings", settings.headings)
+    try:
+        return cls(ctx, **options)
+    except TypeError as exc:
+        raise ConfigError(f"bad option for algorithm '{settings.algorithm}': {exc}") from None
+
+
+def build_policy(settings: RunSettings):
+    return POLICIES.load(settings.policy)()
+
+
+@dataclass(frozen=True)
+class Score:
+    position_error: float | None
+    heading_error: float | None
+    success: bool
+    wrong_declaration: bool
+
+
+def score(estimate: Estimate, truth: Truth, step: float) -> Score:
+    """Success: converged within a quarter step and 5 degrees of the truth (BENCHMARKS.md B2)."""
+    if estimate.pose is None:
+        return Score(None, None, False, False)
+    x, y, heading = estimate.pose
+    pos_err = float(np.hypot(x - truth.x, y - truth.y))
+    head_err = float(abs(wrap_angle(heading - truth.heading)))
+    close = bool(pos_err <= 0.25 * step and head_err <= np.deg2rad(5.0))
+    converged = bool(estimate.converged)
+    return Score(pos_err, head_err, converged and close, converged and not close)

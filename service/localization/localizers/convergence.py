@@ -1,0 +1,271 @@
+"""Honest convergence: declare a pose only when the evidence supports it.
+
+A wrong declaration is worse than none (BENCHMARKS.md B2), so a localizer declares only
+when all of these hold:
+
+* enough readings: more than the three unknowns of a pose (plus a margin with noise), so
+  the fit is over-determined and a wrong pose has had a chance to show it does not fit;
+* the leading mode holds almost all the probability mass, with the runner-up — the best
+  hypothesis outside it — far behind;
+* the refined pose explains the readings at about the sensor's noise level;
+* the refined pose is tight: its covariance puts it well inside the success tolerance.
+
+On a periodic surface every period fits equally, the leading mode never dominates, and the
+answer stays "not yet".
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+import numpy as np
+
+from service.localization import kernels
+from service.localization.localizers.base import wrap_angle
+from service.localization.localizers.fitting import fit_log_likelihood, gauss_newton
+from service.localization.localizers.refine import Fit, assess, reading_sigmas, refine
+from service.localization.localizers.symmetry import images
+from service.localization.surface import ContactSurface
+
+
+@dataclass(frozen=True)
+class Modes:
+    """The hypotheses grouped around their best members, best group first."""
+
+    centres: np.ndarray
+    """(M, 3) best pose of each mode."""
+    masses: np.ndarray
+    """(M,) probability mass of each mode (sums to at most 1)."""
+    labels: np.ndarray
+    """(N,) mode index of each hypothesis, -1 for those beyond the first M modes."""
+
+
+def group_modes(poses: np.ndarray, weights: np.ndarray, position_tol: float,
+                heading_tol: float, max_modes: int = 8, limit: int = 500) -> Modes:
+    """Greedy grouping: the heaviest unassigned hypothesis and all within tolerance of it.
+
+    The loop runs over modes (at most `max_modes`), each pass vectorized over the `limit`
+    heaviest hypotheses (the rest carry too little mass to lead a mode; their mass counts
+    in the total, so it is never overstated).
+    """
+    n = len(poses)
+    labels = np.full(n, -1, dtype=np.intp)
+    total = float(weights.sum()) or 1.0
+    idx = np.argpartition(-weights, limit - 1)[:limit] if n > limit else np.arange(n)
+    sub, w = poses[idx], weights[idx]
+    free = np.ones(len(idx), dtype=bool)
+    centres, masses = [], []
+    for m in range(max_modes):
+        if not free.any():
+            break
+        best = int(np.argmax(np.where(free, w, -np.inf)))
+        near = free & _near(sub, sub[best], position_tol, heading_tol)
+        labels[idx[near]] = m
+        free &= ~near
+        centres.append(sub[best])
+        masses.append(float(w[near].sum()) / total)
+    return Modes(centres=np.array(centres).reshape(-1, 3), masses=np.array(masses),
+                 labels=labels)
+
+
+def distinct(centres: np.ndarray, score: np.ndarray, position_tol: float, heading_tol: float
+             ) -> np.ndarray:
+    """Indexes of the best-scoring centres, best first, dropping any within tolerance of a
+    better one: two rivals polished onto the same pose are one mode, not two."""
+    order = np.argsort(-score, kind="stable")
+    ordered = np.ascontiguousarray(centres[order], dtype=np.float64)
+    return order[kernels.first_of_each_mode(ordered, position_tol, heading_tol)]
+
+
+def _near(poses: np.ndarray, centre: np.ndarray, position_tol: float, heading_tol: float
+          ) -> np.ndarray:
+    d_pos = np.hypot(poses[:, 0] - centre[0], poses[:, 1] - centre[1])
+    d_head = np.abs(wrap_angle(poses[:, 2] - centre[2]))
+    return (d_pos <= position_tol) & (d_head <= heading_tol)
+
+
+REFERENCE_AREA_STEPS = 400.0
+"""Area of the map the default rule was measured on (`peaks`, 20 x 20 steps)."""
+
+
+@dataclass(frozen=True)
+class ConvergenceRule:
+    """Thresholds of the declaration; lengths in step lengths, angles in radians."""
+
+    min_readings: int = 4
+    """Readings after first contact needed before any declaration (noise-free)."""
+    min_readings_noisy: int = 8
+    """With noise. At 7, a pose 27 mm and 87 degrees off fitted all 8 readings of one B3
+    episode at 0.96 sigma RMS and was declared (`bumps:20:1`, seed 8): a sampled pool
+    that never held the truth has no rival to lose to, so only more readings rule such
+    a chance fit out. 8 cost B2 no steps at the median (9)."""
+    mode_mass: float = 0.999
+    max_rms: float = 1.3
+    """Largest acceptable RMS residual of the refined pose, in sensor sigmas (noisy). On B2
+    the truth's refined fits stay under 1.1 (median 0.5); a wrong mode that merely fits
+    "within noise" sits around 1.5-2."""
+    max_abs_noisy: float = 3.0
+    """Largest acceptable single residual with noise (the truth's: under 2.5 on B2)."""
+    max_abs: float = 6.0
+    """Largest acceptable single residual, in sensor sigmas (noise-free)."""
+    max_position_sd: float = 0.06
+    max_heading_sd: float = float(np.deg2rad(1.5))
+
+    @classmethod
+    def for_map(cls, extent: tuple[float, float], step_length: float) -> ConvergenceRule:
+        """The default rule, asking one more reading per doubling of the map's area beyond
+        20 x 20 steps (B1's map, where the defaults were measured).
+
+        A sampled localizer may never have held the true pose; the more poses a map
+        offers, the likelier one wrong pose explains a few noisy readings by chance (B3's
+        80-step map, seed 10: seven readings fitted a pose 50 cm off). Each reading halves
+        that chance at least, so the readings needed grow with the log of the area.
+        """
+        area = max(extent[0], step_length) * max(extent[1], step_length) / step_length**2
+        extra = max(0, int(np.ceil(np.log2(area / REFERENCE_AREA_STEPS) - 1e-9)))
+        return cls(min_readings=cls.min_readings + extra,
+                   min_readings_noisy=cls.min_readings_noisy + extra)
+
+    def loosened(self, mode_mass: float = 0.5) -> ConvergenceRule:
+        """The pre-check on an unrefined fit: the same readings, a leading mode that is
+        merely likely, three times the slack on fit and spread (refinement tightens them),
+        no limit on a noise-free residual."""
+        return ConvergenceRule(self.min_readings, self.min_readings_noisy, mode_mass,
+                               3 * self.max_rms, float("inf"), float("inf"),
+                               3 * self.max_position_sd, 3 * self.max_heading_sd)
+
+    def holds(self, *, readings: int, noisy: bool, mode_mass: float, fit: Fit | None,
+              step_length: float) -> bool:
+        """Whether the evidence supports declaring `fit`."""
+        if fit is None:
+            return False
+        needed = self.min_readings_noisy if noisy else self.min_readings
+        if readings < needed or not mode_mass >= self.mode_mass:
+            return False
+        fits = (fit.rms <= self.max_rms and fit.max_abs <= self.max_abs_noisy if noisy
+                else fit.max_abs <= self.max_abs)
+        tight = (fit.position_sd <= self.max_position_sd * step_length
+                 and fit.heading_sd <= self.max_heading_sd)
+        return bool(fits and tight)
+
+
+REFINED_RIVALS = 2
+"""Rivals refined by least squares beside the leader before a declaration."""
+
+
+@dataclass(frozen=True)
+class Verdict:
+    """The outcome of judging the leading modes of a localizer's hypotheses."""
+
+    fit: Fit | None
+    centres: np.ndarray
+    """(M, 3) polished mode centres, best first, distinct."""
+    mode_mass: float
+    runner_up: tuple[float, float, float] | None
+    runner_up_mass: float
+    converged: bool
+
+
+def judge(surface: ContactSurface, history: np.ndarray, modes: Modes, *, sigma: float,
+          noisy: bool, step_length: float, rule: ConvergenceRule, margin: float,
+          outlier_probability: float, outlier_range: float, polish: int = 3,
+          position_sigma: float = 0.0,
+          previous: tuple[float, float, float] | None = None,
+          motions: np.ndarray | None = None, refined_rivals: int = REFINED_RIVALS,
+          loose_mass: float = 0.5) -> Verdict:
+    """Polish the leading modes onto every reading, weigh them at the sensor's own sd, refine
+    the best by least squares and ask `rule` whether to declare it.
+
+    Rivals are compared after polishing, so a mode is not preferred merely because the
+    hypotheses happened to sample it more finely; rivals that polish onto the same pose are
+    merged. The sd is floored at 1 % of a step: a few polishing steps leave rivals that
+    much short of their exact fits, and the floor keeps that from deciding between them.
+    """
+    if len(history) < 4 or len(modes.centres) == 0:
+        mass = float(modes.masses[0]) if len(modes.masses) else 0.0
+        return Verdict(None, modes.centres, mass, None, 0.0, False)
+    sd = max(sigma, 0.01 * step_length)
+    tol_pos, tol_head = 0.25 * step_length, float(np.deg2rad(5.0))
+    centres = modes.centres if polish == 0 else gauss_newton(
+        surface, modes.centres, history, np.ones(len(history)), iterations=polish,
+        max_move=tol_pos)
+    ll = fit_log_likelihood(surface, centres, history, sd, margin, outlier_probability,
+                            outlier_range)
+    if motions is not None and len(motions):  # a periodic surface: the best one's images
+        mirrored = images(surface, centres[int(np.argmax(ll))], motions)  # fit as well
+        more = fit_log_likelihood(surface, mirrored, history, sd, margin,
+                                  outlier_probability, outlier_range)
+        centres = np.vstack([centres, mirrored])
+        ll = np.concatenate([ll, more])
+    order = distinct(centres, ll, tol_pos, tol_head)
+    share = np.exp(ll[order] - ll[order[0]])
+    share /= share.sum()
+    runner = tuple(float(v) for v in centres[order[1]]) if len(order) > 1 else None
+    mass = float(share[0])
+    # Judge the polished mode without the solver (cheap, every step); only when it is
+    # within reach of a declaration does least squares refine it, and the refined fit must
+    # pass the rule itself (a few steps an episode).
+    # evidence is counted in distinct places read, not readings: a finger pressed against
+    # a wall reads the same place again and again, which pins nothing new
+    places = distinct_places(history, 0.25 * step_length)
+    best = centres[order[0]]
+    sds = reading_sigmas(surface, history, best, max(sigma, 1e-9), position_sigma)
+    fit = _with_floored_spread(surface, history, assess(surface, history, best, sds), sigma,
+                               position_sigma, step_length)
+    converged = False
+    if rule.loosened(loose_mass).holds(readings=places - 1, noisy=noisy, mode_mass=mass, fit=fit,
+                             step_length=step_length):
+        # a noise-free reading is never an outlier: dropping one could only flatter a
+        # wrong pose; with noise, at most one reading in eight may be set aside
+        outliers = len(history) // 8 if noisy else 0
+        fit = refine(surface, history, best, sds, max_outliers=outliers)
+        # the rivals that still matter are refined too, and the leader must beat them
+        # as fitted, not as sampled
+        rivals = [i for i, w in zip(order[1:1 + refined_rivals],
+                                    share[1:1 + refined_rivals], strict=False) if w > 1e-6]
+        fits = [fit] + [refine(surface, history, centres[i], sds, max_outliers=outliers)
+                        for i in rivals]
+        poses = np.array([f.pose for f in fits])
+        ll_fit = fit_log_likelihood(surface, poses, history, max(sigma, 0.002 * step_length),
+                                    margin, outlier_probability, outlier_range)
+        rest = share[1 + len(rivals):].sum() if len(share) > 1 + len(rivals) else 0.0
+        w = np.exp(ll_fit - ll_fit.max())
+        refined = float(w[0] / w.sum()) * (1.0 - rest)
+        if not np.isfinite(ll_fit[0]) or ll_fit[0] < ll_fit.max():
+            refined = 0.0  # a rival fits better once fitted: not this leader
+        mass = refined
+        fit = _with_floored_spread(surface, history, fit, sigma, position_sigma, step_length)
+        converged = rule.holds(readings=places - 1, noisy=noisy, mode_mass=mass,
+                               fit=fit, step_length=step_length)
+        # with noise it must also agree with where the previous update put it: a pose that
+        # still jumps between updates is not settled, however tight its covariance looks
+        converged &= not noisy or previous is not None and bool(_near(
+            np.asarray([fit.pose]), np.asarray(previous), rule.max_position_sd * step_length,
+            rule.max_heading_sd)[0])
+    return Verdict(fit, centres[order], mass, runner,
+                   float(share[1]) if len(order) > 1 else 0.0, converged)
+
+
+def distinct_places(history: np.ndarray, cell: float) -> int:
+    """How many `cell`-sized squares the readings (K, 3) fall in."""
+    ix, iy = np.round(history[:, :2] / cell).astype(np.int64).T
+    return len(np.unique(ix * (1 << 32) + iy))
+
+
+def _with_floored_spread(surface: ContactSurface, history: np.ndarray, fit: Fit, sigma: float,
+                         position_sigma: float, step_length: float) -> Fit:
+    """`fit` with its spread recomputed at a reading sd of at least 0.05 % of a step.
+
+    Noise-free the sensor sd is 0.1 um, and even a nearly flat patch of map (where every
+    pose reads the same heights to within that) would look pinned; the floor makes the
+    spread say how well the *shape* of the readings fixes the pose.
+    """
+    floor = max(sigma, 0.0005 * step_length)
+    if floor <= sigma:
+        return fit
+    spread = assess(surface, history, np.asarray(fit.pose),
+                    reading_sigmas(surface, history, np.asarray(fit.pose), floor,
+                                   position_sigma))
+    return dataclasses.replace(fit, position_sd=spread.position_sd,
+                               heading_sd=spread.heading_sd)

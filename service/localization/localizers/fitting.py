@@ -1,0 +1,128 @@
+"""Array maths shared by the probabilistic localizers: how well start poses fit a history.
+
+Every function works on many hypotheses at once (STYLE.md item 2); the loops themselves are
+compiled (`kernels.py`), these wrappers give them surfaces and shapes. A *history* is the
+(K + 1, 3) array of finger-frame displacements (dx, dy, dz) since first contact, row 0
+being the first contact itself (zeros). For a start pose (x0, y0, heading), reading k
+predicts the centre height C(p0 + R(heading) (dx_k, dy_k)) - C(p0) relative to the first
+contact; the residual is that minus dz_k. Lookups are bilinear, like `ContactSurface.lookup`,
+but also give the gradient, which the Gauss-Newton polish and the least-squares fit need.
+"""
+
+from __future__ import annotations
+
+import weakref
+
+import numpy as np
+
+from service.localization import kernels
+from service.localization.surface import ContactSurface
+
+_SLOPES: weakref.WeakKeyDictionary[ContactSurface, float] = weakref.WeakKeyDictionary()
+
+
+def sample(surface: ContactSurface, x: np.ndarray, y: np.ndarray
+           ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Centre height and its gradient (d/dx, d/dy) at (x, y), bilinear, clamped at the edge."""
+    x = np.asarray(x, dtype=np.float64)
+    y = np.broadcast_to(np.asarray(y, dtype=np.float64), x.shape)
+    value, gx, gy = kernels.sample(surface.centre_heights, surface.map.spacing,
+                                   _rows(x.ravel()), _rows(y.ravel()))
+    return value.reshape(x.shape), gx.reshape(x.shape), gy.reshape(x.shape)
+
+
+def typical_slope(surface: ContactSurface) -> float:
+    """RMS gradient of the contact surface: converts a pose range into a height range."""
+    cached = _SLOPES.get(surface)
+    if cached is None:
+        gy, gx = np.gradient(surface.centre_heights, surface.map.spacing)
+        cached = float(np.sqrt(np.mean(gx**2 + gy**2))) if surface.centre_heights.size else 1.0
+        _SLOPES[surface] = cached = max(cached, 1e-3)
+    return cached
+
+
+def residuals(surface: ContactSurface, poses: np.ndarray, readings: np.ndarray,
+              margin: float) -> tuple[np.ndarray, np.ndarray]:
+    """Height residuals (N, K) of `readings` (K, 3), the rows after first contact, relative
+    to each pose's own first-contact height, and whether each lies on the map."""
+    return kernels.relative_residuals(*_surface_args(surface), _rows(poses), _rows(readings),
+                                      margin)
+
+
+def sigmas(sensor_sigma: float, slope: float, history: np.ndarray, pos_range: float,
+           head_range: float) -> np.ndarray:
+    """Residual sd per reading (K,) for hypotheses that each stand for a range of poses.
+
+    A pose off by `pos_range` metres and `head_range` radians puts reading k off by up to
+    pos_range + |d_k| head_range, which a slope turns into height (paper Eq. 4).
+    """
+    lever = np.hypot(history[:, 0], history[:, 1])
+    spread = slope * (pos_range + lever * head_range)
+    return np.sqrt(sensor_sigma**2 + spread**2)
+
+
+def log_likelihood(residual: np.ndarray, on_map: np.ndarray, sigma: np.ndarray,
+                   outlier_probability: float, outlier_range: float) -> np.ndarray:
+    """Per hypothesis (row), the sum over readings of a Gaussian-plus-uniform log
+    likelihood at sd `sigma` (K,); an off-map reading fails (-1000)."""
+    if np.ndim(sigma) == 0:
+        sigma = np.full(residual.shape[-1], sigma, dtype=np.float64)
+    return kernels.log_likelihood(_rows(residual), _rows(on_map, np.bool_), _rows(sigma),
+                                  float(outlier_probability), float(outlier_range))
+
+
+def fit_log_likelihood(surface: ContactSurface, poses: np.ndarray, history: np.ndarray,
+                       sd: float, margin: float, outlier_probability: float,
+                       outlier_range: float) -> np.ndarray:
+    """Log likelihood of each pose (N, 3) on every reading at one sd, the height offset
+    fitted; a pose whose score is not finite gets -inf (it can never lead)."""
+    r, ok = offset_residuals(surface, poses, history, margin)
+    ll = log_likelihood(r, ok, sd, outlier_probability, outlier_range)
+    return np.where(np.isfinite(ll), ll, -np.inf)
+
+
+def gauss_newton(surface: ContactSurface, poses: np.ndarray, history: np.ndarray,
+                 weights: np.ndarray, iterations: int = 3, damping: float = 1e-4,
+                 max_move: float | None = None) -> np.ndarray:
+    """A few damped Gauss-Newton steps for every pose at once, with a free height offset.
+
+    Minimizes sum_k w_k (C(p_k) - c - dz_k)^2 over (x0, y0, heading, c) with c eliminated,
+    so the first reading is just another noisy reading. Steps are capped at `max_move`
+    metres (and max_move / lever radians) so a pose never jumps to another basin.
+    """
+    history = _rows(history)
+    lever = max(float(np.max(np.hypot(history[:, 0], history[:, 1]))), max_move or 0.0)
+    return kernels.gauss_newton(surface.centre_heights, surface.map.spacing, _rows(poses),
+                                history, _rows(weights), iterations,
+                                damping, max_move or 0.0, lever)
+
+
+def heights_and_jacobian(surface: ContactSurface, pose: np.ndarray, history: np.ndarray
+                         ) -> tuple[np.ndarray, np.ndarray]:
+    """For one start pose (3,): the centre height under each reading (K,) and its
+    derivatives by (x0, y0, heading) (K, 3)."""
+    return kernels.heights_and_jacobian(surface.centre_heights, surface.map.spacing,
+                                        _rows(pose), _rows(history))
+
+
+def offset_residuals(surface: ContactSurface, poses: np.ndarray, history: np.ndarray,
+                     margin: float) -> tuple[np.ndarray, np.ndarray]:
+    """Residuals (N, K) of every reading, first contact included, with the height offset
+    between hand and map fitted per pose (so no single reading is the exact reference)."""
+    return kernels.offset_residuals(*_surface_args(surface), _rows(poses), _rows(history),
+                                    margin)
+
+
+def _surface_args(surface: ContactSurface) -> tuple[np.ndarray, float, tuple[float, float], bool]:
+    return (surface.centre_heights, surface.map.spacing, surface.map.extent,
+            surface.map.is_profile)
+
+
+def _rows(a: np.ndarray, dtype: type = np.float64) -> np.ndarray:
+    """A C-contiguous, writeable array of `dtype`: the one array type the kernels are
+    compiled for (`kernels.warm_up`), so no call compiles a new variant inside a deadline.
+    (Checked by hand: `np.require` costs more than most kernels' work.)"""
+    if (isinstance(a, np.ndarray) and a.dtype == dtype and a.flags.c_contiguous
+            and a.flags.writeable):
+        return a
+    return np.array(a, dtype=dtype, order="C")

@@ -1,0 +1,137 @@
+"""Continuous refinement: fit (x, y, heading) to every reading by nonlinear least squares.
+
+Discrete and sampled hypotheses are only as good as their spacing; once they concentrate,
+fitting the start pose to the whole history (scipy.optimize.least_squares) gives a
+continuous estimate and, from the Jacobian, its uncertainty. The unknown height offset
+between hand and map is fitted too, so the first contact is one noisy reading among others
+rather than an exact reference.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.optimize import least_squares
+
+from service.localization.localizers.base import wrap_angle
+from service.localization.localizers.fitting import heights_and_jacobian, sample
+from service.localization.surface import ContactSurface
+
+
+@dataclass(frozen=True)
+class Fit:
+    """A refined start pose and how well it explains the readings."""
+
+    pose: tuple[float, float, float]
+    position_sd: float
+    """Metres: 1-sigma position uncertainty from the fit's covariance."""
+    heading_sd: float
+    """Radians."""
+    rms: float
+    """Root-mean-square residual in units of the sensor sigma (about 1 for the truth)."""
+    max_abs: float
+    """Largest residual, in units of the sensor sigma."""
+    readings: int
+    """Readings the fit kept (those beyond the outlier gate are left out)."""
+
+
+def reading_sigmas(surface: ContactSurface, history: np.ndarray, pose: np.ndarray,
+                   sigma: float, position_sigma: float) -> np.ndarray:
+    """Residual sd of each reading at `pose`: the height noise, plus the measured position's
+    noise (in this reading and the first) turned into height by the local slope, so steep
+    readings weigh less and the covariance is honest."""
+    _, jac = heights_and_jacobian(surface, np.asarray(pose, dtype=np.float64), history)
+    return np.sqrt(sigma**2 + 2 * position_sigma**2 * (jac[:, 0]**2 + jac[:, 1]**2))
+
+
+def _model(surface: ContactSurface, history: np.ndarray, params: np.ndarray
+           ) -> tuple[np.ndarray, np.ndarray]:
+    z, jac = heights_and_jacobian(surface, params[:3], history)
+    return z - params[3] - history[:, 2], np.column_stack([jac, -np.ones(len(z))])
+
+
+def refine(surface: ContactSurface, history: np.ndarray, start: np.ndarray,
+           sigma: float | np.ndarray, max_nfev: int = 20, outlier_gate: float = 6.0,
+           max_outliers: int = 2) -> Fit:
+    """Least-squares start pose from `start` (3,) for readings `history` (K, 3), K >= 4.
+
+    `sigma` is the residual sd of a reading (metres; one, or one per reading); it weights
+    the fit and turns the Jacobian into a covariance. Levenberg-Marquardt converges from a
+    few millimetres and degrees off in a handful of evaluations (a robust loss there
+    crawls); then the worst reading, if beyond `outlier_gate` sigmas (a slip, a bump the
+    map lacks), is dropped and the fit repeated, up to `max_outliers` times.
+
+    The gate is 6 sigmas, not 4: the truth's worst residual on B2 stays under 2.5, and at
+    4 a wrong pose 89 cm off (80-unit map, seed 7, `work=4000`) shed its one 4.8-sigma
+    reading, fitted the rest at 1.05 sigma RMS and was declared. At 6 no B2 reading is
+    dropped and B2's results are unchanged.
+    """
+    start = np.asarray(start, dtype=np.float64)
+    z0 = float(sample(surface, start[0], start[1])[0])
+    params = np.array([start[0], start[1], start[2], z0 - history[0, 2]])
+    sigma = np.broadcast_to(np.asarray(sigma, dtype=np.float64), (len(history),))
+    use = np.ones(len(history), dtype=bool)
+    for _ in range(1 + max_outliers):
+        params = _solve(surface, history[use], params, sigma[use], max_nfev)
+        r = np.where(use, np.abs(_model(surface, history, params)[0] / sigma), 0.0)
+        worst = int(np.argmax(r))
+        if r[worst] <= outlier_gate or use.sum() - 1 < 6 or (~use).sum() >= max_outliers:
+            break
+        use[worst] = False  # the worst reading only: one slip distorts the fit everywhere
+    return _fit_at(surface, history[use], params, sigma[use])
+
+
+def assess(surface: ContactSurface, history: np.ndarray, pose: np.ndarray,
+           sigma: float | np.ndarray) -> Fit:
+    """How well `pose` (3,) explains the readings, without moving it: the residuals with
+    the height offset fitted, and the covariance the Jacobian implies. Cheap (no solver),
+    for steps where no declaration is in reach."""
+    pose = np.asarray(pose, dtype=np.float64)
+    z, _ = heights_and_jacobian(surface, pose, history)
+    params = np.array([pose[0], pose[1], pose[2], float(np.mean(z - history[:, 2]))])
+    sigma = np.broadcast_to(np.asarray(sigma, dtype=np.float64), (len(history),))
+    return _fit_at(surface, history, params, sigma)
+
+
+def _fit_at(surface: ContactSurface, history: np.ndarray, params: np.ndarray,
+            sigma: np.ndarray) -> Fit:
+    """The `Fit` of the parameters (x0, y0, heading, offset) on these readings: residuals
+    in sigmas, and the covariance their Jacobian implies."""
+    r, j = _model(surface, history, params)
+    r, j = r / sigma, j / sigma[:, np.newaxis]
+    cov = _covariance(j)
+    return Fit(pose=(float(params[0]), float(params[1]), float(wrap_angle(params[2]))),
+               position_sd=float(np.sqrt(max(cov[0, 0] + cov[1, 1], 0.0))),
+               heading_sd=float(np.sqrt(max(cov[2, 2], 0.0))),
+               rms=float(np.sqrt(np.mean(r**2))), max_abs=float(np.max(np.abs(r))),
+               readings=len(history))
+
+
+def _covariance(jac: np.ndarray) -> np.ndarray:
+    """(J^T J)^-1 of a Jacobian scaled by the readings' sd: a direct inverse, several times
+    cheaper than the pseudo-inverse, which is kept for a singular one (a flat patch)."""
+    normal = jac.T @ jac
+    try:
+        return np.linalg.inv(normal)
+    except np.linalg.LinAlgError:
+        return np.linalg.pinv(normal)
+
+
+def _solve(surface: ContactSurface, history: np.ndarray, params: np.ndarray, sigma: np.ndarray,
+           max_nfev: int) -> np.ndarray:
+    if len(history) < len(params):  # under-determined: nothing to fit yet
+        return params
+
+    memo: dict[bytes, tuple[np.ndarray, np.ndarray]] = {}
+
+    def model(p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        key = p.tobytes()
+        if key not in memo:  # the solver asks for residuals and Jacobian at the same point
+            memo.clear()
+            r, j = _model(surface, history, p)
+            memo[key] = (r / sigma, j / sigma[:, np.newaxis])
+        return memo[key]
+
+    return least_squares(lambda p: model(p)[0], params, jac=lambda p: model(p)[1],
+                         method="lm", max_nfev=max_nfev).x

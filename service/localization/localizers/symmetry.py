@@ -1,0 +1,83 @@
+"""Symmetries of a surface: rigid motions that map the contact surface onto itself.
+
+On a periodic surface (an egg-crate) every image of the true pose under such a motion reads
+the same heights, so no amount of exploring away from the edges can tell them apart. A
+bounded pool may never have sampled some of those images; this module finds the motions
+once per surface (normalized cross-correlation of the surface with itself turned through
+0, 90, 180 and 270 degrees, by FFT) so a localizer can test the images of its leading pose
+explicitly before it declares anything.
+
+A motion g(q) = rho^k(q + delta) is stored as (k, delta_x, delta_y): rho turns the map a
+quarter turn about its corner and shifts it back onto itself.
+"""
+
+from __future__ import annotations
+
+import weakref
+
+import numpy as np
+from scipy import ndimage, signal
+
+from service.localization.surface import ContactSurface
+
+_CACHE: weakref.WeakKeyDictionary[ContactSurface, np.ndarray] = weakref.WeakKeyDictionary()
+
+
+def symmetries(surface: ContactSurface, threshold: float = 0.97, min_overlap: float = 0.3,
+               limit: int = 400) -> np.ndarray:
+    """(S, 3) motions (quarter turns k, dx, dy in metres) under which the surface repeats."""
+    cached = _CACHE.get(surface)
+    if cached is None:
+        cached = _find(surface, threshold, min_overlap, limit)
+        _CACHE[surface] = cached
+    return cached
+
+
+def _find(surface: ContactSurface, threshold: float, min_overlap: float, limit: int
+          ) -> np.ndarray:
+    a = surface.centre_heights
+    if surface.map.is_profile or min(a.shape) < 8:
+        return np.empty((0, 3))
+    step = max(1, int(np.ceil(max(a.shape) / 160)))  # coarse is plenty to find a period
+    a = a[::step, ::step]
+    a = a - a.mean()
+    h = surface.map.spacing * step
+    turns = (0, 1, 2, 3) if a.shape[0] == a.shape[1] else (0, 2)
+    ones = np.ones_like(a)
+    found = []
+    for k in turns:
+        b = np.rot90(a, k)
+        num = signal.fftconvolve(a, b[::-1, ::-1])
+        ss_a = signal.fftconvolve(a * a, ones[::-1, ::-1])
+        ss_b = signal.fftconvolve(ones, (b * b)[::-1, ::-1])
+        overlap = signal.fftconvolve(ones, ones[::-1, ::-1])
+        ncc = num / np.sqrt(np.maximum(ss_a * ss_b, 1e-300))
+        ncc[overlap < min_overlap * a.size] = -1.0
+        peaks = (ncc >= threshold) & (ncc == ndimage.maximum_filter(ncc, size=5))
+        u, v = np.nonzero(peaks)
+        shift_y, shift_x = u - (a.shape[0] - 1), v - (a.shape[1] - 1)
+        if k == 0:  # the identity is no rival
+            keep = (shift_x != 0) | (shift_y != 0)
+            u, v, shift_x, shift_y = u[keep], v[keep], shift_x[keep], shift_y[keep]
+        for i in range(len(u)):  # peaks are few
+            found.append((ncc[u[i], v[i]], k, -shift_x[i] * h, -shift_y[i] * h))
+    found.sort(key=lambda f: -f[0])
+    return np.array([f[1:] for f in found[:limit]], dtype=np.float64).reshape(-1, 3)
+
+
+def images(surface: ContactSurface, pose: np.ndarray, motions: np.ndarray) -> np.ndarray:
+    """The start poses that the motions make of `pose` (3,) and that start on the map:
+    they read the same heights as `pose` wherever their paths stay on it."""
+    if len(motions) == 0:
+        return np.empty((0, 3))
+    x_max, y_max = surface.map.extent
+    x = pose[0] + motions[:, 1]
+    y = pose[1] + motions[:, 2]
+    heading = pose[2] + motions[:, 0] * (np.pi / 2)
+    for turn in range(1, 4):  # rho: (x, y) -> (L - y, x) on a square map
+        mask = motions[:, 0] >= turn
+        if surface.map.extent[0] == surface.map.extent[1]:
+            x[mask], y[mask] = x_max - y[mask], x[mask].copy()
+        elif turn == 2:  # a half turn on a rectangle: (x, y) -> (X - x, Y - y)
+            x[mask], y[mask] = x_max - x[mask], y_max - y[mask]
+    return np.column_stack([x, y, heading])[surface.map.inside(x, y)]

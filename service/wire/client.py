@@ -1,0 +1,236 @@
+"""The client library: the daemon's stream as Python objects, its commands as calls.
+
+    with Subscriber("tcp://127.0.0.1:5560", ["estimate"]) as sub:
+        msg = sub.recv(timeout_s=1.0)          # a service.wire.envelope.Message, or None
+    with Client("tcp://127.0.0.1:5561") as c:
+        c.call("activate"); c.call("start_exploration")
+
+`Client` uses a DEALER socket: a request that gets no reply in `timeout_s` is resent with
+the same id (the daemon answers a repeat from its cache, so nothing runs twice); after
+`retries` resends the socket is rebuilt and CommandTimeout raised.
+"""
+
+from __future__ import annotations
+
+import itertools
+import random
+import threading
+import time
+import uuid
+from collections.abc import Callable, Iterable
+from typing import Any
+
+import msgpack
+import zmq
+
+from service.errors import ServiceError
+from service.wire import envelope as wire
+from service.wire.stream import TOPICS
+
+
+class CommandFailed(ServiceError):
+    """The daemon answered with an error; `code` is from docs/protocol.md."""
+
+    def __init__(self, cmd: str, code: str, message: str) -> None:
+        super().__init__(f"{cmd}: {code}: {message}")
+        self.cmd = cmd
+        self.code = code
+
+
+class CommandTimeout(ServiceError):
+    """No reply after all retries: the daemon is down, busy or unreachable."""
+
+
+def _apply(sock: zmq.Socket, options: dict[int, Any] | None) -> None:
+    for opt, value in (options or {}).items():
+        sock.setsockopt(opt, value)
+
+
+class Subscriber:
+    """A SUB socket on some topics; tracks sequence gaps per topic."""
+
+    def __init__(self, endpoint: str, topics: Iterable[str] = TOPICS, *,
+                 ctx: zmq.Context | None = None, rcvhwm: int = 1000,
+                 socket_options: dict[int, Any] | None = None) -> None:
+        self._ctx = ctx or zmq.Context.instance()
+        self._sock = self._ctx.socket(zmq.SUB)
+        self._sock.setsockopt(zmq.RCVHWM, rcvhwm)
+        self._sock.setsockopt(zmq.LINGER, 0)
+        _apply(self._sock, socket_options)
+        for topic in topics:
+            if topic not in TOPICS:
+                self._sock.close()
+                raise ValueError(f"unknown topic '{topic}'; topics: {', '.join(TOPICS)}")
+            self._sock.setsockopt(zmq.SUBSCRIBE, topic.encode())
+        self._sock.connect(endpoint)
+        self._last: dict[str, int] = {}
+        self.gaps: dict[str, int] = dict.fromkeys(TOPICS, 0)
+        """Messages missed per topic, from jumps in the sequence numbers."""
+        self.received: dict[str, int] = dict.fromkeys(TOPICS, 0)
+        self.rejected = 0
+
+    def recv_raw(self, timeout_s: float | None = None) -> tuple[str, bytes] | None:
+        """The next (topic, payload) without decoding, or None on timeout."""
+        ms = -1 if timeout_s is None else max(0, int(timeout_s * 1000))
+        if not self._sock.poll(ms):
+            return None
+        frames = self._sock.recv_multipart()
+        if len(frames) != 2:
+            self.rejected += 1
+            return None
+        return frames[0].decode(errors="replace"), frames[1]
+
+    def recv(self, timeout_s: float | None = None) -> wire.Message | None:
+        """The next message (None on timeout); undecodable ones are counted and skipped."""
+        deadline = None if timeout_s is None else time.monotonic() + timeout_s
+        while True:
+            left = None if deadline is None else max(0.0, deadline - time.monotonic())
+            raw = self.recv_raw(left)
+            if raw is None:
+                if deadline is None or time.monotonic() >= deadline:
+                    return None
+                continue
+            topic, payload = raw
+            try:
+                msg = wire.decode(payload, topic=topic)
+            except wire.WireError:
+                self.rejected += 1
+                continue
+            self._count(topic, msg.seq)
+            return msg
+
+    def _count(self, topic: str, seq: int) -> None:
+        if topic not in self.received:
+            return
+        last = self._last.get(topic)
+        if last is not None and seq > last + 1:
+            self.gaps[topic] += seq - last - 1
+        self._last[topic] = seq
+        self.received[topic] += 1
+
+    def wait_for(self, predicate: Callable[[wire.Message], bool], timeout_s: float
+                 ) -> wire.Message | None:
+        """The first message satisfying `predicate` within `timeout_s`, else None."""
+        deadline = time.monotonic() + timeout_s
+        while (left := deadline - time.monotonic()) > 0:
+            msg = self.recv(left)
+            if msg is not None and predicate(msg):
+                return msg
+        return None
+
+    def close(self) -> None:
+        self._sock.close(linger=0)
+
+    def __enter__(self) -> Subscriber:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+class Client:
+    """Commands with ids, timeouts and retries. One client id = one lease holder."""
+
+    def __init__(self, endpoint: str, *, client_id: str | None = None, timeout_s: float = 2.0,
+                 retries: int = 2, ctx: zmq.Context | None = None,
+                 socket_options: dict[int, Any] | None = None) -> None:
+        self.endpoint = endpoint
+        self.client_id = client_id or f"py-{uuid.uuid4().hex[:12]}"
+        self.timeout_s = timeout_s
+        self.retries = retries
+        self._ctx = ctx or zmq.Context.instance()
+        self._options = socket_options
+        self._ids = itertools.count(random.randrange(1 << 40))  # unique across processes
+        self._sock = self._connect()
+
+    def _connect(self) -> zmq.Socket:
+        sock = self._ctx.socket(zmq.DEALER)
+        sock.setsockopt(zmq.LINGER, 0)
+        _apply(sock, self._options)
+        sock.connect(self.endpoint)
+        return sock
+
+    def request(self, cmd: str, args: dict[str, Any] | None = None,
+                timeout_s: float | None = None) -> dict[str, Any]:
+        """The full reply map (ok or not) of one request; CommandTimeout if none came."""
+        rid = next(self._ids)
+        payload = msgpack.packb({"v": wire.VERSION, "type": "request", "id": rid, "cmd": cmd,
+                                 "client": self.client_id, "args": args or {}},
+                                use_bin_type=True)
+        timeout = self.timeout_s if timeout_s is None else timeout_s
+        for _attempt in range(self.retries + 1):
+            self._sock.send(payload)
+            deadline = time.monotonic() + timeout
+            while (left := deadline - time.monotonic()) > 0:
+                if not self._sock.poll(max(1, int(left * 1000))):
+                    break
+                try:
+                    reply = wire.unpack_map(self._sock.recv(), max_bytes=wire.MAX_FRAME_BYTES)
+                except wire.WireError:
+                    continue
+                if reply.get("id") == rid:
+                    return wire.decode_fields(reply)
+        self._sock.close(linger=0)
+        self._sock = self._connect()
+        raise CommandTimeout(f"no reply to '{cmd}' from {self.endpoint} after "
+                             f"{self.retries + 1} tries of {timeout:g} s")
+
+    def call(self, cmd: str, timeout_s: float | None = None, **args: Any) -> dict[str, Any]:
+        """The result of a command, or CommandFailed / CommandTimeout."""
+        reply = self.request(cmd, args, timeout_s)
+        if not reply.get("ok"):
+            err = reply.get("error") or {}
+            raise CommandFailed(cmd, str(err.get("code")), str(err.get("message")))
+        return reply.get("result") or {}
+
+    def status(self) -> dict[str, Any]:
+        return self.call("status")
+
+    def close(self) -> None:
+        self._sock.close(linger=0)
+
+    def __enter__(self) -> Client:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+class LeaseKeeper:
+    """Keep a client id's lease alive from a background thread (its own socket).
+
+        with Client(cmd) as c, LeaseKeeper(cmd, c.client_id):
+            c.call("activate"); ...   # long waits on the stream no longer lose control
+
+    The lease belongs to the client id, not the socket, so a second socket can renew it.
+    """
+
+    def __init__(self, endpoint: str, client_id: str, interval_s: float = 1.0,
+                 ctx: zmq.Context | None = None,
+                 socket_options: dict[int, Any] | None = None) -> None:
+        self._client = Client(endpoint, client_id=client_id, timeout_s=interval_s,
+                              retries=0, ctx=ctx, socket_options=socket_options)
+        self.interval_s = interval_s
+        self.error: ServiceError | None = None
+        """The last renewal that failed (lease taken by another, daemon gone), if any."""
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="lease-keeper", daemon=True)
+
+    def _run(self) -> None:
+        try:
+            while not self._stop.wait(self.interval_s):
+                try:
+                    self._client.call("acquire")
+                    self.error = None
+                except (CommandFailed, CommandTimeout) as exc:
+                    self.error = exc
+        finally:
+            self._client.close()
+
+    def __enter__(self) -> LeaseKeeper:
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._stop.set()
+        self._thread.join(5 * self.interval_s + 1)

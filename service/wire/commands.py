@@ -1,0 +1,282 @@
+"""The command channel: a ZeroMQ ROUTER answering typed requests from a dispatch table.
+
+A request is `{v, type: "request", id, cmd, client?, args?}`; every request gets exactly
+one reply `{v, type: "reply", seq, t_mono_ns, t_wall_ns, id, ok, result | error}`. Names
+from the wire are looked up in TABLE, never with getattr, and arguments are checked
+against each command's declared fields before anything runs, so a malformed, unknown or
+out-of-state request is answered with an error and changes nothing.
+
+Control commands need the lease: the first client to send one holds it until it stops
+talking for `lease.ttl_s` (any request renews it) or sends `release`. Anyone may observe
+(status, get_config, ping) and anyone may `estop`. A retried request (the same bytes from
+the same client id) gets the cached reply instead of running twice.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import time
+from collections import OrderedDict
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any, Protocol
+
+import zmq
+
+from firmware_if.errors import FirmwareError
+from service.errors import InputError, StateError
+from service.wire import envelope as wire
+from service.wire.security import bind_server_socket
+
+MAX_FRAME_BYTES = wire.MAX_FRAME_BYTES
+"""Above this libzmq drops the sender's connection (ZMQ_MAXMSGSIZE) instead of replying."""
+
+
+class CommandError(Exception):
+    """A request refused with a machine-readable code (docs/protocol.md, Errors)."""
+
+    def __init__(self, code: str, message: str) -> None:
+        super().__init__(message)
+        self.code = code
+
+
+class Controls(Protocol):
+    """What the command table drives: the daemon's node."""
+
+    def status(self) -> dict[str, Any]: ...
+    def config_dict(self) -> dict[str, Any]: ...
+    def configure(self, changes: dict[str, Any]) -> dict[str, Any]: ...
+    def activate(self) -> dict[str, Any]: ...
+    def deactivate(self) -> dict[str, Any]: ...
+    def start_exploration(self, repeat: bool) -> dict[str, Any]: ...
+    def stop_exploration(self) -> dict[str, Any]: ...
+    def reset(self) -> dict[str, Any]: ...
+    def estop(self, reason: str) -> dict[str, Any]: ...
+    def reset_stats(self) -> dict[str, Any]: ...
+    def on_command(self, cmd: str, client: str | None) -> None: ...
+
+
+KINDS: dict[str, Callable[[Any], bool]] = {
+    "str": lambda v: isinstance(v, str) and len(v) <= 4096,
+    "bool": lambda v: isinstance(v, bool),
+    "number": lambda v: isinstance(v, (int, float)) and not isinstance(v, bool),
+    "number?": lambda v: v is None or (isinstance(v, (int, float)) and not isinstance(v, bool)),
+    "map": lambda v: isinstance(v, dict),
+}
+
+
+@dataclass(frozen=True)
+class Command:
+    run: Callable[[Controls, dict[str, Any]], dict[str, Any]]
+    lease: bool
+    """Needs (and takes, if free) the controlling lease."""
+    fields: dict[str, str]
+    """Allowed argument names and their kinds (KINDS); all optional unless in `required`."""
+    summary: str
+    required: tuple[str, ...] = ()
+
+
+TABLE: dict[str, Command] = {
+    "ping": Command(lambda n, a: {"pong": True}, False, {}, "liveness; round-trip timing"),
+    "status": Command(lambda n, a: n.status(), False, {}, "lifecycle, exploration, timing"),
+    "get_config": Command(lambda n, a: n.config_dict(), False, {}, "the running config"),
+    "acquire": Command(lambda n, a: {}, True, {}, "take (or renew) the controlling lease"),
+    "release": Command(lambda n, a: {}, True, {}, "give the lease back"),
+    "configure": Command(lambda n, a: n.configure(a.get("changes", {})), True,
+                         {"changes": "map"}, "apply {section: {key: value}}; open backend"),
+    "activate": Command(lambda n, a: n.activate(), True, {}, "torque on"),
+    "deactivate": Command(lambda n, a: n.deactivate(), True, {}, "stop, torque off"),
+    "start_exploration": Command(lambda n, a: n.start_exploration(a.get("repeat", False)),
+                                 True, {"repeat": "bool"}, "localize from here"),
+    "stop_exploration": Command(lambda n, a: n.stop_exploration(), True, {},
+                                "stop after the current step; torque stays on"),
+    "reset": Command(lambda n, a: n.reset(), True, {}, "clear a latched fault"),
+    "estop": Command(lambda n, a: n.estop(a.get("reason", "estop")), False,
+                     {"reason": "str"}, "anyone: torque off now, latch a fault"),
+    "set_map": Command(lambda n, a: n.configure({"scenario": {
+        "map": a["map"], "spacing": a.get("spacing")}}), True,
+        {"map": "str", "spacing": "number?"}, "change the map", ("map",)),
+    "set_localizer": Command(lambda n, a: n.configure({"scenario": {
+        "localizer": a["name"], "localizer_options": a.get("options", {})}}), True,
+        {"name": "str", "options": "map"}, "change the localizer", ("name",)),
+    "set_policy": Command(lambda n, a: n.configure({"scenario": {"policy": a["name"]}}), True,
+                          {"name": "str"}, "change the exploration policy", ("name",)),
+    "reset_stats": Command(lambda n, a: n.reset_stats(), True, {}, "restart timing statistics"),
+}
+
+
+class Lease:
+    """One controlling client at a time, until it goes quiet for `ttl_ns`."""
+
+    def __init__(self, ttl_s: float, clock: Callable[[], int] = time.monotonic_ns) -> None:
+        self.ttl_ns = int(ttl_s * 1e9)
+        self.holder: str | None = None
+        self.expires_ns = 0
+        self._clock = clock
+
+    def claim(self, client: str | None) -> None:
+        if not client:
+            raise CommandError("bad_args", "control commands need a 'client' id string")
+        now = self._clock()
+        if self.holder is not None and self.holder != client and now < self.expires_ns:
+            raise CommandError("lease_held", f"client '{self.holder}' holds the lease for "
+                               f"{(self.expires_ns - now) / 1e9:.1f} s more")
+        self.holder = client
+        self.expires_ns = now + self.ttl_ns
+
+    def touch(self, client: str | None) -> None:
+        if client is not None and client == self.holder:
+            self.expires_ns = self._clock() + self.ttl_ns
+
+    def release(self) -> None:
+        self.holder = None
+
+    def expire_due(self) -> str | None:
+        """The holder whose lease just ran out (and clear it), else None."""
+        if self.holder is not None and self._clock() >= self.expires_ns:
+            holder, self.holder = self.holder, None
+            return holder
+        return None
+
+    def remaining_s(self) -> float:
+        return max(0.0, (self.expires_ns - self._clock()) / 1e9) if self.holder else 0.0
+
+
+def validate(req: dict[str, Any]) -> tuple[Any, str, str | None, dict[str, Any], Command]:
+    """(id, cmd, client, args, Command) of a request, or CommandError naming the problem."""
+    try:
+        wire.check_envelope(req, need_seq=False)
+    except wire.WireError as exc:
+        raise CommandError(exc.code, str(exc)) from None
+    if req["type"] != "request":
+        raise CommandError("malformed", f"expected type 'request', got '{req['type']}'")
+    rid = req.get("id")
+    if not (isinstance(rid, (int, str)) and not isinstance(rid, bool)):
+        raise CommandError("malformed", "request 'id' must be an integer or string")
+    cmd, client, args = req.get("cmd"), req.get("client"), req.get("args", {})
+    if not isinstance(cmd, str):
+        raise CommandError("malformed", "request 'cmd' must be a string")
+    spec = TABLE.get(cmd)
+    if spec is None:
+        raise CommandError("unknown_command", f"unknown command '{cmd[:64]}'; commands: "
+                           f"{', '.join(TABLE)}")
+    if client is not None and not (isinstance(client, str) and 0 < len(client) <= 128):
+        raise CommandError("bad_args", "'client' must be a string of 1..128 characters")
+    if args is None:
+        args = {}
+    if not isinstance(args, dict):
+        raise CommandError("bad_args", "'args' must be a map")
+    for name, value in args.items():
+        kind = spec.fields.get(name)
+        if kind is None:
+            raise CommandError("bad_args", f"'{cmd}' takes no argument '{str(name)[:64]}'; "
+                               f"it takes: {', '.join(spec.fields) or 'nothing'}")
+        if not KINDS[kind](value):
+            raise CommandError("bad_args", f"'{cmd}' argument '{name}' must be {kind}")
+    missing = [r for r in spec.required if r not in args]
+    if missing:
+        raise CommandError("bad_args", f"'{cmd}' needs argument(s) {', '.join(missing)}")
+    return rid, cmd, client, args, spec
+
+
+class CommandServer:
+    """Owns the ROUTER socket; `poll` answers whatever requests have arrived."""
+
+    def __init__(self, ctx: zmq.Context, endpoint: str, controls: Controls, lease: Lease, *,
+                 max_request_bytes: int = wire.MAX_MESSAGE_BYTES, curve: Any = None) -> None:
+        self._sock, self.endpoint = bind_server_socket(
+            ctx, zmq.ROUTER, endpoint, {zmq.MAXMSGSIZE: MAX_FRAME_BYTES, zmq.LINGER: 200},
+            curve)
+        self.controls = controls
+        self.lease = lease
+        self.max_request_bytes = max_request_bytes
+        self.seq = 0
+        self.handled = 0
+        self.errors = 0
+        self._recent: OrderedDict[tuple[str, Any], tuple[bytes, bytes]] = OrderedDict()
+        self._poller = zmq.Poller()
+        self._poller.register(self._sock, zmq.POLLIN)
+
+    def poll(self, timeout_ms: float = 0, max_requests: int = 16) -> int:
+        """Answer up to `max_requests` waiting requests, waiting up to `timeout_ms` for one."""
+        if timeout_ms > 0 and not self._poller.poll(timeout_ms):
+            return 0
+        n = 0
+        while n < max_requests:
+            try:
+                frames = self._sock.recv_multipart(flags=zmq.NOBLOCK, copy=True)
+            except zmq.Again:
+                break
+            n += 1
+            reply = self._reply_frames(frames)
+            if reply is not None:
+                with contextlib.suppress(zmq.ZMQError):  # the client went away
+                    self._sock.send_multipart(reply, flags=zmq.NOBLOCK)
+        return n
+
+    def _reply_frames(self, frames: list[bytes]) -> list[bytes] | None:
+        if len(frames) < 2:
+            return None
+        identity, rest = frames[0], frames[1:]
+        head = [identity]
+        if len(rest) >= 2 and rest[0] == b"":  # a REQ client's delimiter
+            head, rest = [identity, b""], rest[1:]
+        if len(rest) != 1:
+            return head + [self._error(None, "malformed", "a request is exactly one frame")]
+        return head + [self.handle(rest[0])]
+
+    def handle(self, payload: bytes) -> bytes:
+        """One request payload to one reply payload; never raises."""
+        self.handled += 1
+        rid: Any = None
+        try:
+            try:
+                req = wire.unpack_map(payload, self.max_request_bytes)
+            except wire.WireError as exc:
+                raise CommandError(exc.code, str(exc)) from None
+            rid = req.get("id") if isinstance(req.get("id"), (int, str)) else None
+            rid, cmd, client, args, spec = validate(req)
+            key = (client, rid) if client else None
+            cached = self._recent.get(key) if key is not None else None
+            if cached is not None and cached[0] == payload:
+                return cached[1]  # the same bytes again: a retry, answered from the cache
+            before = (self.lease.holder, self.lease.expires_ns)
+            if spec.lease:
+                self.lease.claim(client)
+            else:
+                self.lease.touch(client)
+            try:
+                result = spec.run(self.controls, wire.decode_fields(args))
+            except Exception:
+                self.lease.holder, self.lease.expires_ns = before  # a refusal changes nothing
+                raise
+            if cmd == "release":
+                self.lease.release()
+            self.controls.on_command(cmd, client)
+            out = self._encode(rid, True, result=result)
+            if key is not None:
+                self._recent[key] = (bytes(payload), out)
+                while len(self._recent) > 256:
+                    self._recent.popitem(last=False)
+            return out
+        except CommandError as exc:
+            return self._error(rid, exc.code, str(exc))
+        except StateError as exc:
+            return self._error(rid, "bad_state", str(exc))
+        except InputError as exc:
+            return self._error(rid, "bad_config", str(exc))
+        except FirmwareError as exc:
+            return self._error(rid, "hardware", str(exc))
+        except Exception as exc:  # a bug must not take the daemon down
+            return self._error(rid, "internal", f"{type(exc).__name__}: {exc}")
+
+    def _error(self, rid: Any, code: str, message: str) -> bytes:
+        self.errors += 1
+        return self._encode(rid, False, error={"code": code, "message": message[:1000]})
+
+    def _encode(self, rid: Any, ok: bool, **fields: Any) -> bytes:
+        self.seq += 1
+        return wire.encode("reply", self.seq, {"id": rid, "ok": ok, **fields})
+
+    def close(self) -> None:
+        self._sock.close()

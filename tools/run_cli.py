@@ -1,0 +1,118 @@
+"""`haptic run`: one localization episode, narrated step by step (what `make demo` runs)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+from collections.abc import Callable
+from pathlib import Path
+
+from firmware_if.backend import Backend
+from service.episode.runner import StepRecord
+from service.episode.scenario import RunSettings, Truth, for_backend
+from service.episode.simulate import EpisodeReport, simulate
+from service.errors import ConfigError
+from service.localization.maps import load_map
+from service.localization.policies.base import MOVE_NAMES
+from service.registry import BACKENDS
+from tools.scenario_options import add_scenario_options, settings_from_args
+
+FIGURE_STEPS = (0, 5, 10)
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("run", help="localize a simulated (or real) finger once",
+                       description="Run one localization episode and report the estimate "
+                                   "beside the truth. Lengths in metres, headings in degrees.")
+    add_scenario_options(p, defaults=RunSettings())
+    p.add_argument("--seed", type=int, default=0, help="seed for the start pose, noise and "
+                   "choices (default: %(default)s)")
+    p.add_argument("--start", metavar="X,Y,HEADING_DEG", default=None,
+                   help="true start pose (metres, metres, degrees); default: drawn from --seed")
+    p.add_argument("--plot", type=Path, metavar="FILE.png",
+                   help="save a figure like the paper's Figure 4")
+    p.add_argument("--json", type=Path, metavar="FILE", help="save the episode as JSON")
+    p.add_argument("--quiet", action="store_true", help="no per-step lines")
+    hw = p.add_argument_group("hardware")
+    hw.add_argument("--backend", default="sim", choices=BACKENDS.names(),
+                    help="finger to use (default: %(default)s)")
+    hw.add_argument("--port", help="serial port of the servo bus (dynamixel backend)")
+    hw.add_argument("--hand", help="hand preset or TOML file (dynamixel backend)")
+    p.set_defaults(handler=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    settings = settings_from_args(args)
+    _check_outputs(args)
+    height_map = load_map(settings.map, settings.spacing)
+    backend_factory: Callable[[Truth], Backend] | None = None
+    if args.backend != "sim":
+        if not args.port or not args.hand:
+            raise ConfigError(f"--backend {args.backend} needs --port and --hand")
+        settings = for_backend(settings, args.backend)
+        cls = BACKENDS.load(args.backend)
+
+        def backend_factory(truth: Truth) -> Backend:
+            """A hardware hand; the truth is not its to know (the emulator draws its own)."""
+            return cls.from_cli(port=args.port, hand=args.hand, radius=settings.radius,
+                                step=settings.step)
+    print(f"map {height_map.name}: {height_map.shape[1]} x {height_map.shape[0]} samples, "
+          f"{height_map.extent[0] * 1e3:.0f} x {height_map.extent[1] * 1e3:.0f} mm; "
+          f"finger radius {settings.radius * 1e3:g} mm, step {settings.step * 1e3:g} mm; "
+          f"{settings.algorithm} + {settings.policy}{' with noise' if settings.noise else ''}")
+    report = simulate(settings, height_map, on_step=None if args.quiet else _print_step,
+                      snapshot_steps=FIGURE_STEPS if args.plot else (),
+                      backend_factory=backend_factory)
+    _print_summary(report)
+    if args.json:
+        args.json.write_text(json.dumps(report.to_json(), indent=1))
+        print(f"episode written to {args.json}")
+    if args.plot:
+        from tools.plots import episode_figure
+
+        episode_figure(report, args.plot)
+        print(f"figure written to {args.plot}")
+    return 0
+
+
+def _check_outputs(args: argparse.Namespace) -> None:
+    """Fail before the run, not after it, when an output cannot be written."""
+    for path in (args.json, args.plot):
+        if path is not None and not path.resolve().parent.is_dir():
+            raise ConfigError(f"cannot write {path}: folder {path.parent} does not exist")
+
+
+def _print_step(step: StepRecord) -> None:
+    move = MOVE_NAMES[step.move] + (" (blocked)" if step.blocked else "")
+    print(f"step {step.index:3d}  move {move:<13} dz {step.measurement[2] * 1e3:+8.3f} mm  "
+          f"candidates {step.candidates:5d}  {step.compute_ms:6.2f} ms", flush=True)
+
+
+def _pose_text(pose: tuple[float, float, float]) -> str:
+    x, y, heading = pose
+    return (f"x {x * 1e3:7.2f} mm  y {y * 1e3:7.2f} mm  "
+            f"heading {round(math.degrees(heading), 1) % 360:6.1f} deg")  # never "360.0"
+
+
+def _print_summary(report: EpisodeReport) -> None:
+    est = report.result.estimate
+    print(f"truth     {_pose_text(report.truth.as_tuple())}")
+    if est is None or est.pose is None:
+        print("estimate  none: every candidate was eliminated")
+    else:
+        state = "converged" if est.converged else "not converged"
+        print(f"estimate  {_pose_text(est.pose)}  ({est.candidates} candidates, {state})")
+    steps = len(report.result.steps)
+    s = report.score
+    if s.success:
+        print(f"result    localized in {steps} steps: position error "
+              f"{s.position_error * 1e3:.2f} mm, "
+              f"heading error {math.degrees(s.heading_error):.1f} deg")
+    elif s.wrong_declaration:
+        print(f"result    WRONG: converged after {steps} steps on a pose "
+              f"{s.position_error * 1e3:.1f} mm / {math.degrees(s.heading_error):.1f} deg away")
+    else:
+        print(f"result    not localized after {steps} steps")
+    if report.true_pose_eliminated:
+        print("warning   the true pose was eliminated")

@@ -1,0 +1,98 @@
+"""Command-line options shared by `haptic run` and every `haptic bench` scenario."""
+
+from __future__ import annotations
+
+import argparse
+import math
+from typing import Any
+
+from service.episode.scenario import RunSettings
+from service.errors import ConfigError
+from service.localization.models import HARDWARE_SENSOR_SIGMA
+from service.registry import LOCALIZERS, POLICIES
+
+
+def add_scenario_options(parser: argparse.ArgumentParser, *, defaults: RunSettings) -> None:
+    """Map, finger, algorithm, policy and noise options, with `defaults` shown in --help."""
+    g = parser.add_argument_group("scenario")
+    g.add_argument("--map", default=defaults.map, metavar="NAME|PATH",
+                   help="preset (peaks, bumps[:SIZE[:SEED]], eggcrate) or a .npy/.csv/.txt "
+                        "grid of heights in metres (default: %(default)s)")
+    g.add_argument("--spacing", type=float, default=None, metavar="M",
+                   help="metres between samples, for map files")
+    g.add_argument("--radius", type=float, default=defaults.radius, metavar="M",
+                   help="fingertip radius in metres (default: %(default)s)")
+    g.add_argument("--step", type=float, default=defaults.step, metavar="M",
+                   help="step length in metres (default: %(default)s)")
+    g.add_argument("--algorithm", default=defaults.algorithm, choices=LOCALIZERS.names(),
+                   help=f"localizer (default: %(default)s). {LOCALIZERS.help()}")
+    g.add_argument("--policy", default=defaults.policy, choices=POLICIES.names(),
+                   help=f"exploration policy (default: %(default)s). {POLICIES.help()}")
+    g.add_argument("--noise", action="store_true", default=defaults.noise,
+                   help="turn on BENCHMARKS.md B2's noise and model-mismatch models")
+    g.add_argument("--sensor-sigma", type=float, default=None, metavar="M",
+                   help="measurement noise (metres) the localizer assumes; default: exact "
+                        "for a noise-free simulation, B2's with --noise, "
+                        f"{HARDWARE_SENSOR_SIGMA} m on hardware")
+    g.add_argument("--max-steps", type=int, default=defaults.max_steps, metavar="N",
+                   help="give up after N steps (default: %(default)s)")
+    g.add_argument("--headings", type=int, default=defaults.headings, metavar="N",
+                   help="headings in a discrete pose table (default: %(default)s)")
+    g.add_argument("--sweep", choices=("paper", "full"), default=None,
+                   help="elimination only: the paper's band test plus 5 exact tests per "
+                        "step (paper, default), or the exact test on every candidate (full)")
+    g.add_argument("--localizer-option", action="append", default=[], metavar="NAME=VALUE",
+                   dest="localizer_option",
+                   help="a keyword of the localizer's constructor, e.g. work=4000 for "
+                        "particles (repeatable; numbers and true/false are converted)")
+
+
+def parse_start(text: str | None) -> tuple[float, float, float] | None:
+    """'X,Y,HEADING_DEG' (metres, metres, degrees) to (x, y, heading in radians)."""
+    if text is None:
+        return None
+    parts = text.split(",")
+    try:
+        x, y, heading_deg = (float(p) for p in parts)
+    except ValueError:
+        raise ConfigError(f"--start takes X,Y,HEADING_DEG (metres, metres, degrees), "
+                          f"got '{text}'") from None
+    if not all(math.isfinite(v) for v in (x, y, heading_deg)):
+        raise ConfigError(f"--start values must be finite, got '{text}'")
+    return (x, y, math.radians(heading_deg))
+
+
+def parse_localizer_options(items: list[str]) -> dict[str, Any]:
+    """['work=4000', 'drop=30.5'] to {'work': 4000, 'drop': 30.5}."""
+    options: dict[str, Any] = {}
+    for item in items:
+        name, sep, text = item.partition("=")
+        if not sep or not name.isidentifier():
+            raise ConfigError(f"--localizer-option takes NAME=VALUE, got '{item}'")
+        options[name] = _literal(text)
+    return options
+
+
+def _literal(text: str) -> Any:
+    for kind in (int, float):
+        try:
+            return kind(text)
+        except ValueError:
+            pass
+    return {"true": True, "false": False}.get(text.lower(), text)
+
+
+def settings_from_args(args: argparse.Namespace, **overrides: Any) -> RunSettings:
+    options = parse_localizer_options(getattr(args, "localizer_option", None) or [])
+    if getattr(args, "sweep", None):
+        if args.algorithm != "elimination":
+            raise ConfigError("--sweep applies only to --algorithm elimination")
+        options["sweep"] = args.sweep
+    fields: dict[str, Any] = dict(
+        map=args.map, spacing=args.spacing, radius=args.radius, step=args.step,
+        algorithm=args.algorithm, policy=args.policy, noise=args.noise,
+        max_steps=args.max_steps, headings=args.headings, localizer_options=options,
+        sensor_sigma=getattr(args, "sensor_sigma", None),
+        seed=getattr(args, "seed", 0), start=parse_start(getattr(args, "start", None)))
+    fields.update(overrides)
+    return RunSettings(**fields)
