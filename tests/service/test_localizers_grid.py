@@ -10,7 +10,8 @@ from service.episode.simulate import simulate
 from service.errors import ConfigError
 from service.localization.localizers.base import LocalizerContext
 from service.localization.localizers.grid import Grid
-from service.localization.localizers.match import Match, best_headings
+from service.localization.localizers.heading_scan import best_headings
+from service.localization.localizers.match import Match
 from service.localization.maps import peaks
 from service.localization.models import NoiseSpec, models_for
 from service.localization.surface import HeightMap, contact_surface

@@ -43,6 +43,7 @@ from service.localization.localizers.convergence import (
     judge,
 )
 from service.localization.localizers.fitting import sample, typical_slope
+from service.localization.localizers.heading_scan import best_headings
 from service.localization.localizers.pool import AnytimeJob
 from service.localization.localizers.spread import pose_spread
 from service.localization.localizers.symmetry import symmetries
@@ -186,8 +187,6 @@ class Grid:
     def _fit_headings(self, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
         """Position-only grid: the heading that best lays the path onto the map at each cell
         (a scan, vectorized over cells and candidate headings)."""
-        from service.localization.localizers.match import best_headings
-
         return best_headings(self.ctx.surface, self.history, self.xs[cols], self.ys[rows])[0]
 
     def _judge(self) -> Verdict:
