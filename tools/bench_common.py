@@ -15,6 +15,7 @@ from tqdm import tqdm
 from service.episode.scenario import RunSettings
 from service.episode.simulate import EpisodeReport, simulate
 from service.errors import ConfigError
+from service.localization.map_check import check_map
 from service.localization.maps import load_map
 from service.localization.surface import HeightMap
 from tools.scenario_options import add_scenario_options, settings_from_args
@@ -63,6 +64,8 @@ def run_seeded_scenario(args: argparse.Namespace, *, scenario: str, label: str,
     check_bench_args(args)
     base = settings_from_args(args, **overrides)
     height_map = load_map(base.map, base.spacing)
+    for warning in check_map(height_map, base.radius, base.step).warnings:
+        print(f"warning: {warning}")
     settings = [settings_from_args(args, seed=args.first_seed + i, **overrides)
                 for i in range(args.runs)]
     title = f"{label} {base.algorithm} + {base.policy}"

@@ -18,6 +18,7 @@ from service.errors import InputError, ServiceError
 SUBCOMMAND_MODULES = (
     "tools.run_cli",        # haptic run
     "tools.bench",          # haptic bench
+    "tools.map_cli",        # haptic map
     "tools.emulate_cli",    # haptic emulate
     "tools.bus_cli",        # haptic bus
     "tools.stream_cli",     # haptic watch / ctl / record / replay / view / keygen

@@ -13,6 +13,7 @@ from service.episode.runner import StepRecord
 from service.episode.scenario import RunSettings, Truth, for_backend
 from service.episode.simulate import EpisodeReport, simulate
 from service.errors import ConfigError
+from service.localization.map_check import check_map
 from service.localization.maps import load_map
 from service.localization.policies.base import MOVE_NAMES
 from service.registry import BACKENDS
@@ -46,6 +47,8 @@ def run(args: argparse.Namespace) -> int:
     settings = settings_from_args(args)
     _check_outputs(args)
     height_map = load_map(settings.map, settings.spacing)
+    for warning in check_map(height_map, settings.radius, settings.step).warnings:
+        print(f"warning: {warning}")
     backend_factory: Callable[[Truth], Backend] | None = None
     if args.backend != "sim":
         if not args.port or not args.hand:

@@ -16,8 +16,10 @@ def add_scenario_options(parser: argparse.ArgumentParser, *, defaults: RunSettin
     """Map, finger, algorithm, policy and noise options, with `defaults` shown in --help."""
     g = parser.add_argument_group("scenario")
     g.add_argument("--map", default=defaults.map, metavar="NAME|PATH",
-                   help="preset (peaks, bumps[:SIZE[:SEED]], eggcrate) or a .npy/.csv/.txt "
-                        "grid of heights in metres (default: %(default)s)")
+                   help="preset NAME[:SIZE[:SEED]] (peaks, bumps, eggcrate, plate, pattern, "
+                        "shell, terrain; profile:KIND[:SIZE[:SEED]] for a 1-D profile; "
+                        "`haptic map list` describes them) or a .npy/.csv/.txt grid of heights "
+                        "in metres (default: %(default)s)")
     g.add_argument("--spacing", type=float, default=None, metavar="M",
                    help="metres between samples, for map files")
     g.add_argument("--radius", type=float, default=defaults.radius, metavar="M",

@@ -133,10 +133,36 @@ _CACHE: weakref.WeakKeyDictionary[HeightMap, dict[float, ContactSurface]] = (
 )
 
 
-def contact_surface(height_map: HeightMap, radius: float) -> ContactSurface:
-    """The centre-height surface for a sphere of `radius` metres, cached per map and radius."""
+DILATION_WORK_LIMIT = 1e10
+"""Most map samples x fingertip footprint samples a contact surface may cost (about a
+minute at this machine's 100-500 million per second)."""
+
+
+def check_radius(height_map: HeightMap, radius: float) -> None:
+    """Refuse a fingertip the map cannot take, naming what to change (before any work)."""
     if not (np.isfinite(radius) and radius > 0):
         raise MapError(f"finger radius must be a positive number of metres, got {radius}")
+    x_max, y_max = height_map.extent
+    shorter = x_max if height_map.is_profile else min(x_max, y_max)
+    hint = (f" The radius is in metres: for {radius:g} mm give {radius / 1000:g}." if radius >= 1
+            else "")
+    if radius > shorter:
+        raise MapError(f"finger radius {radius * 1e3:g} mm does not fit on map "
+                       f"'{height_map.name}' ({x_max * 1e3:g} x {y_max * 1e3:g} mm): it must "
+                       f"be at most the map's shorter side ({shorter * 1e3:g} mm).{hint}")
+    k = int(np.floor(radius / height_map.spacing + 1e-9))
+    footprint = (2 * k + 1) if height_map.is_profile else (2 * k + 1) ** 2
+    if footprint * height_map.heights.size > DILATION_WORK_LIMIT:
+        raise MapError(f"finger radius {radius * 1e3:g} mm spans {2 * k + 1} samples of map "
+                       f"'{height_map.name}' ({height_map.shape[1]} x {height_map.shape[0]} "
+                       f"samples at {height_map.spacing * 1e3:g} mm): its contact surface "
+                       f"would take too long to build; resample the map to a coarser spacing "
+                       f"(about {radius / 8 * 1e3:.2g} mm is plenty for this tip).{hint}")
+
+
+def contact_surface(height_map: HeightMap, radius: float) -> ContactSurface:
+    """The centre-height surface for a sphere of `radius` metres, cached per map and radius."""
+    check_radius(height_map, radius)
     per_map = _CACHE.setdefault(height_map, {})
     cached = per_map.get(radius)
     if cached is not None:

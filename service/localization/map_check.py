@@ -1,0 +1,270 @@
+"""What a map offers a fingertip, checked on load: units, slopes, features, plains, symmetries.
+
+A map that is wrong in a way the localizer cannot see (heights in millimetres, a tip that
+does not fit) should be named before an episode, not discovered from a baffling result.
+`check_map` refuses what cannot work (`MapError`, via `surface.check_radius`) and warns
+about what will work badly; `haptic map check` prints the whole report and `haptic run`
+prints the warnings.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from scipy import ndimage
+
+from service.localization.surface import ContactSurface, HeightMap, contact_surface
+
+PLAIN_TOLERANCE = 0.02
+"""A plain: the contact height varies by less than this share of a step (0.2 mm for 10 mm
+steps, twice B2's reading noise) within one step of a point, so a step there reads nothing."""
+FEATURE_TOLERANCE = 2e-4
+"""Relief (metres) a feature needs to count as one: twice B2's reading noise."""
+FEATURE_ASPECT = 0.25
+"""A feature is at least this tall for its width; so on smooth ground the smallest
+"feature" is about its sharpest radius of curvature."""
+MAX_PLAUSIBLE_RELIEF = 1.0
+"""Metres. Objects a fingertip explores are not taller than this."""
+MAX_PLAUSIBLE_EXTENT = 5.0
+"""Metres. Nor wider."""
+MM_SLOPE = 20.0
+"""Rise over run (87 degrees). Real surfaces are this steep only at walls, a thin share of
+the area; heights in millimetres over metres make most of the ground this steep."""
+MM_STEEP_SHARE = 0.25
+
+
+@dataclass(frozen=True)
+class MapReport:
+    """The check of one map for one fingertip and step (lengths in metres)."""
+
+    name: str
+    shape: tuple[int, int]
+    spacing: float
+    radius: float
+    step: float
+    height_range: tuple[float, float]
+    steepest_slope: float
+    """Largest rise over run between neighbouring samples."""
+    typical_slope: float
+    """Median rise over run where the surface is not flat."""
+    steep_share: float
+    """Share of the area steeper than MM_SLOPE."""
+    smallest_feature: float | None
+    """Width of the narrowest bump or pit with at least FEATURE_TOLERANCE of relief and
+    FEATURE_ASPECT of its width (on smooth ground, about its sharpest radius of curvature)."""
+    hidden_share: float
+    """Share of the area the tip cannot reach within FEATURE_TOLERANCE (pits narrower than it)."""
+    hidden_depth: float
+    plains_share: float
+    symmetries: np.ndarray = field(repr=False)
+    """(S, 3) motions (quarter turns, dx, dy) that map the contact surface onto itself."""
+    warnings: tuple[str, ...] = ()
+
+    @property
+    def is_profile(self) -> bool:
+        return self.shape[0] == 1
+
+    @property
+    def extent(self) -> tuple[float, float]:
+        return ((self.shape[1] - 1) * self.spacing, (self.shape[0] - 1) * self.spacing)
+
+    def lines(self) -> list[str]:
+        """The report as text, one fact per line, lengths in millimetres."""
+        lo, hi = self.height_range
+        x, y = self.extent
+        size = (f"profile {x * 1e3:g} mm long, {self.shape[1]} samples" if self.is_profile
+                else f"{x * 1e3:g} x {y * 1e3:g} mm, {self.shape[1]} x {self.shape[0]} samples")
+        feature = ("none (flat)" if self.smallest_feature is None else
+                   f"{self.smallest_feature * 1e3:.3g} mm wide"
+                   + (f", narrower than the tip ({2 * self.radius * 1e3:g} mm across): it is "
+                      f"felt only blurred" if self.smallest_feature < 2 * self.radius else ""))
+        lines = [
+            f"map        {self.name}: {size} at {self.spacing * 1e3:g} mm",
+            f"heights    {lo * 1e3:.3f} .. {hi * 1e3:.3f} mm (relief {(hi - lo) * 1e3:.3f} mm)",
+            f"slope      steepest {_degrees(self.steepest_slope)}, typical "
+            f"{_degrees(self.typical_slope)} where not flat",
+            f"features   smallest {feature}",
+            f"hidden     {self.hidden_share:.1%} of the area lies deeper than the "
+            f"{self.radius * 1e3:g} mm tip reaches (by up to {self.hidden_depth * 1e3:.2f} mm)",
+            f"plains     {self.plains_share:.1%} of the area: a {self.step * 1e3:g} mm step "
+            f"there reads under {PLAIN_TOLERANCE * self.step * 1e3:.2g} mm",
+            f"symmetries {describe_symmetries(self.symmetries, self.is_profile)}",
+        ]
+        return lines + [f"warning    {w}" for w in self.warnings]
+
+    def to_json(self) -> dict[str, Any]:
+        return {
+            "name": self.name, "shape": list(self.shape), "spacing": self.spacing,
+            "radius": self.radius, "step": self.step, "height_range": list(self.height_range),
+            "steepest_slope": self.steepest_slope, "typical_slope": self.typical_slope,
+            "steep_share": self.steep_share,
+            "smallest_feature": self.smallest_feature, "hidden_share": self.hidden_share,
+            "hidden_depth": self.hidden_depth, "plains_share": self.plains_share,
+            "symmetries": self.symmetries.tolist(), "warnings": list(self.warnings),
+        }
+
+
+def _degrees(slope: float) -> str:
+    return f"{np.degrees(np.arctan(slope)):.1f} deg ({slope:.3g} rise/run)"
+
+
+def describe_symmetries(motions: np.ndarray, is_profile: bool = False) -> str:
+    if len(motions) == 0:
+        return "none found"
+    shown = []
+    for k, dx, dy in motions[:3]:
+        turn = {0: "shift", 1: "quarter turn", 2: "reversal" if is_profile else "half turn",
+                3: "three-quarter turn"}[int(k) % 4]
+        if is_profile:
+            shown.append(f"{turn} by {dx * 1e3:+.0f} mm" if k == 0 else
+                         f"{turn} (then shift {dx * 1e3:+.0f} mm)")
+        elif k == 0:
+            shown.append(f"shift by ({dx * 1e3:+.0f}, {dy * 1e3:+.0f}) mm")
+        elif abs(dx) < 5e-4 and abs(dy) < 5e-4:
+            shown.append(turn)
+        else:
+            shown.append(f"{turn} then shift ({dx * 1e3:+.0f}, {dy * 1e3:+.0f}) mm")
+    more = f" and {len(motions) - 3} more" if len(motions) > 3 else ""
+    return (f"{len(motions)} motion{'s' if len(motions) > 1 else ''} map the contact surface "
+            f"onto itself within 3 %: {', '.join(shown)}{more}")
+
+
+def check_map(height_map: HeightMap, radius: float, step: float = 0.01) -> MapReport:
+    """Check `height_map` for a tip of `radius` moving in steps of `step` (metres).
+
+    Raises MapError when the tip cannot be used on the map at all.
+    """
+    surface = contact_surface(height_map, radius)  # refuses a radius the map cannot take
+    z, h = height_map.heights, height_map.spacing
+    slopes = _slopes(z, h)
+    flat = slopes < FEATURE_TOLERANCE / max(step, h)
+    typical = float(np.median(slopes[~flat])) if np.any(~flat) else 0.0
+    hidden = hidden_depths(surface)
+    report = dict(
+        name=height_map.name, shape=height_map.shape, spacing=h, radius=float(radius),
+        step=float(step), height_range=(float(z.min()), float(z.max())),
+        steepest_slope=float(slopes.max()), typical_slope=typical,
+        steep_share=float(np.mean(slopes > MM_SLOPE)),
+        smallest_feature=_smallest_feature(z, h, int(max(step, 2 * radius) / h) + 1),
+        hidden_share=float(np.mean(hidden > FEATURE_TOLERANCE)),
+        hidden_depth=float(hidden.max()),
+        plains_share=float(np.mean(plains(surface, step))),
+        symmetries=_symmetries(surface),
+    )
+    return MapReport(**report, warnings=tuple(_warnings(MapReport(**report))))
+
+
+def _slopes(z: np.ndarray, h: float) -> np.ndarray:
+    """Rise over run to the next sample along each axis (the larger of the two)."""
+    along = np.abs(np.diff(z, axis=1)) / h
+    slopes = np.zeros_like(z)
+    slopes[:, :-1] = along
+    if z.shape[0] > 1:
+        slopes[:-1, :] = np.maximum(slopes[:-1, :], np.abs(np.diff(z, axis=0)) / h)
+    return slopes
+
+
+def hidden_depths(surface: ContactSurface) -> np.ndarray:
+    """How far below the lowest point the tip reaches each sample lies: the contact surface
+    eroded by the same sphere (a morphological closing) minus the map."""
+    from service.localization.surface import sphere_structure
+
+    footprint, cap = sphere_structure(surface.radius, surface.map.spacing)
+    if surface.map.is_profile:
+        footprint, cap = footprint[footprint.shape[0] // 2:][:1], cap[cap.shape[0] // 2:][:1]
+    traced = ndimage.grey_erosion(surface.centre_heights, footprint=footprint, structure=cap,
+                                  mode="nearest")
+    return np.maximum(traced - surface.map.heights, 0.0)
+
+
+def _smallest_feature(z: np.ndarray, h: float, widest: int) -> float | None:
+    """The narrowest window (samples, odd, about doubling) whose grey opening or closing
+    removes a bump or pit tall enough to count (FEATURE_TOLERANCE, FEATURE_ASPECT)."""
+    width = 3
+    while width <= max(widest, 3) * 4 and width <= max(z.shape):
+        size = (1, width) if z.shape[0] == 1 else (width, width)
+        bumps = z - ndimage.grey_opening(z, size=size, mode="nearest")
+        pits = ndimage.grey_closing(z, size=size, mode="nearest") - z
+        if max(bumps.max(), pits.max()) > max(FEATURE_TOLERANCE, FEATURE_ASPECT * width * h):
+            return (width - 1) * h
+        width = 2 * width - 1
+    return None
+
+
+def plains(surface: ContactSurface, step: float) -> np.ndarray:
+    """Mask of the points where the contact height varies by less than PLAIN_TOLERANCE of a
+    step within a step's reach (a square window)."""
+    k = int(round(step / surface.map.spacing))
+    size = (1, 2 * k + 1) if surface.map.is_profile else (2 * k + 1, 2 * k + 1)
+    c = surface.centre_heights
+    span = (ndimage.maximum_filter(c, size=size, mode="nearest")
+            - ndimage.minimum_filter(c, size=size, mode="nearest"))
+    return span < PLAIN_TOLERANCE * step
+
+
+def _symmetries(surface: ContactSurface) -> np.ndarray:
+    if surface.map.is_profile:
+        return profile_symmetries(surface.centre_heights[0], surface.map.spacing)
+    from service.localization.localizers.symmetry import symmetries
+
+    return symmetries(surface)
+
+
+def profile_symmetries(row: np.ndarray, spacing: float, threshold: float = 0.97,
+                       min_overlap: float = 0.3) -> np.ndarray:
+    """(S, 3) motions of a profile onto itself: shifts (k = 0) and reversals (k = 2, the
+    finger facing the other way), by normalized correlation over at least `min_overlap`."""
+    a = row - row.mean()
+    n = len(a)
+    found = []
+    for k, other in ((0, a), (2, a[::-1])):
+        num = np.correlate(a, other, mode="full")
+        lags = np.arange(-(n - 1), n)
+        overlap = n - np.abs(lags)
+        c_a = np.concatenate([[0.0], np.cumsum(a * a)])
+        c_b = np.concatenate([[0.0], np.cumsum(other * other)])
+        # a[i + lag] pairs with other[i]: a's window and other's window for each lag
+        a_lo, a_hi = np.maximum(lags, 0), np.minimum(n + lags, n)
+        b_lo, b_hi = np.maximum(-lags, 0), np.minimum(n - lags, n)
+        ncc = num / np.sqrt(np.maximum((c_a[a_hi] - c_a[a_lo]) * (c_b[b_hi] - c_b[b_lo]),
+                                       1e-300))
+        ok = (overlap >= min_overlap * n) & (ncc >= threshold)
+        ok &= ncc == ndimage.maximum_filter1d(ncc, 5)
+        if k == 0:
+            ok &= lags != 0
+        for lag in lags[ok]:
+            found.append((ncc[lag + n - 1], k, -lag * spacing))
+    found.sort(key=lambda f: -f[0])
+    return np.array([(k, dx, 0.0) for _, k, dx in found], dtype=np.float64).reshape(-1, 3)
+
+
+def _warnings(r: MapReport) -> list[str]:
+    lo, hi = r.height_range
+    relief, (x, y) = hi - lo, r.extent
+    size = f"{x:.4g} m profile" if r.is_profile else f"{x:.4g} x {y:.4g} m map"
+    warnings = []
+    if relief > MAX_PLAUSIBLE_RELIEF or relief > max(x, y) or r.steep_share > MM_STEEP_SHARE:
+        warnings.append(
+            f"heights span {relief:.4g} m over a {size}, {r.steep_share:.0%} "
+            "of it steeper than 87 deg: they look like millimetres; heights must be in metres "
+            "(divide them by 1000)")
+    if max(x, y) > MAX_PLAUSIBLE_EXTENT:
+        warnings.append(f"the map spans {size.removesuffix(' map')}: is --spacing in millimetres? "
+                        f"It is in metres ({r.spacing:g} mm would be {r.spacing / 1000:g})")
+    if r.radius < 2 * r.spacing:
+        warnings.append(f"the tip's radius ({r.radius * 1e3:g} mm) spans under two samples "
+                        f"({r.spacing * 1e3:g} mm apart): its contact model is coarse; use a "
+                        "finer map")
+    if r.step < r.spacing:
+        warnings.append(f"a step ({r.step * 1e3:g} mm) is shorter than the sample spacing "
+                        f"({r.spacing * 1e3:g} mm)")
+    if r.plains_share > 0.8:
+        warnings.append(f"{r.plains_share:.0%} of the map is plain: the finger must travel to a "
+                        "feature before it can localize; expect many steps")
+    if len(r.symmetries):
+        warnings.append(f"the surface repeats under {len(r.symmetries)} motion(s) (see "
+                        "symmetries): poses they relate differ only where a feature breaks "
+                        "the symmetry, or not at all ('not yet' is then the right answer)")
+    return warnings

@@ -1,0 +1,83 @@
+"""Map checks on load: what a map offers a fingertip, and the warnings and refusals."""
+
+import numpy as np
+import pytest
+
+from service.errors import MapError
+from service.localization.map_check import check_map, profile_symmetries
+from service.localization.maps import load_map
+from service.localization.surface import HeightMap, contact_surface
+
+MM_WARNING = "look like millimetres"
+
+
+def warned(report, text: str) -> bool:
+    return any(text in w for w in report.warnings)
+
+
+@pytest.mark.parametrize("spec", ["peaks", "bumps:20:1", "plate:20:0", "pattern:20:1",
+                                  "shell:20:2", "terrain:20:3", "profile:plate:20:4",
+                                  "profile:smooth:20:0"])
+def test_maps_in_metres_do_not_warn_of_millimetres_and_in_millimetres_do(spec):
+    m = load_map(spec)
+    assert not warned(check_map(m, 0.008), MM_WARNING)
+    in_mm = HeightMap(m.heights * 1000, m.spacing, name="mm")
+    assert warned(check_map(in_mm, 0.008), MM_WARNING)
+
+
+def test_a_whole_map_in_millimetres_warns_about_the_spacing():
+    m = load_map("bumps:20:1")
+    report = check_map(HeightMap(m.heights * 1000, 1.0), 0.008)
+    assert warned(report, MM_WARNING) and warned(report, "--spacing in millimetres")
+    assert warned(report, "spans under two samples")
+
+
+@pytest.mark.parametrize("radius, message", [(0.3, "does not fit"), (8.0, "give 0.008")])
+def test_a_radius_the_map_cannot_take_is_refused(radius, message):
+    with pytest.raises(MapError, match=message):
+        check_map(load_map("peaks"), radius)
+
+
+def test_a_tip_too_many_samples_wide_is_refused_before_any_work():
+    fine = HeightMap(np.zeros((2001, 2001)), 0.0001, name="fine")
+    with pytest.raises(MapError, match="coarser spacing"):
+        contact_surface(fine, 0.008)
+
+
+def test_plains_features_and_hidden_pits():
+    z = np.zeros((201, 201))
+    z[:, 98:102] = -0.005  # a slot 4 mm wide, 5 mm deep: narrower than an 8 mm tip
+    report = check_map(HeightMap(z, 0.001, name="slot"), 0.008)
+    assert report.smallest_feature is not None and report.smallest_feature <= 0.004
+    assert report.hidden_depth > 0.004 and 0.01 < report.hidden_share < 0.05
+    assert report.plains_share > 0.8 and warned(report, "plain")
+    tilted = HeightMap(np.tile(np.arange(201) * 0.0002, (201, 1)), 0.001, name="tilt")
+    flat = check_map(tilted, 0.008)
+    assert flat.smallest_feature is None and flat.hidden_share == 0
+    assert flat.steepest_slope == pytest.approx(0.2)
+
+
+def test_symmetries_of_surfaces_and_profiles():
+    assert len(check_map(load_map("eggcrate"), 0.008).symmetries) > 10
+    assert len(check_map(load_map("bumps:20:1"), 0.008).symmetries) == 0
+    x = np.arange(301) * 0.001
+    bump = np.exp(-((x - 0.15) / 0.02) ** 2) * 0.01  # mirror-symmetric about its middle
+    motions = profile_symmetries(bump, 0.001)
+    assert len(motions) >= 1 and motions[0][0] == 2
+    periodic = np.sin(2 * np.pi * x / 0.05) * 0.005
+    shifts = profile_symmetries(periodic, 0.001)
+    assert any(k == 0 and abs(abs(dx) - 0.05) < 0.002 for k, dx, _ in shifts)
+    rng = np.random.default_rng(0)
+    from scipy import ndimage
+
+    rough = ndimage.gaussian_filter1d(rng.standard_normal(301), 10)
+    assert len(profile_symmetries(rough, 0.001)) == 0
+
+
+def test_report_lines_and_json_say_everything():
+    report = check_map(load_map("pattern:20:3"), 0.008)
+    text = "\n".join(report.lines())
+    for word in ("heights", "slope", "features", "hidden", "plains", "symmetries"):
+        assert word in text
+    data = report.to_json()
+    assert data["radius"] == 0.008 and len(data["height_range"]) == 2

@@ -1,0 +1,50 @@
+"""`haptic map list|check`, and map checks as `haptic run` meets them."""
+
+import json
+
+import numpy as np
+import pytest
+
+from service.localization.maps import load_map
+from service.localization.presets import names
+from tools.cli import main
+
+
+def test_map_list_names_every_preset(capsys):
+    assert main(["map", "list"]) == 0
+    out = capsys.readouterr().out
+    for name in names():
+        assert name in out
+
+
+def test_map_check_prints_the_report_and_writes_json_and_figure(capsys, tmp_path):
+    path = tmp_path / "plate.npy"
+    np.save(path, load_map("plate:20:5").heights)
+    out_json, out_png = tmp_path / "r.json", tmp_path / "r.png"
+    assert main(["map", "check", str(path), "--spacing", "0.001", "--json", str(out_json),
+                 "--plot", str(out_png)]) == 0
+    text = capsys.readouterr().out
+    for word in ("heights", "slope", "smallest", "plains", "symmetries"):
+        assert word in text
+    assert json.loads(out_json.read_text())["plains_share"] > 0
+    assert out_png.stat().st_size > 10_000
+
+
+@pytest.mark.parametrize("radius", ["0.3", "8"])
+def test_run_with_a_radius_the_map_cannot_take_is_one_line_and_status_2(capsys, radius):
+    assert main(["run", "--quiet", "--radius", radius]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "does not fit" in err and "Traceback" not in err
+
+
+def test_map_check_refuses_a_bad_radius_the_same_way(capsys):
+    assert main(["map", "check", "peaks", "--radius", "0.3"]) == 2
+    assert "does not fit" in capsys.readouterr().err
+
+
+def test_run_warns_about_a_map_in_millimetres(capsys, tmp_path):
+    path = tmp_path / "mm.npy"
+    np.save(path, load_map("bumps:20:2").heights * 1000)
+    main(["run", "--quiet", "--map", str(path), "--spacing", "0.001", "--max-steps", "2",
+          "--algorithm", "elimination", "--policy", "paper"])
+    assert "look like millimetres" in capsys.readouterr().out
