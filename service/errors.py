@@ -15,6 +15,10 @@ class MapError(InputError):
     """A height map could not be loaded or is not a valid surface."""
 
 
+class ObjectError(InputError):
+    """An object's contour could not be loaded or is not a valid closed contour."""
+
+
 class ConfigError(InputError):
     """A setting or configuration file is invalid."""
 

@@ -1,0 +1,146 @@
+"""A planar object: a known closed contour in its own frame, in metres.
+
+A hand holds an object whose cross-section in the hand plane is known (paper §6). The
+contour is stored counter-clockwise with its origin at the area centroid (where gravity
+acts), and validated once here so every later stage can trust it: closed, simple (it does
+not cross itself), of plausible size in metres.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import shapely
+from shapely.geometry import LinearRing, Polygon
+from shapely.validation import explain_validity
+
+from service.errors import ObjectError
+
+LARGEST_EXTENT = 1.0
+"""Metres. A hand-held object spans less; a bigger one is a file in millimetres."""
+SMALLEST_EXTENT = 0.002
+"""Metres. Below 2 mm across there is nothing for a fingertip to feel."""
+CLOSURE_TOLERANCE = 1e-6
+"""Metres between a closed contour's first and last point."""
+
+
+@dataclass(frozen=True, eq=False)
+class Contour:
+    """A validated, counter-clockwise closed polygon; origin at its area centroid."""
+
+    points: np.ndarray
+    """(N, 2) vertices in metres, the last not repeating the first."""
+    name: str = "object"
+    polygon: Polygon = field(init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        points = np.ascontiguousarray(self.points, dtype=np.float64)
+        points.setflags(write=False)
+        object.__setattr__(self, "points", points)
+        object.__setattr__(self, "polygon", Polygon(points))
+
+    @property
+    def area(self) -> float:
+        return float(self.polygon.area)
+
+    @property
+    def perimeter(self) -> float:
+        return float(self.polygon.exterior.length)
+
+    @property
+    def max_radius(self) -> float:
+        """Largest distance from the centroid to the contour: the object's lever arm."""
+        return float(np.max(np.hypot(self.points[:, 0], self.points[:, 1])))
+
+    @property
+    def extent(self) -> float:
+        """Largest width across, metres."""
+        lo, hi = self.points.min(axis=0), self.points.max(axis=0)
+        return float(np.hypot(*(hi - lo)))
+
+    def min_width(self) -> float:
+        """Smallest width over all directions (the gap a pair of parallel jaws closes to)."""
+        hull = np.asarray(self.polygon.convex_hull.exterior.coords)[:-1]
+        edges = np.roll(hull, -1, axis=0) - hull
+        normals = np.column_stack([-edges[:, 1], edges[:, 0]])
+        normals /= np.maximum(np.hypot(normals[:, 0], normals[:, 1]), 1e-300)[:, None]
+        proj = hull @ normals.T
+        return float(np.min(proj.max(axis=0) - proj.min(axis=0)))
+
+    def resampled(self, spacing: float) -> tuple[np.ndarray, np.ndarray]:
+        """Points (M, 2) every `spacing` metres of arc, and their outward unit normals."""
+        ring = self.polygon.exterior
+        count = max(8, int(np.ceil(ring.length / spacing)))
+        distances = np.linspace(0.0, ring.length, count, endpoint=False)
+        pts = shapely.get_coordinates(shapely.line_interpolate_point(ring, distances))
+        ahead = shapely.get_coordinates(
+            shapely.line_interpolate_point(ring, (distances + 0.25 * spacing) % ring.length))
+        behind = shapely.get_coordinates(
+            shapely.line_interpolate_point(ring, (distances - 0.25 * spacing) % ring.length))
+        tangent = ahead - behind
+        tangent /= np.maximum(np.hypot(tangent[:, 0], tangent[:, 1]), 1e-300)[:, None]
+        return pts, np.column_stack([tangent[:, 1], -tangent[:, 0]])  # CCW: outward is right
+
+
+def make_contour(points: np.ndarray, name: str = "object", *, closed: bool = False
+                 ) -> Contour:
+    """Validate vertices (metres) into a `Contour`.
+
+    `closed=True` asks that the first point be repeated at the end (as in a CSV file, where
+    a missing return is how an open curve shows); otherwise the last vertex joins the first.
+    Errors name what is wrong and what to do.
+    """
+    try:
+        pts = np.asarray(points, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ObjectError(f"object '{name}': vertices must be numbers") from None
+    if pts.ndim != 2 or pts.shape[1] != 2:
+        raise ObjectError(f"object '{name}': vertices must be rows of two coordinates "
+                          f"(x, z in metres), got shape {pts.shape}")
+    if not np.all(np.isfinite(pts)):
+        raise ObjectError(f"object '{name}': {int(np.sum(~np.isfinite(pts)))} coordinates are "
+                          "not finite numbers")
+    if closed:
+        gap = float(np.hypot(*(pts[-1] - pts[0]))) if len(pts) else 0.0
+        if len(pts) < 4 or gap > CLOSURE_TOLERANCE:
+            raise ObjectError(f"object '{name}': the contour is open (its last point is "
+                              f"{gap * 1e3:.3g} mm from its first); repeat the first point at "
+                              "the end to close it")
+    keep = np.ones(len(pts), dtype=bool)
+    if len(pts) > 1:
+        keep[1:] = np.hypot(*(np.diff(pts, axis=0).T)) > CLOSURE_TOLERANCE
+    pts = pts[keep]
+    if len(pts) > 1 and np.hypot(*(pts[-1] - pts[0])) <= CLOSURE_TOLERANCE:
+        pts = pts[:-1]
+    if len(pts) < 3:
+        raise ObjectError(f"object '{name}': a contour needs at least 3 distinct vertices, "
+                          f"got {len(pts)}")
+    span = float(np.hypot(*(pts.max(axis=0) - pts.min(axis=0))))
+    if span > LARGEST_EXTENT:
+        raise ObjectError(f"object '{name}' spans {span:.3g} m across: coordinates are metres "
+                          "(a file in millimetres needs scaling by 0.001)")
+    if span < SMALLEST_EXTENT:
+        raise ObjectError(f"object '{name}' spans only {span * 1e3:.3g} mm across: coordinates "
+                          "are metres, and a fingertip needs an object at least 2 mm wide")
+    ring = LinearRing(pts)
+    if not ring.is_simple:
+        where = explain_validity(Polygon(pts))
+        raise ObjectError(f"object '{name}': the contour crosses itself ({where}); give a "
+                          "simple closed outline")
+    polygon = Polygon(pts)
+    if polygon.area <= (1e-3 * span) ** 2:
+        raise ObjectError(f"object '{name}': the contour encloses no area")
+    if not ring.is_ccw:
+        pts = pts[::-1]
+    centroid = np.asarray(polygon.centroid.coords[0])
+    return Contour(points=pts - centroid, name=name)
+
+
+def check_fits(contour: Contour, radius: float) -> None:
+    """Refuse an object too small to explore with a fingertip of `radius` metres."""
+    width = contour.min_width()
+    if width < radius:
+        raise ObjectError(f"object '{contour.name}' is {width * 1e3:.3g} mm wide at its "
+                          f"narrowest, less than the fingertip radius {radius * 1e3:.3g} mm: "
+                          "too small to explore with this tip")

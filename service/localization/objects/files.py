@@ -1,0 +1,120 @@
+"""Where objects come from: a preset family member, a polygon CSV, or a mesh's cross-section.
+
+* `NAME[:SEED]` - a preset (`presets.py`);
+* `FILE.csv` - one vertex per row, `x,z` in metres, the first row repeated at the end to
+  close the outline (lines starting with `#` are comments);
+* `FILE.stl|.obj|.ply` - the outline where a plane cuts the mesh (trimesh). The plane is
+  `x=V`, `y=V` or `z=V` (metres), or six numbers `PX,PY,PZ,NX,NY,NZ` (a point and a
+  normal); by default the plane z = (the mesh's centroid z).
+
+`units="mm"` reads a file whose coordinates are millimetres.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+from shapely.geometry import Polygon
+from shapely.ops import unary_union
+
+from service.errors import ObjectError
+from service.localization.objects.contour import Contour, make_contour
+from service.localization.objects.presets import preset_object
+
+MESH_SUFFIXES = {".stl", ".obj", ".ply"}
+UNITS = {"m": 1.0, "mm": 0.001}
+
+
+def load_object(spec: str, *, plane: str | None = None, units: str = "m") -> Contour:
+    """A preset (`keyed:3`) or a file (see the module docstring)."""
+    if units not in UNITS:
+        raise ObjectError(f"object units must be one of {', '.join(UNITS)}, got '{units}'")
+    path = Path(spec)
+    suffix = path.suffix.lower()
+    if suffix not in MESH_SUFFIXES | {".csv"}:
+        if plane is not None:
+            raise ObjectError("--plane applies to mesh files (.stl, .obj, .ply), not presets")
+        return preset_object(spec)
+    if not path.is_file():
+        raise ObjectError(f"object file '{spec}' does not exist")
+    if suffix == ".csv":
+        if plane is not None:
+            raise ObjectError("--plane applies to mesh files, not a CSV outline")
+        return _csv(path, UNITS[units])
+    return mesh_section(path, plane, UNITS[units])
+
+
+def _csv(path: Path, scale: float) -> Contour:
+    try:
+        points = np.loadtxt(path, delimiter=",", comments="#", ndmin=2)
+    except (ValueError, OSError) as exc:
+        raise ObjectError(f"object file '{path}' could not be read as x,z rows: "
+                          f"{str(exc).splitlines()[0]}") from None
+    return make_contour(points * scale, path.stem, closed=True)
+
+
+def parse_plane(text: str | None, centroid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(origin, unit normal) of a cutting plane from `x=V` / `y=V` / `z=V` or six numbers."""
+    if text is None:
+        return np.array([0.0, 0.0, centroid[2]]), np.array([0.0, 0.0, 1.0])
+    axis, eq, value = text.partition("=")
+    try:
+        if eq:
+            index = "xyz".index(axis.strip().lower())
+            origin = np.zeros(3)
+            origin[index] = float(value)
+            normal = np.eye(3)[index]
+        else:
+            numbers = [float(v) for v in text.split(",")]
+            if len(numbers) != 6:
+                raise ValueError
+            origin, normal = np.array(numbers[:3]), np.array(numbers[3:])
+    except ValueError:
+        raise ObjectError(f"--plane takes x=V, y=V, z=V or PX,PY,PZ,NX,NY,NZ (metres), "
+                          f"got '{text}'") from None
+    length = float(np.linalg.norm(normal))
+    if not (np.all(np.isfinite(origin)) and np.isfinite(length) and length > 0):
+        raise ObjectError(f"--plane '{text}': the point must be finite and the normal non-zero")
+    return origin, normal / length
+
+
+def _plane_basis(normal: np.ndarray) -> np.ndarray:
+    """(2, 3): in-plane axes (u, v) with u x v = normal; for the z=V plane, u = x, v = y."""
+    helper = np.array([1.0, 0.0, 0.0]) if abs(normal[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    u = helper - normal * (helper @ normal)
+    u /= np.linalg.norm(u)
+    return np.stack([u, np.cross(normal, u)])
+
+
+def mesh_section(path: Path, plane: str | None, scale: float = 1.0) -> Contour:
+    """The outer outline where `plane` cuts the mesh in `path`."""
+    import trimesh  # heavy: only when a mesh is asked for
+
+    try:
+        mesh = trimesh.load(str(path), force="mesh")
+    except Exception as exc:  # trimesh raises many kinds on a bad file
+        raise ObjectError(f"object file '{path}' could not be read as a mesh: "
+                          f"{str(exc).splitlines()[0] if str(exc) else type(exc).__name__}"
+                          ) from None
+    if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
+        raise ObjectError(f"object file '{path}' holds no triangles")
+    mesh.apply_scale(scale)
+    origin, normal = parse_plane(plane, np.asarray(mesh.centroid))
+    section = mesh.section(plane_origin=origin, plane_normal=normal)
+    if section is None or len(section.entities) == 0:
+        lo, hi = mesh.bounds
+        raise ObjectError(f"the plane misses the mesh '{path.name}' (it spans "
+                          f"{np.round(lo, 4).tolist()} to {np.round(hi, 4).tolist()} m)")
+    if not all(bool(e.closed) for e in section.entities):
+        raise ObjectError(f"the section of '{path.name}' is open (the mesh has a hole where "
+                          "the plane cuts it): repair the mesh or choose another --plane")
+    basis = _plane_basis(normal)
+    loops = [Polygon((e.discrete(section.vertices) - origin) @ basis.T)
+             for e in section.entities]
+    # inner loops are holes the fingers never reach: the union keeps the outer outline
+    shape = unary_union([loop.buffer(0) for loop in loops])
+    if not isinstance(shape, Polygon):
+        raise ObjectError(f"the plane cuts '{path.name}' into {len(shape.geoms)} separate "
+                          "pieces; choose a --plane through one part")
+    return make_contour(np.asarray(shape.exterior.coords)[:-1], path.stem)

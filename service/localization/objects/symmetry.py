@@ -1,0 +1,107 @@
+"""Turns under which an object looks (almost) the same: the rivals a declaration must beat.
+
+A rigid motion that maps a bounded contour onto itself fixes its centroid, so in the plane
+it is a turn about the centroid. Under an exact symmetry (an ellipse's half turn) two poses
+explain every reading equally and no exploration can decide; under a near symmetry (the
+`keyed` shapes) they differ only where one feature is. A bounded hypothesis pool may never
+have sampled the rotated pose, so localizers test these images of their leading pose
+explicitly before declaring it (as `localizers/symmetry.py` does for periodic maps).
+"""
+
+from __future__ import annotations
+
+import weakref
+
+import numpy as np
+
+from service.localization.objects.field import ContactField
+
+_CACHE: weakref.WeakKeyDictionary[ContactField, np.ndarray] = weakref.WeakKeyDictionary()
+
+
+def _mismatch(field: ContactField, points: np.ndarray, motions: np.ndarray,
+              coverage: float) -> np.ndarray:
+    """Per motion (A, 3) = (turn, shift u, shift v), the `coverage` quantile of |distance|
+    of the moved outline's points (A,)."""
+    d, _, _ = field.distance(*_moved(points, motions))
+    return np.quantile(np.abs(d), coverage, axis=1)
+
+
+def _moved(points: np.ndarray, motions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    c, s = np.cos(motions[:, :1]), np.sin(motions[:, :1])
+    u = c * points[None, :, 0] - s * points[None, :, 1] + motions[:, 1:2]
+    v = s * points[None, :, 0] + c * points[None, :, 1] + motions[:, 2:3]
+    return u, v
+
+
+def _fit(field: ContactField, points: np.ndarray, motions: np.ndarray, inliers: float,
+         iterations: int = 8) -> np.ndarray:
+    """Gauss-Newton on (turn, shift) per motion, over the best-matching `inliers` share of
+    the outline: a near symmetry need not turn about the centroid (the one feature moves
+    the centroid off the rest's centre), and the feature must not pull the fit."""
+    motions = motions.copy()
+    for _ in range(iterations):
+        u, v = _moved(points, motions)
+        d, gu, gv = field.distance(u, v)
+        use = np.abs(d) <= np.quantile(np.abs(d), inliers, axis=1, keepdims=True)
+        # d(u, v)/d(turn) = (-(v - shift v), u - shift u)
+        jt = gu * -(v - motions[:, 2:3]) + gv * (u - motions[:, 1:2])
+        jac = np.stack([jt, gu, gv], axis=-1) * use[..., None]  # (A, P, 3)
+        normal = np.einsum("apk,apl->akl", jac, jac) + 1e-12 * np.eye(3)
+        rhs = np.einsum("apk,ap->ak", jac, d * use)
+        step = np.linalg.solve(normal, rhs[..., None])[..., 0]
+        motions -= np.clip(step, [-0.05, -0.002, -0.002], [0.05, 0.002, 0.002])
+    return motions
+
+
+def near_symmetries(field: ContactField, tolerance: float = 0.001, coverage: float = 0.6,
+                    resolution: float = np.deg2rad(2.0), exclude: float = np.deg2rad(15.0)
+                    ) -> np.ndarray:
+    """Motions (A, 3) = (turn, shift u, shift v), best match first, under which at least
+    `coverage` of the outline lands within `tolerance` metres of itself. Turns within
+    `exclude` of none are not rivals. A round outline (most turns match) returns turns every
+    5 degrees: its heading cannot be told at all."""
+    cached = _CACHE.get(field)
+    if cached is not None:
+        return cached
+    points, _ = field.contour.resampled(0.001)
+    turns = np.arange(exclude, 2 * np.pi - exclude + 1e-9, resolution)
+    coarse = np.column_stack([turns, np.zeros((len(turns), 2))])
+    err = _mismatch(field, points, coarse, coverage)
+    if np.mean(err <= tolerance) > 0.3:
+        round_turns = np.arange(1, 72) * np.deg2rad(5.0)
+        found = np.column_stack([round_turns, np.zeros((len(round_turns), 2))])
+    else:
+        left, right = np.roll(err, 1), np.roll(err, -1)
+        left[0], right[-1] = np.inf, np.inf
+        # a shifted match can hide behind a coarse mismatch of a few millimetres
+        minima = np.flatnonzero((err <= left) & (err <= right) & (err <= 0.005))
+        fitted = _fit(field, points, coarse[minima], inliers=0.5)
+        fitted_err = _mismatch(field, points, fitted, coverage)
+        keep = (fitted_err <= tolerance) & (np.abs(np.angle(np.exp(1j * fitted[:, 0])))
+                                            >= exclude)
+        found = fitted[keep][np.argsort(fitted_err[keep])]
+        if len(found) > 1:  # two coarse minima that fitted onto one motion are one
+            distinct = [0]
+            for i in range(1, len(found)):
+                if np.all(np.abs(np.angle(np.exp(1j * (found[i, 0] - found[distinct, 0]))))
+                          > np.deg2rad(2.0)):
+                    distinct.append(i)
+            found = found[distinct]
+    found = np.array(found, dtype=np.float64).reshape(-1, 3)
+    found[:, 0] = (found[:, 0] + np.pi) % (2 * np.pi) - np.pi
+    found.setflags(write=False)
+    _CACHE[field] = found
+    return found
+
+
+def images(pose: np.ndarray, motions: np.ndarray) -> np.ndarray:
+    """The poses (A, 3) that place the object where `pose` (3,) places it, up to each
+    near symmetry m: pose o m, which reads the same wherever the outline matches."""
+    if len(motions) == 0:
+        return np.empty((0, 3))
+    c, s = np.cos(pose[2]), np.sin(pose[2])
+    x = pose[0] + c * motions[:, 1] - s * motions[:, 2]
+    z = pose[1] + s * motions[:, 1] + c * motions[:, 2]
+    heading = (pose[2] + motions[:, 0] + np.pi) % (2 * np.pi) - np.pi
+    return np.column_stack([x, z, heading])

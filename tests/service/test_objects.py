@@ -1,0 +1,138 @@
+"""Planar objects: presets, files, the signed-distance contact field and near symmetries."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import trimesh
+from shapely.geometry import Point
+
+from service.errors import ObjectError
+from service.localization.objects.contour import check_fits, make_contour
+from service.localization.objects.field import contact_field
+from service.localization.objects.files import load_object
+from service.localization.objects.presets import PRESETS, preset_object
+from service.localization.objects.symmetry import images, near_symmetries
+
+
+@pytest.mark.parametrize("name", sorted(PRESETS))
+def test_presets_are_seeded_families_of_valid_contours(name):
+    a, b, again = preset_object(f"{name}:1"), preset_object(f"{name}:2"), preset_object(
+        f"{name}:1")
+    np.testing.assert_array_equal(a.points, again.points)
+    assert a.points.shape != b.points.shape or not np.allclose(a.points, b.points)
+    for c in (a, b):
+        assert c.polygon.exterior.is_ccw and c.polygon.is_valid
+        centroid = np.asarray(c.polygon.centroid.coords[0])
+        assert np.hypot(*centroid) < 1e-9  # gravity acts at the origin
+        assert 0.03 < c.extent < 0.08
+
+
+def test_preset_errors():
+    with pytest.raises(ObjectError, match="unknown object 'cube'"):
+        preset_object("cube")
+    with pytest.raises(ObjectError, match="seed must be a whole number"):
+        preset_object("blob:x")
+
+
+def test_field_matches_exact_distances_and_has_unit_gradient():
+    contour = preset_object("blob:3")
+    field = contact_field(contour)
+    rng = np.random.default_rng(0)
+    u, v = rng.uniform(-0.04, 0.04, 400), rng.uniform(-0.04, 0.04, 400)
+    d, gu, gv = field.distance(u, v)
+    exact = np.array([contour.polygon.exterior.distance(Point(p)) for p in zip(u, v,
+                                                                                strict=True)])
+    exact *= np.where([contour.polygon.contains(Point(p)) for p in zip(u, v, strict=True)],
+                      -1, 1)
+    near = np.abs(exact - 0.008) < 0.004  # where fingertip centres are
+    assert near.sum() > 20
+    np.testing.assert_allclose(d[near], exact[near], atol=2e-5)
+    np.testing.assert_allclose(np.hypot(gu, gv)[near], 1.0, atol=0.05)
+
+
+def test_near_symmetries_find_the_half_turns():
+    ellipse = near_symmetries(contact_field(preset_object("ellipse:0")))
+    assert len(ellipse) == 1 and abs(abs(ellipse[0, 0]) - np.pi) < 1e-3
+    keyed = near_symmetries(contact_field(preset_object("keyed:1")))
+    assert len(keyed) >= 1 and abs(abs(keyed[0, 0]) - np.pi) < np.deg2rad(3)
+    assert len(near_symmetries(contact_field(preset_object("blob:0")))) == 0
+    # an image of a pose under the ellipse's half turn puts the outline where the pose does
+    pose = np.array([0.01, -0.02, 0.4])
+    (image,) = images(pose, ellipse)
+    contour = preset_object("ellipse:0").points
+
+    def placed(p):
+        c, s = np.cos(p[2]), np.sin(p[2])
+        return contour @ np.array([[c, s], [-s, c]]) + p[:2]
+
+    field = contact_field(preset_object("ellipse:0"))
+    q = placed(image) - pose[:2]
+    c, s = np.cos(pose[2]), np.sin(pose[2])
+    back = q @ np.array([[c, -s], [s, c]])
+    d, _, _ = field.distance(back[:, 0], back[:, 1])
+    assert np.max(np.abs(d)) < 1e-5
+
+
+def _write_csv(path, points):
+    path.write_text("# x,z in metres\n" + "\n".join(f"{x},{z}" for x, z in points))
+
+
+def test_csv_outline_round_trip_and_errors(tmp_path):
+    square = [(0, 0), (0.04, 0), (0.04, 0.04), (0, 0.04), (0, 0)]
+    good = tmp_path / "square.csv"
+    _write_csv(good, square)
+    c = load_object(str(good))
+    assert c.area == pytest.approx(0.04**2)
+    assert np.allclose(np.sort(np.abs(c.points), axis=0), 0.02)
+    cases = {
+        "open.csv": (square[:-1], "the contour is open"),
+        "bowtie.csv": ([(0, 0), (0.04, 0.04), (0.04, 0), (0, 0.04), (0, 0)], "crosses itself"),
+        "mm.csv": ([(x * 1000, z * 1000) for x, z in square], "a file in millimetres"),
+        "tiny.csv": ([(x / 100, z / 100) for x, z in square], "at least 2 mm wide"),
+    }
+    for name, (points, message) in cases.items():
+        _write_csv(tmp_path / name, points)
+        with pytest.raises(ObjectError, match=message):
+            load_object(str(tmp_path / name))
+    (tmp_path / "words.csv").write_text("a,b\nc,d\n")
+    with pytest.raises(ObjectError, match="could not be read as x,z rows"):
+        load_object(str(tmp_path / "words.csv"))
+    assert load_object(str(tmp_path / "mm.csv"), units="mm").area == pytest.approx(0.04**2)
+    with pytest.raises(ObjectError, match="does not exist"):
+        load_object(str(tmp_path / "missing.csv"))
+
+
+def test_too_small_for_the_fingertip():
+    slim = make_contour(np.array([[0, 0], [0.05, 0], [0.05, 0.004], [0, 0.004]]), "slim")
+    with pytest.raises(ObjectError, match="less than the fingertip radius 8 mm"):
+        check_fits(slim, 0.008)
+    check_fits(preset_object("blob"), 0.008)
+
+
+def test_mesh_section_through_a_plane(tmp_path):
+    box = trimesh.creation.box(extents=(0.05, 0.03, 0.02))
+    box.apply_translation((0.1, 0.0, 0.0))
+    path = tmp_path / "part.stl"
+    box.export(path)
+    c = load_object(str(path), plane="z=0.005")
+    assert c.area == pytest.approx(0.05 * 0.03, rel=1e-6)
+    side = load_object(str(path), plane="0.1,0,0,1,0,0")  # the plane x = 0.1
+    assert side.area == pytest.approx(0.03 * 0.02, rel=1e-6)
+    with pytest.raises(ObjectError, match="the plane misses the mesh"):
+        load_object(str(path), plane="z=0.5")
+    with pytest.raises(ObjectError, match="--plane takes"):
+        load_object(str(path), plane="w=1")
+    two = trimesh.util.concatenate([box, box.copy().apply_translation((0.1, 0, 0))])
+    two.export(tmp_path / "two.stl")
+    with pytest.raises(ObjectError, match="into 2 separate pieces"):
+        load_object(str(tmp_path / "two.stl"), plane="z=0")
+    holed = box.copy()
+    holed.update_faces(np.arange(len(holed.faces)) != 0)  # a side triangle gone
+    holed.export(tmp_path / "holed.stl")
+    with pytest.raises(ObjectError, match="is open"):
+        load_object(str(tmp_path / "holed.stl"), plane="z=0")
+    (tmp_path / "junk.stl").write_bytes(b"\x00\x01 not a mesh")
+    with pytest.raises(ObjectError, match="junk.stl"):
+        load_object(str(tmp_path / "junk.stl"))
+
