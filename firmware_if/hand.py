@@ -1,4 +1,4 @@
-"""Hand descriptions: a finger as a serial chain of revolute joints on Dynamixel servos.
+"""Hand descriptions: fingers as serial chains of revolute joints on Dynamixel servos.
 
 Loaded from TOML (a preset name from `firmware_if/hands/` or a file path), validated once in
 `__post_init__` with errors that name the field to fix. Lengths in metres, angles in radians.
@@ -83,8 +83,8 @@ class TipRoll:
 
 
 @dataclass(frozen=True)
-class Hand:
-    """A finger: joints from base to tip, the fingertip sphere and bus settings."""
+class Finger:
+    """One finger: joints from base to tip and the fingertip sphere that rolls on the object."""
 
     name: str
     joints: tuple[Joint, ...]
@@ -93,42 +93,35 @@ class Hand:
     radius: float
     home: tuple[float, ...]
     """Joint angles of the start posture (the tip is then lowered onto the surface)."""
-    baud: int = 1_000_000
-    return_delay_us: int = 0
-    goal_current_a: float = 0.4
-    """Current bound in current-based position mode: how hard the tip presses."""
-    profile_velocity_rad_s: float = 0.0
-    """Profile velocity of every joint (0: as fast as the servo can)."""
     tip_roll: TipRoll | None = None
+    base: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    """Where the chain starts in the hand plane: (x, z) metres and the angle (radians, from
+    hand x towards hand z) its own x axis points at. A lone finger's is (0, 0, 0)."""
     planar: bool = field(default=False)
     """All joint axes parallel: the centre moves in a vertical plane (explores a profile)."""
 
     def __post_init__(self) -> None:
+        where = f"finger '{self.name}'"
         if not self.joints:
-            raise HandConfigError(f"hand '{self.name}': needs at least one [[joints]] entry")
-        ids = [j.id for j in self.joints] + ([self.tip_roll.id] if self.tip_roll else [])
-        if len(set(ids)) != len(ids):
-            raise HandConfigError(f"hand '{self.name}': servo ids must be unique, got {ids}")
-        object.__setattr__(self, "tip", _vec3(self.tip, f"hand '{self.name}': tip"))
+            raise HandConfigError(f"{where}: needs at least one [[joints]] entry")
+        object.__setattr__(self, "tip", _vec3(self.tip, f"{where}: tip"))
         if not (math.isfinite(self.radius) and self.radius > 0):
-            raise HandConfigError(f"hand '{self.name}': radius must be > 0 metres, "
-                                  f"got {self.radius}")
+            raise HandConfigError(f"{where}: radius must be > 0 metres, got {self.radius}")
         if len(self.home) != len(self.joints):
-            raise HandConfigError(f"hand '{self.name}': home needs {len(self.joints)} angles, "
+            raise HandConfigError(f"{where}: home needs {len(self.joints)} angles, "
                                   f"got {len(self.home)}")
         for j, q in zip(self.joints, self.home, strict=True):
             if not j.limits[0] <= q <= j.limits[1]:
-                raise HandConfigError(f"hand '{self.name}': home angle {q} of joint '{j.name}' "
+                raise HandConfigError(f"{where}: home angle {q} of joint '{j.name}' "
                                       f"is outside its limits {list(j.limits)}")
-        if self.baud not in BAUD_RATES.values():
-            raise HandConfigError(f"hand '{self.name}': baud must be one of "
-                                  f"{sorted(BAUD_RATES.values())}, got {self.baud}")
-        if not 0 <= self.return_delay_us <= 508:
-            raise HandConfigError(f"hand '{self.name}': return_delay_us must be 0..508")
-        if not 0 < self.goal_current_a <= 3.2:
-            raise HandConfigError(f"hand '{self.name}': goal_current_a must be in (0, 3.2] A")
-        if not self.profile_velocity_rad_s >= 0:
-            raise HandConfigError(f"hand '{self.name}': profile_velocity_rad_s must be >= 0")
+        try:
+            base = tuple(float(v) for v in self.base)
+        except (TypeError, ValueError):
+            base = ()
+        if len(base) != 3 or not all(math.isfinite(v) for v in base):
+            raise HandConfigError(f"{where}: base must be [x, z, angle] (metres, metres, "
+                                  f"radians), got {list(self.base)}")
+        object.__setattr__(self, "base", base)
         axes = np.array([j.axis for j in self.joints])
         object.__setattr__(self, "planar", bool(np.all(np.abs(axes @ axes[0]) > 1 - 1e-9)))
 
@@ -146,27 +139,119 @@ class Hand:
         return np.array([j.limits[1] for j in self.joints])
 
 
+@dataclass(frozen=True)
+class Hand:
+    """Fingers on one servo bus, and the bus settings. A single finger is a hand of one:
+    `joints`, `tip`, `radius`, `home`, `tip_roll`, `planar`, `lower` and `upper` are its."""
+
+    name: str
+    fingers: tuple[Finger, ...]
+    baud: int = 1_000_000
+    return_delay_us: int = 0
+    goal_current_a: float = 0.4
+    """Current bound in current-based position mode: how hard the tip presses."""
+    profile_velocity_rad_s: float = 0.0
+    """Profile velocity of every joint (0: as fast as the servo can)."""
+    grasp_centre: tuple[float, float] = (0.0, 0.0)
+    """Where in the hand plane (x, z metres) a hand of several fingers holds an object."""
+
+    def __post_init__(self) -> None:
+        if not self.fingers:
+            raise HandConfigError(f"hand '{self.name}': needs at least one finger")
+        names = [f.name for f in self.fingers]
+        if len(set(names)) != len(names):
+            raise HandConfigError(f"hand '{self.name}': finger names must be unique, "
+                                  f"got {names}")
+        ids = list(self.ids)
+        if len(set(ids)) != len(ids):
+            raise HandConfigError(f"hand '{self.name}': servo ids must be unique, got {ids}")
+        if len(self.fingers) > 1:
+            for f in self.fingers:
+                if not (f.planar and abs(abs(f.joints[0].axis[1]) - 1) < 1e-9):
+                    raise HandConfigError(
+                        f"hand '{self.name}': finger '{f.name}': the fingers of a hand work "
+                        "in its x-z plane, so every joint axis must be [0, 1, 0] or [0, -1, 0]")
+        if self.baud not in BAUD_RATES.values():
+            raise HandConfigError(f"hand '{self.name}': baud must be one of "
+                                  f"{sorted(BAUD_RATES.values())}, got {self.baud}")
+        if not 0 <= self.return_delay_us <= 508:
+            raise HandConfigError(f"hand '{self.name}': return_delay_us must be 0..508")
+        if not 0 < self.goal_current_a <= 3.2:
+            raise HandConfigError(f"hand '{self.name}': goal_current_a must be in (0, 3.2] A")
+        if not self.profile_velocity_rad_s >= 0:
+            raise HandConfigError(f"hand '{self.name}': profile_velocity_rad_s must be >= 0")
+        try:
+            centre = tuple(float(v) for v in self.grasp_centre)
+        except (TypeError, ValueError):
+            centre = ()
+        if len(centre) != 2 or not all(math.isfinite(v) for v in centre):
+            raise HandConfigError(f"hand '{self.name}': grasp_centre must be [x, z] metres")
+        object.__setattr__(self, "grasp_centre", centre)
+
+    @property
+    def ids(self) -> tuple[int, ...]:
+        """Every servo id on the bus, finger by finger."""
+        return tuple(i for f in self.fingers for i in f.ids)
+
+    @property
+    def finger(self) -> Finger:
+        """The one finger of a single-finger hand."""
+        if len(self.fingers) != 1:
+            raise HandConfigError(f"hand '{self.name}' has {len(self.fingers)} fingers; this "
+                                  "needs a single finger (e.g. the planar or spatial preset)")
+        return self.fingers[0]
+
+    joints = property(lambda self: self.finger.joints)
+    tip = property(lambda self: self.finger.tip)
+    radius = property(lambda self: self.finger.radius)
+    home = property(lambda self: self.finger.home)
+    tip_roll = property(lambda self: self.finger.tip_roll)
+    base = property(lambda self: self.finger.base)
+    planar = property(lambda self: self.finger.planar)
+    lower = property(lambda self: self.finger.lower)
+    upper = property(lambda self: self.finger.upper)
+
+
+def _finger_from_dict(data: dict[str, Any], name: str, model: str) -> Finger:
+    joints = tuple(
+        Joint(name=str(j.get("name", f"joint{i}")), id=int(j["id"]), axis=j["axis"],
+              origin=j.get("origin", (0.0, 0.0, 0.0)), limits=tuple(j["limits"]),
+              zero_ticks=int(j.get("zero_ticks", POSITION_CENTRE)),
+              direction=int(j.get("direction", 1)),
+              model=str(j.get("model", data.get("model", model))))
+        for i, j in enumerate(data.get("joints", [])))
+    roll = data.get("tip_roll")
+    tip_roll = None if roll is None else TipRoll(
+        id=int(roll["id"]), zero_ticks=int(roll.get("zero_ticks", POSITION_CENTRE)),
+        direction=int(roll.get("direction", 1)))
+    return Finger(name=str(data.get("name", name)), joints=joints, tip=data["tip"],
+                  radius=float(data["radius"]), home=tuple(float(q) for q in data["home"]),
+                  tip_roll=tip_roll, base=tuple(data.get("base", (0.0, 0.0, 0.0))))
+
+
 def hand_from_dict(data: dict[str, Any], name: str = "hand") -> Hand:
-    """Build a hand from parsed TOML, turning missing or mistyped fields into clear errors."""
+    """Build a hand from parsed TOML, turning missing or mistyped fields into clear errors.
+
+    Either a `[[fingers]]` list (each with its own joints, tip, radius, home, base and
+    optional tip_roll) or, for a single finger, those fields at the top level.
+    """
+    hand_name = str(data.get("name", name))
     try:
-        joints = tuple(
-            Joint(name=str(j.get("name", f"joint{i}")), id=int(j["id"]), axis=j["axis"],
-                  origin=j.get("origin", (0.0, 0.0, 0.0)), limits=tuple(j["limits"]),
-                  zero_ticks=int(j.get("zero_ticks", POSITION_CENTRE)),
-                  direction=int(j.get("direction", 1)),
-                  model=str(j.get("model", data.get("model", "XM430-W350"))))
-            for i, j in enumerate(data.get("joints", [])))
-        roll = data.get("tip_roll")
-        tip_roll = None if roll is None else TipRoll(
-            id=int(roll["id"]), zero_ticks=int(roll.get("zero_ticks", POSITION_CENTRE)),
-            direction=int(roll.get("direction", 1)))
-        return Hand(name=str(data.get("name", name)), joints=joints, tip=data["tip"],
-                    radius=float(data["radius"]), home=tuple(float(q) for q in data["home"]),
+        model = str(data.get("model", "XM430-W350"))
+        if "fingers" in data:
+            if "joints" in data:
+                raise HandConfigError(f"hand '{hand_name}': give [[fingers]] or top-level "
+                                      "[[joints]], not both")
+            fingers = tuple(_finger_from_dict(f, f"finger{i}", model)
+                            for i, f in enumerate(data["fingers"]))
+        else:
+            fingers = (_finger_from_dict(data, hand_name, model),)
+        return Hand(name=hand_name, fingers=fingers,
                     baud=int(data.get("baud", 1_000_000)),
                     return_delay_us=int(data.get("return_delay_us", 0)),
                     goal_current_a=float(data.get("goal_current_a", 0.4)),
                     profile_velocity_rad_s=float(data.get("profile_velocity_rad_s", 0.0)),
-                    tip_roll=tip_roll)
+                    grasp_centre=tuple(data.get("grasp_centre", (0.0, 0.0))))
     except KeyError as exc:
         raise HandConfigError(f"hand '{name}': missing field {exc.args[0]!r}") from None
     except (TypeError, ValueError) as exc:
@@ -180,7 +265,7 @@ def presets() -> list[str]:
 
 
 def load_hand(spec: str) -> Hand:
-    """A preset name ('planar', 'spatial') or a path to a TOML hand description."""
+    """A preset name ('planar', 'spatial', 'two-finger', ...) or a path to a TOML file."""
     path = PRESET_DIR / f"{spec}.toml"
     if not path.is_file():
         path = Path(spec)

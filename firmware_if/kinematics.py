@@ -1,7 +1,9 @@
 """Forward kinematics to the fingertip centre, its Jacobian, and damped-least-squares IK.
 
 Pure array functions over a batch of joint vectors q of shape (N, n) (a single (n,) vector
-works too): the emulator, the backend and the tests all call the same maths.
+works too): the emulator, the backend and the tests all call the same maths. They take one
+finger (`Finger`, or a single-finger `Hand`); a finger of a hand starts at its base pose in
+the hand's x-z plane, so every finger's centre comes out in the one hand frame.
 """
 
 from __future__ import annotations
@@ -10,7 +12,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from firmware_if.hand import Hand
+from firmware_if.hand import Finger, Hand
+
+Chain = Finger | Hand
+"""One serial chain: a finger, or a hand of one."""
 
 
 def _rotations(axis: np.ndarray, q: np.ndarray) -> np.ndarray:
@@ -21,11 +26,20 @@ def _rotations(axis: np.ndarray, q: np.ndarray) -> np.ndarray:
     return np.eye(3) + s * k + (1 - c) * (k @ k)
 
 
-def _chain(hand: Hand, q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def base_frame(hand: Chain) -> tuple[np.ndarray, np.ndarray]:
+    """Rotation (3, 3) and origin (3,) of the chain's base in the hand frame: its x axis
+    turned by the base angle from hand x towards hand z (about hand -y)."""
+    x, z, angle = hand.base
+    c, s = np.cos(angle), np.sin(angle)
+    return np.array([[c, 0.0, -s], [0.0, 1.0, 0.0], [s, 0.0, c]]), np.array([x, 0.0, z])
+
+
+def _chain(hand: Chain, q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """World joint positions (N, n, 3), world joint axes (N, n, 3) and centres (N, 3)."""
     n_batch = q.shape[0]
-    rot = np.broadcast_to(np.eye(3), (n_batch, 3, 3)).copy()
-    pos = np.zeros((n_batch, 3))
+    base_rot, base_pos = base_frame(hand)
+    rot = np.broadcast_to(base_rot, (n_batch, 3, 3)).copy()
+    pos = np.broadcast_to(base_pos, (n_batch, 3)).copy()
     positions, axes = [], []
     for i, joint in enumerate(hand.joints):
         pos = pos + rot @ np.asarray(joint.origin)
@@ -42,21 +56,21 @@ def _batch(q: np.ndarray | tuple[float, ...]) -> tuple[np.ndarray, bool]:
     return (q[None, :], True) if q.ndim == 1 else (q, False)
 
 
-def forward(hand: Hand, q: np.ndarray | tuple[float, ...]) -> np.ndarray:
+def forward(hand: Chain, q: np.ndarray | tuple[float, ...]) -> np.ndarray:
     """Fingertip centre in the hand frame (metres): (N, 3), or (3,) for one joint vector."""
     qb, single = _batch(q)
     centre = _chain(hand, qb)[2]
     return centre[0] if single else centre
 
 
-def jacobian(hand: Hand, q: np.ndarray | tuple[float, ...]) -> np.ndarray:
+def jacobian(hand: Chain, q: np.ndarray | tuple[float, ...]) -> np.ndarray:
     """d centre / d q: (N, 3, n), or (3, n) for one joint vector."""
     qb, single = _batch(q)
     jac = _centre_and_jacobian(hand, qb)[1]
     return jac[0] if single else jac
 
 
-def _centre_and_jacobian(hand: Hand, qb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _centre_and_jacobian(hand: Chain, qb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Centres (N, 3) and Jacobians (N, 3, n) of a batch, from one pass down the chain."""
     positions, axes, centre = _chain(hand, qb)
     return centre, np.cross(axes, centre[:, None, :] - positions).transpose(0, 2, 1)
@@ -72,7 +86,7 @@ class IKResult:
     """Whether the error is within tolerance."""
 
 
-def inverse(hand: Hand, target: np.ndarray, q0: np.ndarray | tuple[float, ...], *,
+def inverse(hand: Chain, target: np.ndarray, q0: np.ndarray | tuple[float, ...], *,
             damping: float = 1e-3, tolerance: float = 1e-5, iterations: int = 100
             ) -> IKResult:
     """Damped least squares from `q0` towards `target` centre(s), clamped to joint limits.

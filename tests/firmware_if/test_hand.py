@@ -59,3 +59,36 @@ def test_file_path_loads(tmp_path):
     path = tmp_path / "mine.toml"
     path.write_text((PRESET_DIR / "planar.toml").read_text())
     assert load_hand(str(path)).planar
+
+
+def test_hand_presets_of_several_fingers():
+    two, three = load_hand("two-finger"), load_hand("three-finger")
+    assert [f.name for f in two.fingers] == ["left", "right"]
+    assert len(three.fingers) == 3
+    assert two.ids == (1, 2, 3, 4, 5, 6)
+    assert all(f.planar and f.tip_roll is not None for f in two.fingers + three.fingers)
+    with pytest.raises(HandConfigError, match="has 2 fingers; this needs a single finger"):
+        _ = two.joints
+    single = load_hand("planar")
+    assert single.fingers[0].joints == single.joints  # a finger is a hand of one
+
+
+def two_finger_dict() -> dict:
+    return tomllib.loads((PRESET_DIR / "two-finger.toml").read_text())
+
+
+@pytest.mark.parametrize(("edit", "message"), [
+    (lambda d: d["fingers"][1]["joints"][0].update(id=1), "servo ids must be unique"),
+    (lambda d: d["fingers"][1].update(name="left"), "finger names must be unique"),
+    (lambda d: d["fingers"][0]["joints"][0].update(axis=[0, 0, 1]),
+     "every joint axis must be \\[0, 1, 0\\]"),
+    (lambda d: d["fingers"][0].update(base=[0, 0]), "base must be \\[x, z, angle\\]"),
+    (lambda d: d["fingers"][1].pop("radius"), "missing field 'radius'"),
+    (lambda d: d.update(grasp_centre=[0, "a"]), "grasp_centre"),
+    (lambda d: d.update(joints=[]), "not both"),
+])
+def test_several_fingers_validator_names_the_field(edit, message):
+    data = copy.deepcopy(two_finger_dict())
+    edit(data)
+    with pytest.raises(HandConfigError, match=message):
+        hand_from_dict(data, "test")

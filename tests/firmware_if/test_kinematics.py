@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 from hypothesis import given
@@ -72,3 +74,19 @@ def test_batches_equal_rows():
     targets = batch + 0.002
     result = kin.inverse(hand, targets, q)
     assert result.q.shape == (50, 3) and result.reachable.shape == (50,)
+
+
+@pytest.mark.parametrize("finger", load_hand("three-finger").fingers, ids=lambda f: f.name)
+def test_a_finger_of_a_hand_starts_at_its_base(finger):
+    rng = np.random.default_rng(0)
+    q = rng.uniform(finger.lower, finger.upper)
+    rot, origin = kin.base_frame(finger)
+    alone = dataclasses.replace(finger, base=(0.0, 0.0, 0.0))
+    assert np.allclose(kin.forward(finger, q), rot @ kin.forward(alone, q) + origin)
+    assert kin.forward(finger, q)[1] == pytest.approx(0.0)  # in the hand's x-z plane
+    eps = 1e-6
+    numeric = np.stack([(kin.forward(finger, q + eps * e) - kin.forward(finger, q - eps * e))
+                        / (2 * eps) for e in np.eye(len(q))], axis=1)
+    assert np.allclose(kin.jacobian(finger, q), numeric, atol=1e-8)
+    target = kin.forward(finger, q)
+    assert kin.inverse(finger, target, np.array(finger.home), iterations=300).reachable
