@@ -45,6 +45,34 @@ def register(sub: argparse._SubParsersAction) -> None:
                        help="draw the map, its plains and the pits the tip cannot reach")
     check.set_defaults(handler=run_check)
 
+    mesh = jobs.add_parser(
+        "from-mesh", help="a height map of a meshed object (STL, OBJ, PLY, GLB...) seen from "
+                          "above",
+        description="Cast one vertical ray per sample onto a mesh (trimesh) and write the "
+                    "heights seen from above, in metres above the table the part rests on "
+                    "(its lowest point). Rows of the map run along y.")
+    mesh.add_argument("mesh", type=Path, metavar="MESH", help="a mesh file trimesh reads")
+    mesh.add_argument("--spacing", type=float, required=True, metavar="M",
+                      help="metres between samples, e.g. 0.0005")
+    mesh.add_argument("-o", "--output", type=Path, required=True, metavar="FILE",
+                      help="where to write the map: .npy (or .csv/.txt)")
+    mesh.add_argument("--up", default="z", choices=("z", "-z", "y", "-y", "x", "-x"),
+                      help="the mesh's axis that points up, away from the table; y turns the "
+                           "mesh a quarter turn about x (map y = -mesh z), x a quarter turn "
+                           "about y (map x = -mesh z) (default: %(default)s)")
+    mesh.add_argument("--scale", type=float, default=1.0, metavar="FACTOR",
+                      help="multiply the mesh's coordinates by this to get metres: 0.001 for "
+                           "a mesh in millimetres (default: %(default)s)")
+    mesh.add_argument("--region", metavar="XMIN,YMIN,XMAX,YMAX",
+                      help="the part of the (turned, scaled) mesh to map, in metres; default: "
+                           "its footprint and two samples of table round it")
+    mesh.add_argument("--radius", type=float, default=DEFAULT_RADIUS, metavar="M",
+                      help="fingertip radius for the check of the new map "
+                           "(default: %(default)s)")
+    mesh.add_argument("--step", type=float, default=DEFAULT_STEP, metavar="M",
+                      help="step length for the check (default: %(default)s)")
+    mesh.set_defaults(handler=run_from_mesh)
+
 
 def run_list(args: argparse.Namespace) -> int:
     from service.localization.presets import describe
@@ -85,4 +113,32 @@ def run_check(args: argparse.Namespace) -> int:
 
         check_figure(height_map, report, args.plot)
         print(f"figure written to {args.plot}")
+    return 0
+
+
+def run_from_mesh(args: argparse.Namespace) -> int:
+    from service.localization.map_check import check_map
+    from service.localization.mesh_map import (
+        check_output,
+        mesh_height_map,
+        parse_region,
+        save_heights,
+    )
+
+    check_output(args.output)  # before the ray casts, not after
+    result = mesh_height_map(args.mesh, args.spacing, up=args.up, scale=args.scale,
+                             region=parse_region(args.region))
+    m = result.height_map
+    x0, y0 = result.origin
+    x_max, y_max = m.extent
+    print(f"mesh {args.mesh}: {result.faces} triangles; map {m.shape[1]} x {m.shape[0]} "
+          f"samples at {m.spacing * 1e3:g} mm covering x {x0:.4g}..{x0 + x_max:.4g} m, "
+          f"y {y0:.4g}..{y0 + y_max:.4g} m of the mesh; the part fills "
+          f"{result.hit_share:.0%} of it")
+    for warning in result.warnings:
+        print(f"warning: {warning}")
+    save_heights(m, args.output)
+    print(f"map written to {args.output}: map (0, 0) is the mesh's ({x0:.4g}, {y0:.4g}) m")
+    print("\n".join(check_map(m, args.radius, args.step).lines()))
+    print(f"use it: haptic run --map {args.output} --spacing {args.spacing:g}")
     return 0
