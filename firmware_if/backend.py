@@ -44,6 +44,44 @@ class StepCommand:
     dy: float
 
 
+@dataclass(frozen=True)
+class FingerMove:
+    """Move one fingertip centre by (dx, dz) metres in the hand plane and turn its rolling
+    tip by `roll` radians (counter-clockwise seen with x right and z up). Exploring, a tip
+    rolls along the object by itself (roll 0); manipulating, turning it rolls the object."""
+
+    dx: float
+    dz: float
+    roll: float = 0.0
+
+
+@dataclass(frozen=True)
+class HandCommand:
+    """One step of a hand: a move per finger, None for a finger that holds. One finger
+    moving explores; all moving together manipulate the object."""
+
+    moves: tuple[FingerMove | None, ...]
+
+    @property
+    def moving(self) -> tuple[int, ...]:
+        return tuple(i for i, m in enumerate(self.moves) if m is not None)
+
+
+@dataclass(frozen=True)
+class HandState:
+    """One consistent reading of every finger of a hand (one bus read)."""
+
+    t_ns: int
+    fingers: tuple[FingerState, ...]
+    """Per finger; each `centre` is (x, y, z) in the hand frame, y = 0 for a planar hand."""
+    dropped: bool = False
+    """The held object slipped out of the grasp: the episode is over."""
+
+    @property
+    def moving(self) -> bool:
+        return any(f.moving for f in self.fingers)
+
+
 @runtime_checkable
 class Backend(Protocol):
     """A finger the service can read and move. Implementations: simulated, Dynamixel."""

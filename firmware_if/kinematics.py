@@ -114,3 +114,13 @@ def inverse(hand: Chain, target: np.ndarray, q0: np.ndarray | tuple[float, ...],
     if single:
         return IKResult(q[0], error[0:1].reshape(()), reachable[0:1].reshape(()))
     return IKResult(q, error, reachable)
+
+
+def max_tip_force(hand: Chain, q: np.ndarray | tuple[float, ...], torque: float,
+                  directions: np.ndarray) -> np.ndarray:
+    """Largest force (newtons) the fingertip centre can push with along each unit direction
+    (..., 3) when every joint's torque is bounded by `torque` (N m): the joint torques of a
+    tip force f are J^T f, so along e the bound is torque / max_j |(J^T e)_j|."""
+    jac = jacobian(hand, q)  # (3, n)
+    per_joint = np.abs(np.asarray(directions) @ jac)  # (..., n)
+    return torque / np.maximum(per_joint.max(axis=-1), 1e-12)

@@ -141,6 +141,10 @@ XM430_W350: tuple[Register, ...] = (
 MODELS: dict[str, tuple[int, tuple[Register, ...]]] = {"XM430-W350": (1020, XM430_W350)}
 """Model name -> (model number, control table)."""
 
+NEWTON_METRES_PER_AMP = {"XM430-W350": 4.1 / 2.3}
+"""Output torque per ampere of motor current (e-Manual: 4.1 N m stall torque at 2.3 A,
+12 V): how hard a joint pushes at its goal-current bound in current-based position mode."""
+
 TABLE_SIZE = 662
 
 

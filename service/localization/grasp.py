@@ -1,0 +1,230 @@
+"""The grasp model (paper §6, Eq. 8): contacts, the grasp map, friction cones, quality.
+
+Fingertips touch the object at points with outward normals n (from the contour under a
+pose). Each is a point contact with Coulomb friction mu: the finger pushes with a force in
+the cone around -n of half-angle atan(mu) (in the plane the cone has exactly two edges, so
+its linearization is exact). Wrenches are (f_x, f_z, torque / rho) about the object's
+centroid, rho being the object's largest radius, so forces and torques weigh alike.
+
+Two measures:
+
+* `epsilon` - the Ferrari-Canny measure: the radius of the largest ball about the origin
+  inside the convex hull (scipy.spatial.ConvexHull) of the cone edges' wrenches at unit
+  normal force. Zero without force closure. Geometry only: it ignores how hard the fingers
+  can push and what the object weighs.
+* `quality` - what holds the object: the fingers push at most as hard as their joints'
+  goal current allows (through the Jacobian, `kinematics.max_tip_force`), so each contact
+  can apply a bounded set of forces; the grasp can apply their Minkowski sum. Quality is
+  the largest disturbance wrench (newtons) the grasp resists on top of the object's weight,
+  negative when it cannot even carry that. The object slips - a drop - when it falls below
+  the disturbance margin; the policy keeps it above a threshold.
+
+`quality` runs in the policy's inner loop for every move and plausible pose, so it is one
+compiled loop: the distance from the load to the boundary of a Minkowski sum of polygons is
+the least, over the sum's facet normals, of the support function minus the load's
+projection; every facet normal is a cross product of two of the polygons' edges.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numba
+import numpy as np
+from scipy.spatial import ConvexHull, QhullError
+
+from firmware_if.kinematics import Chain, max_tip_force
+from firmware_if.registers import NEWTON_METRES_PER_AMP
+from service.errors import ConfigError
+from service.localization.objects.field import ContactField
+from service.localization.objects.rolling import contacts
+
+GRAVITY = 9.81
+
+
+@dataclass(frozen=True)
+class GraspSpec:
+    """Friction, load and the quality the grasp must keep. Newtons, kilograms."""
+
+    mu: float = 0.5
+    mass_kg: float = 0.05
+    margin_n: float = 0.2
+    """Disturbance (wrench norm) the grasp must resist beyond the weight; below it the
+    object slips out."""
+    threshold_n: float = 0.4
+    """Quality a move must keep, predicted over every plausible pose (at least the margin)."""
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.mu) and self.mu > 0):
+            raise ConfigError(f"friction coefficient mu must be > 0, got {self.mu}")
+        if not (math.isfinite(self.mass_kg) and self.mass_kg >= 0):
+            raise ConfigError(f"object mass must be >= 0 kg, got {self.mass_kg}")
+        if not (math.isfinite(self.margin_n) and self.margin_n >= 0):
+            raise ConfigError(f"disturbance margin must be >= 0 N, got {self.margin_n}")
+        if not (math.isfinite(self.threshold_n) and self.threshold_n >= self.margin_n):
+            raise ConfigError(f"grasp quality threshold ({self.threshold_n} N) must be at "
+                              f"least the disturbance margin ({self.margin_n} N)")
+
+    @property
+    def load(self) -> np.ndarray:
+        """The wrench the contacts must supply: the weight's opposite, at the centroid."""
+        return np.array([0.0, self.mass_kg * GRAVITY, 0.0])
+
+
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    return a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]
+
+
+def tangents(normals: np.ndarray) -> np.ndarray:
+    """Unit tangents, the normals turned a quarter counter-clockwise."""
+    return np.stack([-normals[..., 1], normals[..., 0]], axis=-1)
+
+
+def grasp_map(points: np.ndarray, normals: np.ndarray, origin: np.ndarray, rho: float
+              ) -> np.ndarray:
+    """G (3, 2n) of paper Eq. 8: the object wrench of finger forces given per contact as
+    (pushing along -n, along the tangent)."""
+    directions = np.stack([-normals, tangents(normals)], axis=1)  # (n, 2, 2)
+    lever = points - origin
+    torque = _cross(lever[:, None, :], directions) / rho  # (n, 2)
+    return np.concatenate([directions, torque[..., None]], axis=-1).reshape(-1, 3).T
+
+
+def cone_edges(normals: np.ndarray, mu: float) -> np.ndarray:
+    """(n, 2, 2): the two edges of each friction cone, as forces of unit normal part."""
+    t = tangents(normals)
+    return np.stack([-normals - mu * t, -normals + mu * t], axis=1)
+
+
+def wrenches(points: np.ndarray, forces: np.ndarray, origin: np.ndarray, rho: float
+             ) -> np.ndarray:
+    """(..., 3) wrenches of forces (..., 2) applied at points (..., 2)."""
+    torque = _cross(points - origin, forces) / rho
+    return np.concatenate([forces, torque[..., None]], axis=-1)
+
+
+def epsilon(points: np.ndarray, normals: np.ndarray, origin: np.ndarray, rho: float,
+            mu: float) -> float:
+    """Ferrari-Canny epsilon (L1): the largest ball about the origin inside the hull of the
+    cone edges' wrenches at unit normal force; 0 without force closure."""
+    w = wrenches(points[:, None, :], cone_edges(normals, mu), origin, rho).reshape(-1, 3)
+    try:
+        hull = ConvexHull(w)
+    except (QhullError, ValueError):  # too few or flat wrenches: no closure
+        return 0.0
+    offsets = hull.equations[:, 3]  # unit normals: a.x + offset <= 0 inside
+    return float(max(0.0, np.min(-offsets)))
+
+
+def force_vertices(normals: np.ndarray, mu: float, limits: np.ndarray) -> np.ndarray:
+    """(..., n, 3, 2): the forces at the corners of what each contact can push with - along
+    each cone edge and straight in, as far as the finger's joints allow (`limits`,
+    (..., n, 3) newtons along those unit directions)."""
+    edges = cone_edges(normals.reshape(-1, 2), mu).reshape(*normals.shape[:-1], 2, 2)
+    edges = edges / np.linalg.norm(edges, axis=-1, keepdims=True)
+    directions = np.stack([edges[..., 0, :], -normals, edges[..., 1, :]], axis=-2)
+    return directions * limits[..., None]
+
+
+def unit_directions(normals: np.ndarray, mu: float) -> np.ndarray:
+    """(..., n, 3, 2) unit force directions whose limits `force_vertices` takes."""
+    return force_vertices(normals, mu, np.ones((*normals.shape[:-1], 3)))
+
+
+@numba.njit(cache=True, nogil=True)
+def _margins(points: np.ndarray, origins: np.ndarray, forces: np.ndarray, rho: float,
+             load: np.ndarray) -> np.ndarray:
+    """Per grasp b: min over candidate facet normals u of h(u) - u.load, where h is the
+    support function of the Minkowski sum of the contacts' wrench polygons (each the hull
+    of zero and its force corners)."""
+    batch, n, k = forces.shape[0], forces.shape[1], forces.shape[2]
+    vertices = np.zeros((n, k + 1, 3))
+    per = (k + 1) * k // 2
+    edges = np.empty((n * per, 3))
+    out = np.empty(batch)
+    for b in range(batch):
+        for i in range(n):
+            rx = points[b, i, 0] - origins[b, 0]
+            rz = points[b, i, 1] - origins[b, 1]
+            for v in range(k):
+                fx, fz = forces[b, i, v, 0], forces[b, i, v, 1]
+                vertices[i, v + 1, 0] = fx
+                vertices[i, v + 1, 1] = fz
+                vertices[i, v + 1, 2] = (rx * fz - rz * fx) / rho
+        m = 0
+        for i in range(n):
+            for a in range(k + 1):
+                for c in range(a + 1, k + 1):
+                    for d in range(3):
+                        edges[m, d] = vertices[i, c, d] - vertices[i, a, d]
+                    m += 1
+        best = np.inf
+        for e1 in range(m):
+            for e2 in range(e1 + 1, m):
+                ux = edges[e1, 1] * edges[e2, 2] - edges[e1, 2] * edges[e2, 1]
+                uy = edges[e1, 2] * edges[e2, 0] - edges[e1, 0] * edges[e2, 2]
+                uz = edges[e1, 0] * edges[e2, 1] - edges[e1, 1] * edges[e2, 0]
+                norm = math.sqrt(ux * ux + uy * uy + uz * uz)
+                if norm < 1e-12:
+                    continue
+                ux, uy, uz = ux / norm, uy / norm, uz / norm
+                for sign in (1.0, -1.0):
+                    h = 0.0
+                    for i in range(n):
+                        top = 0.0  # the zero force is a corner of every polygon
+                        for v in range(1, k + 1):
+                            p = sign * (ux * vertices[i, v, 0] + uy * vertices[i, v, 1]
+                                        + uz * vertices[i, v, 2])
+                            top = max(top, p)
+                        h += top
+                    value = h - sign * (ux * load[0] + uy * load[1] + uz * load[2])
+                    best = min(best, value)
+        out[b] = best
+    return out
+
+
+def quality(points: np.ndarray, origins: np.ndarray, forces: np.ndarray, rho: float,
+            load: np.ndarray) -> np.ndarray:
+    """Largest disturbance (newtons, wrench norm) each grasp resists on top of `load`;
+    negative when it cannot carry the load. `points` (..., n, 2) contact points, `origins`
+    (..., 2) object centroids, `forces` (..., n, k, 2) each contact's force corners."""
+    shape = points.shape[:-2]
+    n = points.shape[-2]
+    out = _margins(np.ascontiguousarray(points, dtype=np.float64).reshape(-1, n, 2),
+                   np.ascontiguousarray(origins, dtype=np.float64).reshape(-1, 2),
+                   np.ascontiguousarray(forces, dtype=np.float64).reshape(
+                       -1, n, forces.shape[-2], 2),
+                   float(rho), np.ascontiguousarray(load, dtype=np.float64))
+    return out.reshape(shape)
+
+
+def finger_limits(finger: Chain, q: np.ndarray, torque: float, directions: np.ndarray
+                  ) -> np.ndarray:
+    """Newtons one finger at joint angles q can push its tip with along each unit direction
+    (..., 2) of the hand plane, its joints bounded by `torque` N m (goal current times the
+    servo's torque per ampere)."""
+    d = np.asarray(directions, dtype=np.float64)
+    spatial = np.stack([d[..., 0], np.zeros(d.shape[:-1]), d[..., 1]], axis=-1)
+    return max_tip_force(finger, q, torque, spatial)
+
+
+def joint_torque(goal_current_a: float, model: str) -> float:
+    """N m a joint pushes with at its goal-current bound."""
+    return goal_current_a * NEWTON_METRES_PER_AMP[model]
+
+
+def hand_quality(field: ContactField, poses: np.ndarray, centres: np.ndarray,
+                 fingers: Sequence[Chain], joint_angles: Sequence[np.ndarray], torque: float,
+                 spec: GraspSpec) -> np.ndarray:
+    """Quality (B,) of fingertips at `centres` (B, n, 2) holding the object under `poses`
+    (B, 3), finger i at joint angles `joint_angles[i]` ((B, joints) or (joints,))."""
+    radii = np.array([f.radius for f in fingers])
+    points, normals = contacts(field, poses, centres, radii)
+    directions = unit_directions(normals, spec.mu)  # (B, n, 3, 2)
+    limits = np.stack([finger_limits(f, np.asarray(q), torque, directions[:, i])
+                       for i, (f, q) in enumerate(zip(fingers, joint_angles, strict=True))],
+                      axis=1)
+    return quality(points, poses[:, :2], directions * limits[..., None],
+                   field.contour.max_radius, spec.load)

@@ -1,0 +1,92 @@
+"""The grasp model: Eq. 8's grasp map, Ferrari-Canny epsilon, and the holding quality."""
+
+from __future__ import annotations
+
+import itertools
+
+import numpy as np
+import pytest
+from scipy.spatial import ConvexHull
+
+from firmware_if import kinematics as kin
+from firmware_if.hand import load_hand
+from service.errors import ConfigError
+from service.localization import grasp as g
+
+
+def on_disc(angles_deg, radius=0.025):
+    a = np.deg2rad(np.asarray(angles_deg, dtype=float))
+    normals = np.column_stack([np.cos(a), np.sin(a)])
+    return normals * radius, normals
+
+
+def test_grasp_map_sums_the_contact_wrenches():
+    points, normals = on_disc([180, 10, 280])
+    rng = np.random.default_rng(0)
+    f = rng.normal(size=6)  # (push, tangential) per contact
+    G = g.grasp_map(points, normals, np.array([0.001, -0.002]), 0.03)
+    forces = -normals * f[0::2, None] + g.tangents(normals) * f[1::2, None]
+    direct = g.wrenches(points, forces, np.array([0.001, -0.002]), 0.03).sum(axis=0)
+    np.testing.assert_allclose(G @ f, direct, atol=1e-12)
+
+
+def test_epsilon_follows_the_friction_cones():
+    opposed = g.epsilon(*on_disc([180, 0]), np.zeros(2), 0.025, 0.5)
+    tilted = g.epsilon(*on_disc([180, 40]), np.zeros(2), 0.025, 0.5)
+    beyond = g.epsilon(*on_disc([180, 60]), np.zeros(2), 0.025, 0.5)  # outside the cones
+    assert opposed > tilted > 0 and beyond == 0.0
+    assert g.epsilon(*on_disc([180, 60]), np.zeros(2), 0.025, 0.8) > 0  # more friction
+    assert g.epsilon(*on_disc([90, 210, 330]), np.zeros(2), 0.025, 0.5) > 0
+
+
+def test_quality_is_the_distance_to_the_minkowski_sum():
+    rng = np.random.default_rng(1)
+    for _ in range(60):
+        n = int(rng.integers(2, 4))
+        points, normals = on_disc(rng.uniform(0, 360, n), rng.uniform(0.02, 0.03, (n, 1)))
+        forces = g.force_vertices(normals, 0.5, rng.uniform(0.5, 4, (n, 3)))
+        load = rng.normal([0, 0.5, 0], [0.5, 0.5, 0.3])
+        q = float(g.quality(points, np.zeros(2), forces, 0.03, load))
+        corners = g.wrenches(points[:, None, :], forces, np.zeros(2), 0.03)
+        sums = np.array([sum(c) for c in itertools.product(
+            *[np.vstack([np.zeros(3), corners[i]]) for i in range(n)])])
+        hull = ConvexHull(sums)
+        reference = float(np.min(-(hull.equations[:, :3] @ load + hull.equations[:, 3])))
+        if reference > 0:  # inside: the exact distance to the nearest facet
+            assert q == pytest.approx(reference, abs=1e-9)
+        else:  # outside: the grasp cannot carry the load
+            assert q <= 1e-12
+
+
+def test_weight_and_force_bounds_lower_the_quality():
+    points, normals = on_disc([180, 0])
+    strong = g.force_vertices(normals, 0.5, np.full((2, 3), 3.0))
+    weak = g.force_vertices(normals, 0.5, np.full((2, 3), 0.3))
+    free = float(g.quality(points, np.zeros(2), strong, 0.025, np.zeros(3)))
+    loaded = float(g.quality(points, np.zeros(2), strong, 0.025, np.array([0, 0.5, 0])))
+    assert free > loaded > 0
+    assert float(g.quality(points, np.zeros(2), weak, 0.025, np.array([0, 0.5, 0]))) < 0
+    batch = g.quality(np.stack([points] * 4), np.zeros((4, 2)), np.stack([strong] * 4), 0.025,
+                      np.zeros(3))
+    np.testing.assert_allclose(batch, free)
+
+
+def test_finger_limits_saturate_a_joint():
+    finger = load_hand("two-finger").fingers[0]
+    q = np.array(finger.home)
+    directions = np.array([[1.0, 0.0], [0.0, 1.0], [0.6, -0.8]])
+    limits = g.finger_limits(finger, q, 0.2, directions)
+    jac = kin.jacobian(finger, q)[[0, 2]]  # the hand plane's x and z rows
+    torques = np.abs((directions * limits[:, None]) @ jac)
+    np.testing.assert_allclose(torques.max(axis=1), 0.2)
+    assert g.joint_torque(0.15, "XM430-W350") == pytest.approx(0.15 * 4.1 / 2.3)
+
+
+@pytest.mark.parametrize(("kwargs", "message"), [
+    ({"mu": 0}, "mu must be > 0"),
+    ({"mass_kg": -1}, "mass must be >= 0"),
+    ({"margin_n": 0.5, "threshold_n": 0.3}, "must be at least the disturbance margin"),
+])
+def test_spec_validation(kwargs, message):
+    with pytest.raises(ConfigError, match=message):
+        g.GraspSpec(**kwargs)

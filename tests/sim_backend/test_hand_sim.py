@@ -1,0 +1,131 @@
+"""The simulated hand: fingers close on the object, roll along it, drop it when the grasp
+gives, refuse what they cannot reach, and turn it when they manipulate."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from firmware_if.backend import FingerMove, HandCommand
+from firmware_if.errors import NotReadyError
+from firmware_if.hand import load_hand
+from service.localization.models import NoiseSpec
+from service.localization.objects import kernels, rolling
+from service.localization.objects.field import contact_field
+from service.localization.objects.presets import preset_object
+from sim_backend.hand import HandSimConfig, SimulatedHand
+
+TWO = load_hand("two-finger")
+BLOB = preset_object("blob:2")
+POSE = (0.001, -0.001, 0.7)
+
+
+NO_NOISE = NoiseSpec()
+
+
+def opened(pose=POSE, noise=NO_NOISE, seed=0, **kw) -> SimulatedHand:
+    sim = SimulatedHand(TWO, BLOB, HandSimConfig(pose=pose, noise=noise, **kw),
+                        np.random.default_rng(seed))
+    sim.open()
+    sim.set_torque(True)
+    return sim
+
+
+def centres(sim: SimulatedHand) -> np.ndarray:
+    return np.array([[f.centre[0], f.centre[2]] for f in sim.read_hand().fingers])
+
+
+def gaps(pose, points) -> np.ndarray:
+    """How far each fingertip centre is from touching the object (metres)."""
+    field = contact_field(BLOB)
+    return kernels.residuals(*field.args, np.asarray(pose, dtype=float)[None],
+                             np.ascontiguousarray(points), np.full(len(points), 0.008))[0]
+
+
+def test_fingers_close_on_the_object_and_hold_it():
+    sim = opened()
+    c = centres(sim)
+    np.testing.assert_allclose(gaps(sim.pose, c), 0.0, atol=2e-6)
+    assert c[0, 0] < 0 < c[1, 0]  # left and right of the object
+    assert sim.quality > sim.config.grasp.threshold_n
+
+
+def test_an_exploring_step_rolls_one_finger_along_the_object():
+    sim = opened()
+    before = centres(sim)
+    sim.command_hand(HandCommand((FingerMove(0.0, 0.003), None)))
+    after = centres(sim)
+    assert after[0, 1] - before[0, 1] == pytest.approx(0.003, abs=5e-4)
+    np.testing.assert_array_equal(after[1], before[1])  # the other finger held
+    np.testing.assert_allclose(gaps(sim.pose, after), 0.0, atol=2e-6)  # still touching
+    assert sim.pose == POSE  # the object stayed put
+    assert sim.read_hand().fingers[0].steps_done == 1
+
+
+def test_out_of_reach_is_blocked_and_nothing_moves():
+    sim = opened()
+    before = centres(sim)
+    sim.command_hand(HandCommand((FingerMove(0.0, 0.2), None)))
+    state = sim.read_hand()
+    assert state.fingers[0].blocked and not state.dropped
+    np.testing.assert_array_equal(centres(sim), before)
+
+
+def test_rolling_too_far_drops_the_object():
+    sim = opened()
+    for _ in range(30):
+        sim.command_hand(HandCommand((FingerMove(0.0, 0.003), None)))
+        if sim.read_hand().dropped:
+            break
+    assert sim.read_hand().dropped
+    assert sim.min_quality < sim.config.grasp.margin_n
+    with pytest.raises(NotReadyError, match="dropped"):
+        sim.command_hand(HandCommand((FingerMove(0.0, 0.003), None)))
+
+
+def test_a_clamped_object_is_never_dropped_nor_manipulated():
+    sim = opened(fixed=True)
+    for _ in range(10):
+        sim.command_hand(HandCommand((FingerMove(0.0, 0.003), None)))
+    assert not sim.read_hand().dropped
+    with pytest.raises(NotReadyError, match="clamped"):
+        sim.command_hand(HandCommand((FingerMove(0, 0, 0.1), FingerMove(0, 0, 0.1))))
+
+
+def test_manipulation_turns_the_object_as_planned():
+    sim = opened()
+    field = contact_field(BLOB)
+    moves, rolls = rolling.plan_turn(field, np.array(POSE), centres(sim),
+                                     np.array([0.008, 0.008]), 0.3)
+    sim.command_hand(HandCommand(tuple(FingerMove(m[0], m[1], r)
+                                       for m, r in zip(moves, rolls, strict=True))))
+    assert not sim.read_hand().dropped
+    assert sim.pose[2] - POSE[2] == pytest.approx(0.3, abs=0.01)
+    assert np.hypot(sim.pose[0] - POSE[0], sim.pose[1] - POSE[1]) < 5e-4  # turned in place
+    np.testing.assert_allclose(gaps(sim.pose, centres(sim)), 0.0, atol=2e-6)
+
+
+def test_twist_recovers_a_consistent_motion():
+    rng = np.random.default_rng(3)
+    points = rng.normal(0, 0.02, (1, 3, 2))
+    normals = rng.normal(size=(1, 3, 2))
+    normals /= np.linalg.norm(normals, axis=-1, keepdims=True)
+    radii = np.array([0.008, 0.01, 0.006])
+    truth = np.array([0.001, -0.0005, 0.05])
+    lever = points[0] - 0.0
+    velocity = truth[:2] + truth[2] * np.column_stack([-lever[:, 1], lever[:, 0]])
+    rolls = rng.normal(0, 0.1, 3)
+    t = np.column_stack([-normals[0, :, 1], normals[0, :, 0]])
+    moves = velocity + (radii * rolls)[:, None] * t  # tips roll, centres follow: no slip
+    np.testing.assert_allclose(rolling.twist(points, normals, np.zeros((1, 2)), radii, moves,
+                                             rolls)[0], truth, atol=1e-12)
+
+
+def test_same_seed_same_readings_and_noise_at_b2_level():
+    noise = NoiseSpec.realistic(0.01)
+    a, b = opened(noise=noise, seed=4), opened(noise=noise, seed=4)
+    for sim in (a, b):
+        sim.command_hand(HandCommand((None, FingerMove(0.0, -0.002))))
+    np.testing.assert_array_equal(centres(a), centres(b))
+    errors = gaps(a.pose, centres(a))
+    assert 1e-6 < np.max(np.abs(errors)) < 1e-3
