@@ -1,13 +1,15 @@
 """`haptic bench SCENARIO`: the seeded benchmark scenarios of BENCHMARKS.md.
 
 Each scenario module has `add_arguments(parser)` and `run(args) -> int`; it is imported
-only when chosen.
+only when chosen. To add a scenario, add a row to SCENARIOS.
 """
 
 from __future__ import annotations
 
 import argparse
 import importlib
+
+from tools.cli import Register, add_lazy_commands
 
 SCENARIOS: dict[str, tuple[str, str]] = {
     "paper": ("tools.bench_paper", "B1: the paper's table (103 noise-free runs on peaks)"),
@@ -19,12 +21,18 @@ SCENARIOS: dict[str, tuple[str, str]] = {
 }
 
 
-def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("bench", help="run a benchmark scenario",
-                       description="Seeded benchmark scenarios (see BENCHMARKS.md).")
-    scenarios = p.add_subparsers(dest="scenario", metavar="SCENARIO", required=True)
-    for name, (module, summary) in SCENARIOS.items():
-        sp = scenarios.add_parser(name, help=summary, description=summary)
+def register(p: argparse.ArgumentParser) -> None:
+    p.description = "Seeded benchmark scenarios (see BENCHMARKS.md); each prints a table " \
+                    "and can write --json and --plot."
+    add_lazy_commands(p, SCENARIOS, dest="scenario", metavar="SCENARIO", loader=_scenario)
+
+
+def _scenario(module: str) -> Register:
+    """Registration of one scenario module: its `add_arguments`, with `run` as handler."""
+
+    def register(sp: argparse.ArgumentParser) -> None:
         mod = importlib.import_module(module)
         mod.add_arguments(sp)
         sp.set_defaults(handler=mod.run)
+
+    return register

@@ -22,13 +22,14 @@ from tools.scenario_options import add_scenario_options, settings_from_args
 
 
 def add_bench_options(parser: argparse.ArgumentParser, *, defaults: RunSettings,
-                      runs: int) -> None:
+                      runs: int, **scenario: Any) -> None:
     """The scenario options of `haptic run` plus --runs, --first-seed, --json, --plot."""
-    add_scenario_options(parser, defaults=defaults)
+    add_scenario_options(parser, defaults=defaults, **scenario)
     parser.add_argument("--runs", type=int, default=runs,
                         help="number of seeded runs (default: %(default)s)")
     parser.add_argument("--first-seed", type=int, default=0,
-                        help="seed of the first run; runs use consecutive seeds")
+                        help="seed of the first run; runs use consecutive seeds (default: "
+                             "%(default)s)")
     parser.add_argument("--json", type=Path, metavar="FILE", help="write results as JSON")
     parser.add_argument("--plot", type=Path, metavar="FILE.png", help="write a figure")
 

@@ -30,7 +30,8 @@ TARGET_P99_MS = 5.0
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    add_bench_options(p, defaults=DEFAULTS, runs=20)
+    add_bench_options(p, defaults=DEFAULTS, runs=20,
+                      algorithm_help=f"default: compare {' and '.join(COMPARED)}")
     p.set_defaults(algorithm=None)  # none given: compare Algorithms IV and III
     p.add_argument("--sizes", default="20,40,80", metavar="UNITS,...",
                    help="map sizes in units, comma separated (default: %(default)s)")

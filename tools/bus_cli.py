@@ -24,8 +24,9 @@ from firmware_if.registers import (
 MODEL_NAMES = {number: name for name, (number, _) in MODELS.items()}
 
 
-def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("bus", help="scan, read or check a Dynamixel servo bus")
+def register(p: argparse.ArgumentParser) -> None:
+    p.description = ("Look at a Dynamixel servo bus before trusting a run to it: which servos "
+                     "answer, their live joint angles, their configuration.")
     verbs = p.add_subparsers(dest="verb", metavar="VERB", required=True)
     scan = verbs.add_parser("scan", help="find the servos on a port")
     _port_options(scan)

@@ -1,54 +1,215 @@
-"""The `haptic` command line: one subcommand module per job, each with `register(subparsers)`.
+"""The `haptic` command line: a table of subcommands, each imported only when it runs.
 
-Subcommand modules are imported by name, so `service` never loads a backend or a tool it
-does not need. A user error prints one line and exits with status 2, never a traceback.
+`haptic --help` lists COMMANDS from this table alone; `haptic CMD ...` imports CMD's module
+and nothing else, so an operator command (`ctl`, `watch`) never pays for numba or scipy.
+To add a command, add one row: its name, "module" or "module:function" (default
+function `register`), and a one-line summary. The function receives the command's own
+`argparse.ArgumentParser` (already named and described) and adds its options and
+`parser.set_defaults(handler=...)`; it should import heavy libraries inside the handler.
+
+A user error prints one line and exits with status 2, never a traceback. SIGINT and
+SIGTERM end a command cleanly (its `finally` blocks run, files are closed), also when
+started in the background; a closed pipe (`| head`) ends it quietly.
 """
 
 from __future__ import annotations
 
 import argparse
 import importlib
+import os
+import signal
 import sys
-
-from threadpoolctl import threadpool_limits
+import threading
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 
 from firmware_if.errors import FirmwareError
 from service.errors import InputError, ServiceError
 
-SUBCOMMAND_MODULES = (
-    "tools.run_cli",        # haptic run
-    "tools.bench",          # haptic bench
-    "tools.map_cli",        # haptic map
-    "tools.emulate_cli",    # haptic emulate
-    "tools.bus_cli",        # haptic bus
-    "tools.stream_cli",     # haptic watch / ctl / record / replay / view / keygen
-)
+COMMANDS: dict[str, tuple[str, str]] = {
+    "run": ("tools.run_cli", "localize a simulated (or real) finger once, step by step"),
+    "bench": ("tools.bench", "run a benchmark scenario of BENCHMARKS.md (B1-B4, bus, anytime)"),
+    "explore": ("tools.ctl_cli:register_explore",
+                "localize with a running hapticd: take control, activate, explore until "
+                "converged (exit 0), release"),
+    "ctl": ("tools.ctl_cli:register_ctl", "send one command to hapticd (the commands and "
+                                          "their arguments are listed in its help)"),
+    "watch": ("tools.stream_cli:register_watch", "print hapticd's stream as text"),
+    "view": ("tools.view_cli", "draw hapticd's belief live, or a snapshot to a PNG"),
+    "record": ("tools.record_cli:register_record",
+               "record hapticd's stream to an MCAP file (Foxglove and ROS 2 tools read it)"),
+    "replay": ("tools.record_cli:register_replay",
+               "print or re-publish a recording (.mcap, or an older .hrec)"),
+    "export": ("tools.record_cli:register_export",
+               "write a recording's episodes as JSON (haptic run --json's format) or CSV"),
+    "keygen": ("tools.stream_cli:register_keygen",
+               "write a CurveZMQ key pair (NAME.key public, NAME.key_secret secret)"),
+    "map": ("tools.map_cli", "list, check or build height maps"),
+    "emulate": ("tools.emulate_cli", "emulate a Dynamixel hand on a pseudo-terminal"),
+    "bus": ("tools.bus_cli", "scan, read or check a Dynamixel servo bus"),
+}
+"""name -> ("module[:function]", summary)."""
+
+
+Register = Callable[[argparse.ArgumentParser], None]
+"""Adds a command's options and `set_defaults(handler=...)` to its parser."""
+
+
+class HelpFormatter(argparse.HelpFormatter):
+    """Wraps one-paragraph texts; keeps texts with line breaks (tables, examples) as written."""
+
+    def _fill_text(self, text: str, width: int, indent: str) -> str:
+        if "\n" in text:
+            return "".join(indent + line for line in text.splitlines(keepends=True))
+        return super()._fill_text(text, width, indent)
+
+
+class IntermixedParser(argparse.ArgumentParser):
+    """Options and positionals in any order (`ctl configure --client me changes=...`)."""
+
+    _mixing = False
+
+    def parse_known_args(self, args=None, namespace=None):  # type: ignore[override]
+        if self._mixing or self._subparsers is not None:
+            return super().parse_known_args(args, namespace)
+        self._mixing = True
+        try:
+            return self.parse_known_intermixed_args(args, namespace)
+        finally:
+            self._mixing = False
+
+
+class LazyCommands(argparse._SubParsersAction):
+    """Subcommands listed up front whose options are registered only when one is chosen."""
+
+    def __init__(self, *args, **kwargs) -> None:
+        super().__init__(*args, **kwargs)
+        self._pending: dict[str, Register] = {}
+
+    def add_lazy(self, name: str, summary: str,
+                 register: Register) -> argparse.ArgumentParser:
+        parser = self.add_parser(name, help=summary, formatter_class=HelpFormatter,
+                                 description=summary[:1].upper() + summary[1:] + ".")
+        self._pending[name] = register
+        return parser
+
+    def register_all(self) -> None:
+        """Register every pending command now (for tools that walk the whole parser)."""
+        for name in list(self._pending):
+            self._pending.pop(name)(self._name_parser_map[name])
+
+    def __call__(self, parser, namespace, values, option_string=None) -> None:
+        register = self._pending.pop(values[0], None)
+        if register is not None:
+            register(self._name_parser_map[values[0]])
+        super().__call__(parser, namespace, values, option_string)
+
+
+def importer(target: str) -> Register:
+    """The registration function "module[:function]" names (default `register`)."""
+    module, _, function = target.partition(":")
+
+    def register(parser: argparse.ArgumentParser) -> None:
+        getattr(importlib.import_module(module), function or "register")(parser)
+
+    return register
+
+
+def add_lazy_commands(parser: argparse.ArgumentParser, table: dict[str, tuple[str, str]],
+                      dest: str, metavar: str,
+                      loader: Callable[[str], Register] = importer) -> LazyCommands:
+    """Subcommands from a {name: (target, summary)} table; `loader(target)` registers one."""
+    sub = parser.add_subparsers(dest=dest, metavar=metavar, required=True,
+                                action=LazyCommands, parser_class=IntermixedParser)
+    for name, (target, summary) in table.items():
+        sub.add_lazy(name, summary, loader(target))
+    return sub
 
 
 def build_parser() -> argparse.ArgumentParser:
+    """The whole command line; a command's module is imported when that command is parsed."""
     parser = argparse.ArgumentParser(
-        prog="haptic", description="Haptic localization: a rolling fingertip finds its pose.")
-    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
-    for name in SUBCOMMAND_MODULES:
-        importlib.import_module(name).register(sub)
+        prog="haptic", description="Haptic localization: a rolling fingertip finds its pose "
+        "on a known surface. `haptic COMMAND --help` explains each command.")
+    add_lazy_commands(parser, COMMANDS, dest="command", metavar="COMMAND")
     return parser
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
-    args = parser.parse_args(argv)
+class Interrupted(KeyboardInterrupt):
+    """SIGINT or SIGTERM: unwinds like Ctrl-C so files are closed and torque released."""
+
+    def __init__(self, signum: int) -> None:
+        super().__init__(signal.Signals(signum).name)
+        self.signum = signum
+
+
+def _on_signal(signum: int, frame: object) -> None:
+    raise Interrupted(signum)
+
+
+@contextmanager
+def _signals_interrupt() -> Iterator[None]:
+    """SIGINT and SIGTERM raise Interrupted in the main thread, even in a background job
+    (where the shell starts us with SIGINT ignored), until the command returns."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = {sig: signal.signal(sig, _on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
     try:
-        with threadpool_limits(limits=1):  # as in the daemon: no BLAS thread handovers
+        yield
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+
+
+@contextmanager
+def _one_blas_thread() -> Iterator[None]:
+    """One BLAS thread, as in the daemon: at our sizes threads only add handover stalls.
+    Libraries not loaded yet read the environment; loaded ones are limited directly."""
+    for var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+        os.environ.setdefault(var, "1")
+    if "numpy" not in sys.modules:
+        yield
+        return
+    from threadpoolctl import threadpool_limits
+
+    with threadpool_limits(limits=1):
+        yield
+
+
+def _quiet_broken_pipe() -> None:
+    """Stdout's reader went away (`| head`): send the rest nowhere and leave quietly."""
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+    except (OSError, ValueError):
+        pass
+
+
+def _name(argv: list[str]) -> str:
+    """The command's name for messages: the first word (the top level has no options)."""
+    return next((w for w in argv if not w.startswith("-")), "")
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else list(argv)
+    with _signals_interrupt(), _one_blas_thread():
+        try:
+            args = build_parser().parse_args(argv)
             return int(args.handler(args) or 0)
-    except (InputError, FirmwareError) as exc:
-        print(f"haptic {args.command}: error: {exc}", file=sys.stderr)
-        return 2
-    except ServiceError as exc:
-        print(f"haptic {args.command}: error: {exc}", file=sys.stderr)
-        return 1
-    except KeyboardInterrupt:
-        print(f"haptic {args.command}: interrupted", file=sys.stderr)
-        return 130
+        except (InputError, FirmwareError) as exc:
+            print(f"haptic {_name(argv)}: error: {exc}", file=sys.stderr)
+            return 2
+        except ServiceError as exc:
+            print(f"haptic {_name(argv)}: error: {exc}", file=sys.stderr)
+            return 1
+        except BrokenPipeError:
+            _quiet_broken_pipe()
+            return 0
+        except KeyboardInterrupt as exc:
+            signum = getattr(exc, "signum", signal.SIGINT)
+            print(f"haptic {_name(argv)}: interrupted", file=sys.stderr)
+            return 128 + int(signum)
 
 
 if __name__ == "__main__":

@@ -21,14 +21,13 @@ from sim_backend.emulator.plant import FingerPlant, hand_bus_servos
 from tools.scenario_options import add_scenario_options, settings_from_args
 
 
-def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("emulate", help="emulate a Dynamixel hand on a pseudo-terminal",
-                       description="Start a Protocol 2.0 servo-bus emulator whose servos move "
-                                   "a fingertip over the map (hardware in the loop); print the "
-                                   "port path and serve until Ctrl-C.")
+def register(p: argparse.ArgumentParser) -> None:
+    p.description = ("Start a Protocol 2.0 servo-bus emulator whose servos move a fingertip "
+                     "over the map (hardware in the loop); print the port path and serve "
+                     "until Ctrl-C.")
     p.add_argument("--hand", required=True, metavar="PRESET|FILE",
                    help=f"hand preset ({', '.join(presets())}) or TOML file")
-    add_scenario_options(p, defaults=RunSettings())
+    add_scenario_options(p, defaults=RunSettings(), localizer=False, radius=False)
     p.add_argument("--seed", type=int, default=0,
                    help="seed of the hidden start pose, as `haptic run` draws it")
     p.add_argument("--start", metavar="X,Y,HEADING_DEG", default=None,

@@ -14,10 +14,9 @@ DEFAULT_RADIUS = 0.008
 DEFAULT_STEP = 0.01
 
 
-def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("map", help="list, check or build height maps",
-                       description="Height maps: the presets, a check of what a map offers a "
-                                   "fingertip, and maps built from meshes. Lengths in metres.")
+def register(p: argparse.ArgumentParser) -> None:
+    p.description = ("Height maps: the presets, a check of what a map offers a fingertip, and "
+                     "maps built from meshes. Lengths in metres.")
     jobs = p.add_subparsers(dest="map_command", metavar="JOB", required=True)
 
     ls = jobs.add_parser("list", help="describe every preset",

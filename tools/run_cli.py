@@ -22,10 +22,9 @@ from tools.scenario_options import add_scenario_options, settings_from_args
 FIGURE_STEPS = (0, 5, 10)
 
 
-def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("run", help="localize a simulated (or real) finger once",
-                       description="Run one localization episode and report the estimate "
-                                   "beside the truth. Lengths in metres, headings in degrees.")
+def register(p: argparse.ArgumentParser) -> None:
+    p.description = ("Run one localization episode and report the estimate beside the truth. "
+                     "Lengths in metres, headings in degrees.")
     add_scenario_options(p, defaults=RunSettings())
     p.add_argument("--seed", type=int, default=0, help="seed for the start pose, noise and "
                    "choices (default: %(default)s)")

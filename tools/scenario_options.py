@@ -1,9 +1,12 @@
-"""Command-line options shared by `haptic run` and every `haptic bench` scenario."""
+"""Command-line options shared by `haptic run`, `haptic emulate` and the bench scenarios."""
 
 from __future__ import annotations
 
 import argparse
+import difflib
+import inspect
 import math
+import textwrap
 from typing import Any
 
 from service.episode.scenario import RunSettings
@@ -11,9 +14,58 @@ from service.errors import ConfigError
 from service.localization.models import HARDWARE_SENSOR_SIGMA
 from service.registry import LOCALIZERS, POLICIES
 
+SCALAR_TYPES = frozenset({"int", "float", "str", "bool", "None"})
 
-def add_scenario_options(parser: argparse.ArgumentParser, *, defaults: RunSettings) -> None:
-    """Map, finger, algorithm, policy and noise options, with `defaults` shown in --help."""
+
+def localizer_options(name: str) -> dict[str, Any]:
+    """The keywords `--localizer-option` can set for localizer `name`, with their defaults:
+    its constructor's (and, through `**options`, its base classes') scalar keywords."""
+    options: dict[str, Any] = {}
+    for cls in LOCALIZERS.load(name).__mro__:
+        init = cls.__dict__.get("__init__")
+        if init is None:
+            continue
+        params = list(inspect.signature(init).parameters.values())[1:]
+        for p in params:
+            kinds = {part.strip() for part in str(p.annotation).split("|")}
+            if p.kind is p.KEYWORD_ONLY and kinds <= SCALAR_TYPES:
+                options.setdefault(p.name, p.default)
+        if not any(p.kind is p.VAR_KEYWORD for p in params):
+            break
+    return options
+
+
+def localizer_options_help() -> str:
+    """Every localizer's options and defaults, for --help."""
+    lines = ["--localizer-option NAME=VALUE sets (default in parentheses):"]
+    for name in LOCALIZERS.names():
+        opts = ", ".join(f"{k} ({'auto' if v is None else v})"
+                         for k, v in localizer_options(name).items())
+        lines += textwrap.wrap(f"{name}: {opts}", 78, initial_indent="  ",
+                               subsequent_indent="    ")
+    return "\n".join(lines)
+
+
+def check_localizer_options(algorithm: str, options: dict[str, Any]) -> None:
+    """ConfigError naming a mistyped option, the closest valid name and the valid names."""
+    valid = localizer_options(algorithm)
+    for name in options:
+        if name not in valid:
+            close = difflib.get_close_matches(name, valid, n=1)
+            hint = f"did you mean '{close[0]}'? " if close else ""
+            raise ConfigError(f"--localizer-option: {algorithm} has no option '{name}'; "
+                              f"{hint}its options: {', '.join(valid)}")
+
+
+def add_scenario_options(parser: argparse.ArgumentParser, *, defaults: RunSettings,
+                         localizer: bool = True, radius: bool = True,
+                         algorithm_help: str | None = None) -> None:
+    """Map, finger, algorithm, policy and noise options, with `defaults` shown in --help.
+
+    `localizer=False` leaves out what only a localizer uses and `radius=False` the fingertip
+    radius (for the servo-bus emulator, whose hand file sets it);
+    `algorithm_help` replaces the default's wording when there is no single default.
+    """
     g = parser.add_argument_group("scenario")
     g.add_argument("--map", default=defaults.map, metavar="NAME|PATH",
                    help="preset NAME[:SIZE[:SEED]] (peaks, bumps, eggcrate, plate, pattern, "
@@ -22,16 +74,20 @@ def add_scenario_options(parser: argparse.ArgumentParser, *, defaults: RunSettin
                         "in metres (default: %(default)s)")
     g.add_argument("--spacing", type=float, default=None, metavar="M",
                    help="metres between samples, for map files")
-    g.add_argument("--radius", type=float, default=defaults.radius, metavar="M",
-                   help="fingertip radius in metres (default: %(default)s)")
+    if radius:
+        g.add_argument("--radius", type=float, default=defaults.radius, metavar="M",
+                       help="fingertip radius in metres (default: %(default)s)")
     g.add_argument("--step", type=float, default=defaults.step, metavar="M",
                    help="step length in metres (default: %(default)s)")
-    g.add_argument("--algorithm", default=defaults.algorithm, choices=LOCALIZERS.names(),
-                   help=f"localizer (default: %(default)s). {LOCALIZERS.help()}")
-    g.add_argument("--policy", default=defaults.policy, choices=POLICIES.names(),
-                   help=f"exploration policy (default: %(default)s). {POLICIES.help()}")
     g.add_argument("--noise", action="store_true", default=defaults.noise,
                    help="turn on BENCHMARKS.md B2's noise and model-mismatch models")
+    if not localizer:
+        return
+    g.add_argument("--algorithm", default=defaults.algorithm, choices=LOCALIZERS.names(),
+                   help=f"localizer ({algorithm_help or 'default: %(default)s'}). "
+                        f"{LOCALIZERS.help()}")
+    g.add_argument("--policy", default=defaults.policy, choices=POLICIES.names(),
+                   help=f"exploration policy (default: %(default)s). {POLICIES.help()}")
     g.add_argument("--sensor-sigma", type=float, default=None, metavar="M",
                    help="measurement noise (metres) the localizer assumes; default: exact "
                         "for a noise-free simulation, B2's with --noise, "
@@ -45,8 +101,10 @@ def add_scenario_options(parser: argparse.ArgumentParser, *, defaults: RunSettin
                         "step (paper, default), or the exact test on every candidate (full)")
     g.add_argument("--localizer-option", action="append", default=[], metavar="NAME=VALUE",
                    dest="localizer_option",
-                   help="a keyword of the localizer's constructor, e.g. work=4000 for "
-                        "particles (repeatable; numbers and true/false are converted)")
+                   help="a keyword of the localizer, e.g. work=4000 for particles "
+                        "(repeatable; numbers and true/false are converted; the names are "
+                        "listed below)")
+    parser.epilog = localizer_options_help()
 
 
 def parse_start(text: str | None) -> tuple[float, float, float] | None:
@@ -86,15 +144,20 @@ def _literal(text: str) -> Any:
 
 def settings_from_args(args: argparse.Namespace, **overrides: Any) -> RunSettings:
     options = parse_localizer_options(getattr(args, "localizer_option", None) or [])
+    algorithm = overrides.get("algorithm", getattr(args, "algorithm", None))
+    if algorithm is not None:
+        check_localizer_options(algorithm, options)
     if getattr(args, "sweep", None):
-        if args.algorithm != "elimination":
+        if algorithm != "elimination":
             raise ConfigError("--sweep applies only to --algorithm elimination")
         options["sweep"] = args.sweep
     fields: dict[str, Any] = dict(
-        map=args.map, spacing=args.spacing, radius=args.radius, step=args.step,
-        algorithm=args.algorithm, policy=args.policy, noise=args.noise,
-        max_steps=args.max_steps, headings=args.headings, localizer_options=options,
+        map=args.map, spacing=args.spacing, step=args.step, noise=args.noise,
+        localizer_options=options,
         sensor_sigma=getattr(args, "sensor_sigma", None),
         seed=getattr(args, "seed", 0), start=parse_start(getattr(args, "start", None)))
+    for name in ("radius", "algorithm", "policy", "max_steps", "headings"):  # not in emulate
+        if hasattr(args, name):
+            fields[name] = getattr(args, name)
     fields.update(overrides)
     return RunSettings(**fields)

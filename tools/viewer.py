@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 
 from service.localization.models import rotate
-from service.localization.surface import ContactSurface
+from service.localization.surface import HeightMap
 from service.wire.envelope import Message
 
 
@@ -65,10 +65,9 @@ class ViewModel:
         return np.column_stack([self.pose[0] + x, self.pose[1] + y])
 
 
-def draw(ax: Any, surface: ContactSurface, view: ViewModel) -> None:
+def draw(ax: Any, hm: HeightMap, view: ViewModel) -> None:
     """Draw one frame on a matplotlib Axes (cleared first)."""
     ax.clear()
-    hm = surface.map
     x_max, y_max = hm.extent
     heights = np.atleast_2d(hm.heights)
     if heights.shape[0] > 1:
@@ -98,13 +97,13 @@ def draw(ax: Any, surface: ContactSurface, view: ViewModel) -> None:
         ax.legend(loc="upper right", fontsize=8)
 
 
-def save_png(path: str, surface: ContactSurface, view: ViewModel) -> None:
+def save_png(path: str, hm: HeightMap, view: ViewModel) -> None:
     """A snapshot without a display (Agg), whatever backend pyplot would pick."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
     fig = Figure(figsize=(7, 6.5), dpi=100)
     FigureCanvasAgg(fig)
-    draw(fig.add_subplot(1, 1, 1), surface, view)
+    draw(fig.add_subplot(1, 1, 1), hm, view)
     fig.tight_layout()
     fig.savefig(path)

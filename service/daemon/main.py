@@ -13,6 +13,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import logging
+import os
 import signal
 import sys
 
@@ -20,6 +21,7 @@ from firmware_if.errors import FirmwareError
 from service.daemon.config import DaemonConfig, load_config
 from service.daemon.node import Node, json_line
 from service.errors import InputError
+from service.wire.client import ENDPOINT_ENV
 
 
 class JsonFormatter(logging.Formatter):
@@ -32,8 +34,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--config", metavar="FILE", help="TOML config (see config/hapticd.toml)")
     p.add_argument("--sim", action="store_true",
                    help="use the simulated backend whatever the config says")
-    p.add_argument("--pub", metavar="ENDPOINT", help="override endpoints.pub")
-    p.add_argument("--cmd", metavar="ENDPOINT", help="override endpoints.cmd")
+    p.add_argument("--pub", metavar="ENDPOINT", default=os.environ.get(ENDPOINT_ENV["pub"]),
+                   help=f"override endpoints.pub (default: ${ENDPOINT_ENV['pub']} if set)")
+    p.add_argument("--cmd", metavar="ENDPOINT", default=os.environ.get(ENDPOINT_ENV["cmd"]),
+                   help=f"override endpoints.cmd (default: ${ENDPOINT_ENV['cmd']} if set)")
     p.add_argument("--log-level", default="info", choices=["debug", "info", "warning"])
     return p
 

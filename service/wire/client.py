@@ -13,6 +13,7 @@ the same id (the daemon answers a repeat from its cache, so nothing runs twice);
 from __future__ import annotations
 
 import itertools
+import os
 import random
 import threading
 import time
@@ -26,6 +27,16 @@ import zmq
 from service.errors import ServiceError
 from service.wire import envelope as wire
 from service.wire.stream import TOPICS
+
+DEFAULT_ENDPOINTS = {"pub": "tcp://127.0.0.1:5560", "cmd": "tcp://127.0.0.1:5561"}
+"""hapticd's default stream (PUB) and command (ROUTER) endpoints."""
+ENDPOINT_ENV = {"pub": "HAPTIC_PUB", "cmd": "HAPTIC_CMD"}
+"""Environment variables that override the defaults, for hapticd and every client."""
+
+
+def default_endpoint(kind: str) -> str:
+    """The endpoint of `kind` ('pub' or 'cmd'): from the environment, else the default."""
+    return os.environ.get(ENDPOINT_ENV[kind]) or DEFAULT_ENDPOINTS[kind]
 
 
 class CommandFailed(ServiceError):

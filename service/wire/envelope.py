@@ -9,12 +9,16 @@ are refused, and only whitelisted dtypes become arrays. docs/protocol.md is the 
 
 from __future__ import annotations
 
+import math
+import sys
 import time
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import msgpack
-import numpy as np
+
+if TYPE_CHECKING:
+    import numpy as np
 
 from service.errors import InputError
 
@@ -61,6 +65,8 @@ class Message:
 
 def pack_array(a: np.ndarray) -> dict[str, Any]:
     """An array as `{dtype, shape, data}`, converted to little-endian and C order."""
+    import numpy as np  # only arrays need it: clients without arrays start faster
+
     a = np.asarray(a)
     dtype = a.dtype.newbyteorder("<") if a.dtype.byteorder == ">" else a.dtype
     dt = dtype.str
@@ -72,6 +78,8 @@ def pack_array(a: np.ndarray) -> dict[str, Any]:
 
 def unpack_array(obj: dict[str, Any]) -> np.ndarray:
     """The inverse of `pack_array`, checking dtype, shape and byte count."""
+    import numpy as np
+
     dt, shape, data = obj.get("dtype"), obj.get("shape"), obj.get("data")
     if dt not in DTYPES:
         raise WireError("bad_array", f"array dtype {dt!r} is not allowed")
@@ -82,20 +90,21 @@ def unpack_array(obj: dict[str, Any]) -> np.ndarray:
     if not isinstance(data, bytes):
         raise WireError("bad_array", "array data must be binary")
     dtype = np.dtype(dt)
-    if int(np.prod(shape, dtype=np.int64)) * dtype.itemsize != len(data):
+    if math.prod(shape) * dtype.itemsize != len(data):
         raise WireError("bad_array", f"array of shape {shape} {dt} needs "
-                        f"{int(np.prod(shape)) * dtype.itemsize} bytes, got {len(data)}")
+                        f"{math.prod(shape) * dtype.itemsize} bytes, got {len(data)}")
     return np.frombuffer(data, dtype=dtype).reshape(shape)
 
 
 def _to_wire(value: Any) -> Any:
-    if isinstance(value, np.ndarray):
+    np = sys.modules.get("numpy")  # without numpy loaded there are no numpy values
+    if np is not None and isinstance(value, np.ndarray):
         return pack_array(value)
     if isinstance(value, dict):
         return {str(k): _to_wire(v) for k, v in value.items()}
     if isinstance(value, (list, tuple)):
         return [_to_wire(v) for v in value]
-    if isinstance(value, np.generic):
+    if np is not None and isinstance(value, np.generic):
         return value.item()
     return value
 

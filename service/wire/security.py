@@ -9,14 +9,17 @@ from __future__ import annotations
 
 import ipaddress
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import zmq
 import zmq.auth
-from zmq.auth.thread import ThreadAuthenticator
 
-from service.daemon.config import SecurityConfig
 from service.errors import ConfigError
+
+if TYPE_CHECKING:  # clients import this module too: keep it light (no config, no asyncio)
+    from zmq.auth.thread import ThreadAuthenticator
+
+    from service.daemon.config import SecurityConfig
 
 LOCAL_TRANSPORTS = ("ipc://", "inproc://")
 
@@ -88,6 +91,8 @@ class CurveServer:
         if not secret:
             raise ConfigError(f"'{secret_file}' holds no secret key (use the .key_secret file)")
         self.public, self.secret = public, secret
+        from zmq.auth.thread import ThreadAuthenticator
+
         self._auth = ThreadAuthenticator(self._ctx)
         self._auth.start()
         self._auth.configure_curve(domain="*", location=str(clients))

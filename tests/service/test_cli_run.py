@@ -85,7 +85,8 @@ def test_plot_is_written(tmp_path):
     (["--json", "/no/such/dir/x.json"], "does not exist"),
     (["--sweep", "full", "--algorithm", "elimination", "--max-steps", "0"], "--max-steps"),
     (["--localizer-option", "work"], "NAME=VALUE"),
-    (["--localizer-option", "wrok=4000"], "unexpected keyword argument 'wrok'"),
+    (["--localizer-option", "wrok=4000"], "no option 'wrok'; did you mean 'work'? its "
+                                          "options: initial, capacity, work"),
 ])
 def test_bad_input_is_one_line_and_status_2(args, message, capsys):
     assert run_cli(*args) == 2

@@ -1,8 +1,7 @@
-"""`haptic ctl / watch / record / replay / view / keygen` against an in-process daemon."""
+"""`haptic ctl / explore / watch / record / replay / view / keygen` against an in-process daemon."""
 
 from __future__ import annotations
 
-import argparse
 import json
 import threading
 from collections.abc import Iterator
@@ -12,15 +11,8 @@ import pytest
 
 from service.daemon.harness import loopback_config, running_node
 from service.daemon.node import Node
-from service.wire.client import Subscriber
-from tools import stream_cli
-
-
-def run(*argv: str) -> int:
-    parser = argparse.ArgumentParser(prog="haptic")
-    stream_cli.register(parser.add_subparsers(dest="command", required=True))
-    args = parser.parse_args(list(argv))
-    return int(args.handler(args) or 0)
+from service.wire.client import Client, Subscriber
+from tools.cli import main
 
 
 @pytest.fixture()
@@ -29,67 +21,121 @@ def node() -> Iterator[Node]:
         yield n
 
 
+def endpoints(node: Node) -> list[str]:
+    return ["--cmd", node.endpoints["cmd"], "--pub", node.endpoints["pub"]]
+
+
 def test_ctl_exit_status_reflects_the_reply(node: Node, capsys) -> None:
     cmd = node.endpoints["cmd"]
-    assert run("ctl", "status", "--cmd", cmd) == 0
+    assert main(["ctl", "status", "--cmd", cmd]) == 0
     assert json.loads(capsys.readouterr().out)["state"] == "inactive"
-    assert run("ctl", "warp", "--cmd", cmd) == 1
-    assert "unknown_command" in capsys.readouterr().err
-    assert run("ctl", "set_policy", "name=random", "--cmd", cmd, "--client", "me") == 0
+    assert main(["ctl", "activate", "--cmd", cmd, "--client", "a"]) == 0
+    assert main(["ctl", "deactivate", "--cmd", cmd, "--client", "b"]) == 1  # a holds it
+    assert "lease_held" in capsys.readouterr().err
+    assert main(["ctl", "ping", "--cmd", "tcp://127.0.0.1:1", "--timeout", "0.2",
+                 "--retries", "0"]) == 3
+
+
+def test_ctl_refuses_an_unknown_command_before_sending_it(capsys) -> None:
+    assert main(["ctl", "stauts", "--cmd", "tcp://127.0.0.1:1"]) == 2
+    err = capsys.readouterr().err
+    assert "did you mean 'status'" in err and err.count("\n") == 1
+
+
+def test_ctl_arguments_in_any_order_and_sections_by_dots(node: Node, capsys) -> None:
+    cmd = node.endpoints["cmd"]
+    # KEY=VALUE after an option used to be refused by the parser
+    assert main(["ctl", "configure", "--client", "me", "--cmd", cmd,
+                 "scenario.policy=random", "scenario.seed=4"]) == 0
+    assert main(["ctl", "--cmd", cmd, "set_map", "--client", "me", "map=bumps:20:3"]) == 0
     capsys.readouterr()
-    assert run("ctl", "get_config", "--cmd", cmd) == 0
-    assert json.loads(capsys.readouterr().out)["scenario"]["policy"] == "random"
-    assert run("ctl", "ping", "--cmd", "tcp://127.0.0.1:1", "--timeout", "0.2",
-               "--retries", "0") == 3
+    assert main(["ctl", "get_config", "--cmd", cmd]) == 0
+    scenario = json.loads(capsys.readouterr().out)["scenario"]
+    assert (scenario["policy"], scenario["seed"], scenario["map"]) == ("random", 4, "bumps:20:3")
+    # a one-shot control command that leaves the finger inactive gives the lease back
+    assert node.lease.holder is None
 
 
-def test_follow_record_replay_and_view(node: Node, tmp_path: Path, capsys) -> None:
+def test_explore_localizes_on_one_connection_and_cleans_up(node: Node, capsys) -> None:
+    assert main(["explore", *endpoints(node), "--client", "op"]) == 0
+    out = capsys.readouterr().out
+    assert "result    localized in" in out
+    assert "dz" in out and "leading mode" in out and "candidates" not in out
+    with Client(node.endpoints["cmd"]) as c:
+        status = c.call("status")
+    assert status["state"] == "inactive" and status["lease"]["holder"] is None
+    assert status["estimate"]["converged"]
+
+
+def test_explore_twice_and_after_another_controller_left(node: Node, capsys) -> None:
+    cmd = node.endpoints["cmd"]
+    # someone activated and walked away: explore waits for their lease, then takes over
+    assert main(["ctl", "activate", "--cmd", cmd, "--client", "gone"]) == 0
+    assert main(["explore", *endpoints(node), "--quiet"]) == 0
+    assert main(["explore", *endpoints(node), "--quiet"]) == 0
+    assert capsys.readouterr().out.count("localized in") == 2
+
+
+def test_explore_says_why_it_cannot_start(node: Node, capsys) -> None:
+    with Client(node.endpoints["cmd"]) as c:
+        c.call("estop", reason="drill")
+    assert main(["explore", *endpoints(node), "--wait", "2"]) == 1
+    assert "fault" in capsys.readouterr().err
+    assert main(["explore", "--cmd", "tcp://127.0.0.1:1", "--pub", "tcp://127.0.0.1:2",
+                 "--wait", "0.5"]) == 3
+
+
+def test_explore_a_run_that_runs_out_of_steps_says_why(capsys) -> None:
+    config = loopback_config({"backend": {"step_duration_s": 0.0},
+                              "scenario": {"max_steps": 2}})
+    with running_node(config) as n:
+        assert main(["explore", *endpoints(n)]) == 1
+    assert "out of steps (2 of at most 2)" in capsys.readouterr().out
+
+
+def test_record_replay_and_view(node: Node, tmp_path: Path, capsys) -> None:
     rec = tmp_path / "run.hrec"
-    ep = ["--cmd", node.endpoints["cmd"], "--pub", node.endpoints["pub"]]
-    assert run("ctl", "activate", *ep, "--client", "op") == 0
-    # Record while an episode runs to convergence under `ctl --follow`.
-
-    recorder = threading.Thread(target=run, args=(
-        "record", str(rec), "--pub", node.endpoints["pub"], "--cmd", node.endpoints["cmd"],
-        "--topics", "estimate,cloud,event", "--duration", "30"))
+    recorder = threading.Thread(target=main, args=([
+        "record", str(rec), *endpoints(node), "--topics", "estimate,cloud,event",
+        "--duration", "30"],))
     with Subscriber(node.endpoints["pub"], ["state"]) as probe:
         assert probe.recv(5.0) is not None  # the stream is up before recording starts
     recorder.start()
-    assert run("ctl", "start_exploration", "--follow", *ep, "--client", "op") == 0
-    out = capsys.readouterr().out
-    assert "CONVERGED" in out and "episode_done" in out
-    assert run("ctl", "deactivate", *ep, "--client", "op") == 0
+    assert main(["explore", *endpoints(node)]) == 0
     node.stop()  # its final shutdown event ends the recording
     recorder.join(40)
     assert not recorder.is_alive()
-    assert rec.stat().st_size > 0
     capsys.readouterr()
-    assert run("replay", str(rec)) == 0
+    assert main(["replay", str(rec)]) == 0
     assert "CONVERGED" in capsys.readouterr().out
     png = tmp_path / "view.png"
-    assert run("view", "--from", str(rec), "--png", str(png)) == 0
+    assert main(["view", "--from", str(rec), "--png", str(png)]) == 0
     assert png.read_bytes()[:4] == b"\x89PNG"
 
 
-def test_replay_refuses_a_non_recording(tmp_path: Path) -> None:
+def test_replay_refuses_a_non_recording(tmp_path: Path, capsys) -> None:
     bad = tmp_path / "x.hrec"
     bad.write_bytes(b"\x93\x01\x02\x03")
-    from service.errors import InputError
-
-    with pytest.raises(InputError, match="not a haptic recording"):
-        run("replay", str(bad))
+    assert main(["replay", str(bad)]) == 2
+    assert "not a haptic recording" in capsys.readouterr().err
 
 
-def test_keygen_writes_a_key_pair(tmp_path: Path, capsys) -> None:
-    assert run("keygen", str(tmp_path / "keys"), "--name", "lab") == 0
+def test_keygen_writes_a_key_pair(tmp_path: Path) -> None:
+    assert main(["keygen", str(tmp_path / "keys"), "--name", "lab"]) == 0
     assert (tmp_path / "keys" / "lab.key").is_file()
     assert (tmp_path / "keys" / "lab.key_secret").stat().st_mode & 0o077 == 0
 
 
 def test_view_png_from_a_live_daemon(node: Node, tmp_path: Path) -> None:
-    ep = ["--cmd", node.endpoints["cmd"], "--pub", node.endpoints["pub"]]
-    assert run("ctl", "activate", *ep, "--client", "op") == 0
-    assert run("ctl", "start_exploration", *ep, "--client", "op") == 0
-    png = tmp_path / "live.png"
-    assert run("view", *ep, "--png", str(png), "--duration", "20") == 0  # ends on convergence
+    with Client(node.endpoints["cmd"]) as c:
+        c.call("activate")
+        c.call("start_exploration")
+        png = tmp_path / "live.png"
+        assert main(["view", *endpoints(node), "--png", str(png), "--duration", "20"]) == 0
     assert png.read_bytes()[:4] == b"\x89PNG"
+
+
+def test_view_without_a_display_says_use_png(node: Node, capsys, monkeypatch) -> None:
+    monkeypatch.setenv("MPLBACKEND", "Agg")
+    assert main(["view", *endpoints(node)]) == 2
+    assert "--png" in capsys.readouterr().err

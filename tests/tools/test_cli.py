@@ -1,0 +1,144 @@
+"""The `haptic` command line itself: light start-up, help that teaches, clean exits."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import msgpack
+import pytest
+
+from service.daemon.harness import loopback_config, running_node
+from tools.cli import COMMANDS, build_parser, main
+
+ROOT = Path(__file__).resolve().parents[2]
+HEAVY = ("numba", "scipy", "matplotlib")
+
+
+def _modules_after(argv: list[str]) -> set[str]:
+    """Top-level packages imported by `haptic ARGV` (run in a fresh interpreter)."""
+    code = ("import json, sys\nfrom tools.cli import main\ntry:\n    main(sys.argv[1:])\n"
+            "except SystemExit:\n    pass\n"
+            "print(json.dumps(sorted({m.split('.')[0] for m in sys.modules})))")
+    proc = subprocess.run([sys.executable, "-c", code, *argv], capture_output=True, text=True,
+                          cwd=ROOT, timeout=60)
+    return set(json.loads(proc.stdout.strip().splitlines()[-1]))
+
+
+@pytest.mark.parametrize("argv", [
+    ["--help"], ["ctl", "--help"], ["watch", "--help"], ["explore", "--help"],
+    ["ctl", "status", "--cmd", "tcp://127.0.0.1:1", "--timeout", "0.05", "--retries", "0"],
+    ["watch", "--pub", "tcp://127.0.0.1:1", "--duration", "0.05"],
+])
+def test_operator_commands_import_no_numerics(argv: list[str]) -> None:
+    loaded = _modules_after(argv)
+    assert "zmq" in loaded or argv == ["--help"]  # it did get as far as the command
+    assert not loaded & set(HEAVY), f"haptic {' '.join(argv)} imported {loaded & set(HEAVY)}"
+
+
+def _all_helps() -> dict[str, str]:
+    """Every command's (and sub-verb's) help text, parser by parser."""
+    texts: dict[str, str] = {}
+
+    def walk(parser, name: str) -> None:
+        texts[name] = parser.format_help()
+        for action in parser._actions:
+            if hasattr(action, "register_all"):
+                action.register_all()
+                for sub, p in action.choices.items():
+                    walk(p, f"{name} {sub}".strip())
+
+    walk(build_parser(), "")
+    return texts
+
+
+def test_every_command_is_listed_and_described() -> None:
+    helps = _all_helps()
+    top = helps[""]
+    for name, (_, summary) in COMMANDS.items():
+        assert name in top and summary.split()[0] in top
+    for name, text in helps.items():
+        if name:
+            description = text.split("\n\n")[1]
+            assert len(description.split()) >= 4, f"haptic {name} has no description"
+
+
+def test_no_help_shows_a_default_of_none() -> None:
+    for name, text in _all_helps().items():
+        assert "default: None" not in text, f"haptic {name} --help shows 'default: None'"
+
+
+def test_ctl_help_lists_the_commands_and_their_arguments(capsys) -> None:
+    with pytest.raises(SystemExit):
+        main(["ctl", "--help"])
+    out = capsys.readouterr().out
+    assert "set_map map=STR [spacing=NUMBER]" in out
+    assert "start_exploration [repeat=BOOL]" in out and "estop [reason=STR]" in out
+
+
+def test_a_user_error_is_one_line_with_status_2(capsys) -> None:
+    assert main(["ctl", "configure", "oops", "--cmd", "tcp://127.0.0.1:1"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "not KEY=VALUE" in err
+
+
+def _catches(pid: int, sig: int) -> bool:
+    """Whether process `pid` has a handler installed for `sig` (Linux /proc)."""
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("SigCgt:"):
+            return bool(int(line.split()[1], 16) >> (sig - 1) & 1)
+    return False
+
+
+def _start_in_background(argv: list[str]) -> subprocess.Popen:
+    """As a non-interactive shell starts `cmd &`: SIGINT ignored. Waits for the handlers."""
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "tools.cli", *argv], cwd=ROOT, stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE, text=True,
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN))
+    deadline = time.monotonic() + 30
+    while not (_catches(proc.pid, signal.SIGINT) and _catches(proc.pid, signal.SIGTERM)):
+        assert proc.poll() is None and time.monotonic() < deadline
+        time.sleep(0.01)  # polling /proc for readiness, not waiting for a result
+    return proc
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+def test_watch_in_the_background_ends_cleanly_on_a_signal(sig: int) -> None:
+    with running_node(loopback_config()) as node:
+        proc = _start_in_background(["watch", "--pub", node.endpoints["pub"], "--topics",
+                                     "state"])
+        assert proc.stdout.readline().startswith("state")  # it is in its loop
+        proc.send_signal(sig)
+        out, err = proc.communicate(timeout=20)
+    assert proc.returncode == 0
+    assert "Traceback" not in err and " messages, " in err
+
+
+def test_a_signal_during_start_up_is_a_clean_interruption() -> None:
+    proc = _start_in_background(["watch", "--pub", "tcp://127.0.0.1:1"])
+    proc.send_signal(signal.SIGTERM)
+    out, err = proc.communicate(timeout=20)
+    assert proc.returncode in (0, 128 + signal.SIGTERM)  # in its loop already, or not yet
+    assert "Traceback" not in err
+
+
+def test_a_closed_pipe_ends_quietly(tmp_path: Path) -> None:
+    from service.wire import envelope as wire
+
+    rec = tmp_path / "many.hrec"
+    with rec.open("wb") as f:
+        f.write(msgpack.packb({"format": "haptic-record", "v": 1, "config": None}))
+        for i in range(1, 20001):
+            payload = wire.encode("event", i, {"event": "lifecycle", "state": "inactive"})
+            f.write(msgpack.packb({"topic": "event", "t_ns": i, "payload": payload}))
+    proc = subprocess.run(f"'{sys.executable}' -m tools.cli replay '{rec}' | head -2",
+                          shell=True, cwd=ROOT, capture_output=True, text=True, timeout=60,
+                          env={**os.environ, "PYTHONUNBUFFERED": "1"})
+    assert proc.stdout.count("\n") == 2
+    assert proc.stderr == ""

@@ -1,0 +1,104 @@
+"""`haptic view`: the daemon's belief as a picture, live in a window or saved as a PNG."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from typing import Any
+
+from service.errors import InputError
+from service.wire import envelope as wire
+from service.wire.client import CommandFailed, CommandTimeout
+from tools.stream_cli import add_endpoint_options, client_from, deadline, subscriber_from
+
+
+def register(p: argparse.ArgumentParser) -> None:
+    p.description = ("Draw the map, the hypotheses (weighted), the estimate and the finger's "
+                     "path: live in a window, or (--png) one snapshot without a display; "
+                     "--from draws a recording instead of the daemon.")
+    p.add_argument("--png", metavar="FILE", help="save one snapshot without a display")
+    p.add_argument("--from", dest="source", metavar="RECORDING",
+                   help="draw the end of a recording (needs --png)")
+    p.add_argument("--duration", type=float, default=3.0, metavar="S",
+                   help="with --png: seconds of stream to collect; stops early on "
+                        "convergence (default: %(default)s)")
+    p.add_argument("--map", metavar="NAME|PATH",
+                   help="map to draw when the daemon cannot be asked (as in haptic run)")
+    add_endpoint_options(p, cmd_help="command endpoint, asked for the map")
+    p.set_defaults(handler=cmd_view)
+
+
+def _map_for_view(args: argparse.Namespace, config: dict[str, Any] | None):
+    """The height map to draw: --map, else the recording's or the daemon's config."""
+    from service.localization.maps import load_map
+
+    if config is None and args.map is None and args.source is None:
+        try:
+            with client_from(args, timeout_s=2.0, retries=0) as c:
+                config = c.call("get_config")
+        except (CommandFailed, CommandTimeout):
+            config = None
+    scenario = (config or {}).get("scenario", {})
+    if args.map:
+        return load_map(args.map)
+    if "map" not in scenario:
+        raise InputError("no map to draw: the daemon did not answer and none was recorded; "
+                         "name it with --map")
+    return load_map(scenario["map"], scenario.get("spacing"))
+
+
+def has_display() -> bool:
+    """Whether matplotlib would open a window (not Agg or another file-only backend)."""
+    import matplotlib
+    from matplotlib.backends import BackendFilter, backend_registry
+
+    names = backend_registry.list_builtin(BackendFilter.NON_INTERACTIVE)
+    return matplotlib.get_backend().lower() not in {n.lower() for n in names}
+
+
+def cmd_view(args: argparse.Namespace) -> int:
+    from tools.viewer import ViewModel, draw, save_png
+
+    view = ViewModel()
+    if args.source:
+        from tools.record_cli import read_recording
+
+        if not args.png:
+            raise InputError("--from needs --png FILE (a recording has no live view)")
+        header, records = read_recording(args.source)
+        height_map = _map_for_view(args, header.get("config"))
+        for r in records:
+            view.update(wire.decode(r["payload"], topic=r["topic"]))
+        save_png(args.png, height_map, view)
+        print(f"# wrote {args.png}", file=sys.stderr)
+        return 0
+    if not args.png and not has_display():
+        raise InputError("no display to open a window on; use --png FILE for a snapshot")
+    height_map = _map_for_view(args, None)
+    with subscriber_from(args, ["state", "estimate", "cloud"]) as sub:
+        if args.png:
+            end = deadline(args.duration)
+            while time.monotonic() < end and not view.converged:
+                msg = sub.recv(min(0.2, max(0.0, end - time.monotonic())))
+                if msg is not None:
+                    view.update(msg)
+            save_png(args.png, height_map, view)
+            print(f"# wrote {args.png}", file=sys.stderr)
+            return 0
+        import matplotlib.pyplot as plt
+
+        fig, ax = plt.subplots(figsize=(7, 6.5))
+        plt.ion()
+        try:
+            while plt.fignum_exists(fig.number):
+                end = time.monotonic() + 0.2
+                while (left := end - time.monotonic()) > 0:
+                    msg = sub.recv(left)
+                    if msg is not None:
+                        view.update(msg)
+                draw(ax, height_map, view)
+                plt.pause(0.01)
+        except KeyboardInterrupt:
+            pass
+    return 0

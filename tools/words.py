@@ -1,0 +1,62 @@
+"""Poses, beliefs and outcomes as a person reads them: millimetres, degrees, percentages.
+
+`haptic run`, `haptic explore` and `haptic watch` print through these, so one episode
+reads the same whichever way it ran. Only `math` is imported.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+
+def mm(value: float | None, spec: str = ".1f") -> str:
+    return "?" if value is None or not math.isfinite(value) else f"{value * 1e3:{spec}} mm"
+
+
+def degrees(radians: float) -> float:
+    """A heading in [0, 360) degrees, rounded to 0.1 so that -1e-9 reads 0.0, never 360.0."""
+    return round(math.degrees(radians), 1) % 360
+
+
+def pose_text(pose: Sequence[float] | None) -> str:
+    """(x, y, heading) in m, m, rad as 'x  120.00 mm  y   80.00 mm  heading  30.0 deg'."""
+    if pose is None:
+        return "none"
+    x, y, heading = (float(v) for v in pose)
+    return f"x {x * 1e3:7.2f} mm  y {y * 1e3:7.2f} mm  heading {degrees(heading):6.1f} deg"
+
+
+def belief_text(position_sd: float | None, heading_sd: float | None,
+                mode_mass: float | None) -> str:
+    """How sure the localizer is: the spread of its hypotheses and its leading mode's
+    probability (comparable across localizers, unlike a count of hypotheses)."""
+    if position_sd is None or not math.isfinite(position_sd):
+        spread = "spread ?"
+    else:
+        spread = f"spread {mm(position_sd)}"
+        if heading_sd is not None and math.isfinite(heading_sd):
+            spread += f" / {math.degrees(heading_sd):.1f} deg"
+    if mode_mass is None or not math.isfinite(mode_mass):
+        return spread
+    return f"{spread}, leading mode {100 * mode_mass:.0f} %"
+
+
+def why_not_converged(*, candidates: int, steps: int, max_steps: int,
+                      pose: Sequence[float] | None, mode_mass: float | None,
+                      runner_up: Sequence[float] | None,
+                      runner_up_mass: float | None) -> str:
+    """One sentence on why an episode ended without declaring a pose."""
+    if candidates == 0 or pose is None:
+        return "every hypothesis was eliminated: the readings fit no pose on this map"
+    parts = []
+    if steps >= max_steps:
+        parts.append(f"out of steps ({steps} of at most {max_steps})")
+    lead = "" if mode_mass is None else f" ({100 * mode_mass:.0f} %)"
+    if runner_up is not None:
+        second = "" if runner_up_mass is None else f" ({100 * runner_up_mass:.0f} %)"
+        parts.append(f"still ambiguous between {pose_text(pose)}{lead} and "
+                     f"{pose_text(runner_up)}{second}")
+    else:
+        parts.append(f"the leading pose {pose_text(pose)}{lead} is not yet clear of the rest")
+    return "; ".join(parts)
