@@ -15,7 +15,14 @@ from typing import Any
 import numpy as np
 
 from firmware_if.errors import HandConfigError
-from firmware_if.registers import BAUD_RATES, MODELS, POSITION_CENTRE
+from firmware_if.registers import (
+    BAUD_RATES,
+    EXTENDED_RANGE,
+    MODELS,
+    POSITION_CENTRE,
+    RAD_S_PER_VEL,
+    REG,
+)
 
 PRESET_DIR = Path(__file__).with_name("hands")
 
@@ -62,6 +69,7 @@ class Joint:
         object.__setattr__(self, "limits", (lo, hi))
         if self.direction not in (1, -1):
             raise HandConfigError(f"{where}: direction must be 1 or -1, got {self.direction}")
+        _check_zero_ticks(self.zero_ticks, where)
         if self.model not in MODELS:
             raise HandConfigError(f"{where}: unknown servo model '{self.model}'; known: "
                                   f"{', '.join(MODELS)}")
@@ -80,6 +88,13 @@ class TipRoll:
             raise HandConfigError(f"tip_roll: id must be 0..252, got {self.id}")
         if self.direction not in (1, -1):
             raise HandConfigError(f"tip_roll: direction must be 1 or -1, got {self.direction}")
+        _check_zero_ticks(self.zero_ticks, "tip_roll")
+
+
+def _check_zero_ticks(value: int, where: str) -> None:
+    if not -EXTENDED_RANGE <= value <= EXTENDED_RANGE:
+        raise HandConfigError(f"{where}: zero_ticks must be a position register value in "
+                              f"[{-EXTENDED_RANGE}, {EXTENDED_RANGE}], got {value}")
 
 
 @dataclass(frozen=True)
@@ -178,8 +193,10 @@ class Hand:
             raise HandConfigError(f"hand '{self.name}': return_delay_us must be 0..508")
         if not 0 < self.goal_current_a <= 3.2:
             raise HandConfigError(f"hand '{self.name}': goal_current_a must be in (0, 3.2] A")
-        if not self.profile_velocity_rad_s >= 0:
-            raise HandConfigError(f"hand '{self.name}': profile_velocity_rad_s must be >= 0")
+        top = REG["profile_velocity"].hi * RAD_S_PER_VEL
+        if not 0 <= self.profile_velocity_rad_s <= top:
+            raise HandConfigError(f"hand '{self.name}': profile_velocity_rad_s must be in "
+                                  f"[0, {top:.0f}] rad/s (0: as fast as the servo goes)")
         try:
             centre = tuple(float(v) for v in self.grasp_centre)
         except (TypeError, ValueError):
@@ -212,20 +229,56 @@ class Hand:
     upper = property(lambda self: self.finger.upper)
 
 
+def _whole(value: Any, where: str) -> int:
+    """An integer from TOML: `1.5`, `true` or `"3"` are errors, not 1, 1 or 3."""
+    if isinstance(value, bool) or not isinstance(value, int):
+        raise HandConfigError(f"{where} must be a whole number, got {value!r}")
+    return value
+
+
+def _number(value: Any, where: str) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise HandConfigError(f"{where} must be a number, got {value!r}")
+    return float(value)
+
+
+def _table(value: Any, where: str) -> dict[str, Any]:
+    if not isinstance(value, dict):
+        raise HandConfigError(f"{where} must be a table, got {value!r}")
+    return value
+
+
+def _list(value: Any, where: str) -> list[Any]:
+    if not isinstance(value, list):
+        raise HandConfigError(f"{where} must be a list, got {value!r}")
+    return value
+
+
 def _finger_from_dict(data: dict[str, Any], name: str, model: str) -> Finger:
-    joints = tuple(
-        Joint(name=str(j.get("name", f"joint{i}")), id=int(j["id"]), axis=j["axis"],
-              origin=j.get("origin", (0.0, 0.0, 0.0)), limits=tuple(j["limits"]),
-              zero_ticks=int(j.get("zero_ticks", POSITION_CENTRE)),
-              direction=int(j.get("direction", 1)),
-              model=str(j.get("model", data.get("model", model))))
-        for i, j in enumerate(data.get("joints", [])))
+    where = f"finger '{name}'"
+    joints = []
+    for i, entry in enumerate(_list(data.get("joints", []), f"{where}: joints")):
+        w = f"{where}: joints[{i}]"
+        j = _table(entry, w)
+        joints.append(Joint(
+            name=str(j.get("name", f"joint{i}")), id=_whole(j["id"], f"{w}: id"),
+            axis=j["axis"], origin=j.get("origin", (0.0, 0.0, 0.0)),
+            limits=tuple(_number(v, f"{w}: limits") for v in _list(j["limits"], f"{w}: limits")),
+            zero_ticks=_whole(j.get("zero_ticks", POSITION_CENTRE), f"{w}: zero_ticks"),
+            direction=_whole(j.get("direction", 1), f"{w}: direction"),
+            model=str(j.get("model", data.get("model", model)))))
     roll = data.get("tip_roll")
+    if roll is not None:
+        roll = _table(roll, f"{where}: tip_roll")
     tip_roll = None if roll is None else TipRoll(
-        id=int(roll["id"]), zero_ticks=int(roll.get("zero_ticks", POSITION_CENTRE)),
-        direction=int(roll.get("direction", 1)))
-    return Finger(name=str(data.get("name", name)), joints=joints, tip=data["tip"],
-                  radius=float(data["radius"]), home=tuple(float(q) for q in data["home"]),
+        id=_whole(roll["id"], f"{where}: tip_roll: id"),
+        zero_ticks=_whole(roll.get("zero_ticks", POSITION_CENTRE),
+                          f"{where}: tip_roll: zero_ticks"),
+        direction=_whole(roll.get("direction", 1), f"{where}: tip_roll: direction"))
+    return Finger(name=str(data.get("name", name)), joints=tuple(joints), tip=data["tip"],
+                  radius=_number(data["radius"], f"{where}: radius"),
+                  home=tuple(_number(q, f"{where}: home")
+                             for q in _list(data["home"], f"{where}: home")),
                   tip_roll=tip_roll, base=tuple(data.get("base", (0.0, 0.0, 0.0))))
 
 
@@ -236,25 +289,30 @@ def hand_from_dict(data: dict[str, Any], name: str = "hand") -> Hand:
     optional tip_roll) or, for a single finger, those fields at the top level.
     """
     hand_name = str(data.get("name", name))
+    where = f"hand '{hand_name}'"
     try:
         model = str(data.get("model", "XM430-W350"))
         if "fingers" in data:
             if "joints" in data:
                 raise HandConfigError(f"hand '{hand_name}': give [[fingers]] or top-level "
                                       "[[joints]], not both")
-            fingers = tuple(_finger_from_dict(f, f"finger{i}", model)
-                            for i, f in enumerate(data["fingers"]))
+            fingers = tuple(_finger_from_dict(_table(f, f"{where}: fingers[{i}]"),
+                                              f"finger{i}", model)
+                            for i, f in enumerate(_list(data["fingers"], f"{where}: fingers")))
         else:
             fingers = (_finger_from_dict(data, hand_name, model),)
         return Hand(name=hand_name, fingers=fingers,
-                    baud=int(data.get("baud", 1_000_000)),
-                    return_delay_us=int(data.get("return_delay_us", 0)),
-                    goal_current_a=float(data.get("goal_current_a", 0.4)),
-                    profile_velocity_rad_s=float(data.get("profile_velocity_rad_s", 0.0)),
+                    baud=_whole(data.get("baud", 1_000_000), f"{where}: baud"),
+                    return_delay_us=_whole(data.get("return_delay_us", 0),
+                                           f"{where}: return_delay_us"),
+                    goal_current_a=_number(data.get("goal_current_a", 0.4),
+                                           f"{where}: goal_current_a"),
+                    profile_velocity_rad_s=_number(data.get("profile_velocity_rad_s", 0.0),
+                                                   f"{where}: profile_velocity_rad_s"),
                     grasp_centre=tuple(data.get("grasp_centre", (0.0, 0.0))))
     except KeyError as exc:
         raise HandConfigError(f"hand '{name}': missing field {exc.args[0]!r}") from None
-    except (TypeError, ValueError) as exc:
+    except (TypeError, ValueError, AttributeError) as exc:
         if isinstance(exc, HandConfigError):
             raise
         raise HandConfigError(f"hand '{name}': {exc}") from None
@@ -276,4 +334,6 @@ def load_hand(spec: str) -> Hand:
         data = tomllib.loads(path.read_text())
     except tomllib.TOMLDecodeError as exc:
         raise HandConfigError(f"{path}: not valid TOML ({exc})") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise HandConfigError(f"hand file '{path}' could not be read: {exc}") from None
     return hand_from_dict(data, name=path.stem)

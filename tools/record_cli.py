@@ -102,8 +102,14 @@ def cmd_replay(args: argparse.Namespace) -> int:
 
     _, records = read_recording(args.file)
     if args.publish is None:
-        for r in records:
-            print(format_message(wire.decode(r["payload"], topic=r["topic"])))
+        for index, r in enumerate(records, 1):
+            try:
+                line = format_message(wire.decode(r["payload"], topic=str(r.get("topic"))))
+            except (wire.WireError, KeyError, TypeError, ValueError, IndexError) as exc:
+                raise InputError(f"'{args.file}': message {index} is not a valid "
+                                 f"{r.get('topic')!r} message ({type(exc).__name__}: {exc})"
+                                 ) from None
+            print(line)
         return 0
     from service.wire.security import is_loopback
 

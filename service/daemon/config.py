@@ -9,129 +9,107 @@ dataclasses and so runs the same checks.
 from __future__ import annotations
 
 import dataclasses
-import math
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from service.bounds import check_fields, check_keywords, same_as, setting
 from service.episode.scenario import RunSettings, for_backend
 from service.errors import ConfigError
-from service.registry import BACKENDS, LOCALIZERS, POLICIES
+from service.registry import BACKENDS
 from service.wire.envelope import MAX_FRAME_BYTES
 
 OVERRUN_POLICIES = ("skip", "catch_up")
 LOCALIZER_MODES = ("sliced", "thread")
 RUNTIME_SECTIONS = ("backend", "scenario", "loop", "lease")
 """Sections `configure` may change while the daemon runs; endpoints and security need a restart."""
-
-
-def _positive(name: str, value: float) -> None:
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not (
-            math.isfinite(value) and value > 0):
-        raise ConfigError(f"{name} must be a positive number, got {value!r}")
+BACKEND_BUILDER_ARGS = ("radius", "step")
+"""Arguments of a hardware backend's `from_cli` that come from [scenario], not its options."""
 
 
 @dataclass(frozen=True)
 class BackendConfig:
     """Which backend (a BACKENDS registry name) and the simulator's settings."""
 
-    name: str = "sim"
-    step_duration_s: float = 0.05
+    name: str = setting("sim", "str", choices=BACKENDS.names)
+    step_duration_s: float = setting(0.05, "float", lo=0.0, hi=10.0, unit="s")
     """Simulated step time: steps take real time so the loop sees them in progress."""
-    options: dict[str, Any] = field(default_factory=dict)
+    options: dict[str, Any] = setting({}, "options")
     """A hardware backend's settings, e.g. dynamixel: {port, hand} (its `from_cli` builder)."""
 
     def __post_init__(self) -> None:
-        if self.name not in BACKENDS.names():
-            raise ConfigError(f"backend.name '{self.name}' is unknown; choose one of: "
-                              f"{', '.join(BACKENDS.names())}")
-        if not (isinstance(self.step_duration_s, (int, float)) and self.step_duration_s >= 0):
-            raise ConfigError("backend.step_duration_s must be >= 0 seconds")
-        if not isinstance(self.options, dict):
-            raise ConfigError("backend.options must be a table")
+        check_fields(self, "backend.")
+        builder = getattr(BACKENDS.load(self.name), "from_cli", None)
+        if builder is None:
+            if self.options:
+                raise ConfigError(f"backend '{self.name}' takes no options")
+            return
+        check_keywords(builder, {k: v for k, v in self.options.items()
+                                 if k not in BACKEND_BUILDER_ARGS}, f"backend '{self.name}'")
+        bad = sorted(set(self.options) & set(BACKEND_BUILDER_ARGS))
+        if bad:
+            raise ConfigError(f"backend.options cannot set {', '.join(bad)}: [scenario] does")
 
 
 @dataclass(frozen=True)
 class ScenarioConfig:
-    """Map, finger, localizer and policy: the same meaning as `haptic run`'s settings."""
+    """Map, finger, localizer and policy: `haptic run`'s settings, with RunSettings' bounds."""
 
-    map: str = "peaks"
-    spacing: float | None = None
-    radius: float = 0.008
-    step: float = 0.01
-    localizer: str = "particles"
-    policy: str = "info-gain"
-    headings: int = 11
-    max_steps: int = 100
-    noise: bool = False
-    seed: int = 0
-    start: tuple[float, float, float] | None = None
+    map: str = same_as(RunSettings, "map")
+    spacing: float | None = same_as(RunSettings, "spacing")
+    radius: float = same_as(RunSettings, "radius")
+    step: float = same_as(RunSettings, "step")
+    localizer: str = same_as(RunSettings, "algorithm")
+    policy: str = same_as(RunSettings, "policy")
+    headings: int = same_as(RunSettings, "headings")
+    max_steps: int = same_as(RunSettings, "max_steps")
+    noise: bool = same_as(RunSettings, "noise")
+    seed: int = same_as(RunSettings, "seed")
+    start: tuple[float, float, float] | None = same_as(RunSettings, "start")
     """Simulator only: the hidden start pose; None draws one from the seed."""
-    localizer_options: dict[str, Any] = field(default_factory=dict)
-    sensor_sigma: float | None = None
+    localizer_options: dict[str, Any] = same_as(RunSettings, "localizer_options")
+    sensor_sigma: float | None = same_as(RunSettings, "sensor_sigma")
     """Measurement noise (m) the localizer assumes; None: from `noise`, or
     HARDWARE_SENSOR_SIGMA on a hardware backend."""
 
     def __post_init__(self) -> None:
-        if self.localizer not in LOCALIZERS.names():
-            raise ConfigError(f"scenario.localizer '{self.localizer}' is unknown; choose one "
-                              f"of: {', '.join(LOCALIZERS.names())}")
-        if self.policy not in POLICIES.names():
-            raise ConfigError(f"scenario.policy '{self.policy}' is unknown; choose one of: "
-                              f"{', '.join(POLICIES.names())}")
-        if self.start is not None:
-            if not (isinstance(self.start, (list, tuple)) and len(self.start) == 3):
-                raise ConfigError("scenario.start must be [x, y, heading] (m, m, rad)")
-            object.__setattr__(self, "start", tuple(float(v) for v in self.start))
-        self.run_settings()  # RunSettings carries the numeric checks
+        check_fields(self, "scenario.")
+        try:
+            self.run_settings()  # checks localizer_options against the localizer
+        except ConfigError as exc:
+            raise ConfigError(f"scenario.localizer_options: {exc}") from None
 
     def run_settings(self) -> RunSettings:
-        try:
-            return RunSettings(map=self.map, spacing=self.spacing, radius=self.radius,
-                               step=self.step, algorithm=self.localizer, policy=self.policy,
-                               seed=self.seed, noise=self.noise, start=self.start,
-                               max_steps=self.max_steps, headings=self.headings,
-                               localizer_options=dict(self.localizer_options),
-                               sensor_sigma=self.sensor_sigma)
-        except TypeError as exc:
-            raise ConfigError(f"scenario: {exc}") from None
+        return RunSettings(map=self.map, spacing=self.spacing, radius=self.radius,
+                           step=self.step, algorithm=self.localizer, policy=self.policy,
+                           seed=self.seed, noise=self.noise, start=self.start,
+                           max_steps=self.max_steps, headings=self.headings,
+                           localizer_options=dict(self.localizer_options),
+                           sensor_sigma=self.sensor_sigma)
 
 
 @dataclass(frozen=True)
 class LoopConfig:
     """The real-time loop: rate, per-tick localizer budget, overrun policy, stream rates."""
 
-    rate_hz: float = 200.0
-    work_fraction: float = 0.5
+    rate_hz: float = setting(200.0, "float", lo=10.0, hi=2000.0, unit="Hz")
+    work_fraction: float = setting(0.5, "float", lo=0.05, hi=0.9)
     """Share of a period the localizer may use in one tick."""
-    overrun: str = "skip"
+    overrun: str = setting("skip", "str", choices=OVERRUN_POLICIES)
     """'skip': after an overrun resume at the next period boundary; 'catch_up': run late ticks."""
-    cloud_hz: float = 4.0
-    state_every: int = 1
+    cloud_hz: float = setting(4.0, "float", lo=0.1, hi=50.0, unit="Hz")
+    state_every: int = setting(1, "int", lo=1, hi=100)
     """Publish `state` every N ticks."""
-    cloud_points: int = 500
-    stats_window: int = 1000
+    cloud_points: int = setting(500, "int", lo=1, hi=20_000)
+    stats_window: int = setting(1000, "int", lo=10, hi=65_536)
     """Ticks the `state` timing percentiles cover."""
-    localizer_mode: str = "sliced"
+    localizer_mode: str = setting("sliced", "str", choices=LOCALIZER_MODES)
     """'sliced': anytime `work` under each tick's budget; 'thread': whole updates on a
     worker thread, for localizers whose slices are longer than a tick."""
 
     def __post_init__(self) -> None:
-        _positive("loop.rate_hz", self.rate_hz)
-        if self.rate_hz > 2000:
-            raise ConfigError("loop.rate_hz above 2000 is not supported")
-        if not 0 < self.work_fraction <= 0.9:
-            raise ConfigError("loop.work_fraction must be in (0, 0.9]")
-        if self.overrun not in OVERRUN_POLICIES:
-            raise ConfigError(f"loop.overrun must be one of {OVERRUN_POLICIES}")
-        _positive("loop.cloud_hz", self.cloud_hz)
-        if self.localizer_mode not in LOCALIZER_MODES:
-            raise ConfigError(f"loop.localizer_mode must be one of {LOCALIZER_MODES}")
-        for name in ("state_every", "cloud_points", "stats_window"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-                raise ConfigError(f"loop.{name} must be an integer >= 1")
+        check_fields(self, "loop.")
 
     @property
     def period_ns(self) -> int:
@@ -140,51 +118,49 @@ class LoopConfig:
 
 @dataclass(frozen=True)
 class EndpointConfig:
-    pub: str = "tcp://127.0.0.1:5560"
-    cmd: str = "tcp://127.0.0.1:5561"
-    sndhwm: int = 1000
+    pub: str = setting("tcp://127.0.0.1:5560", "str")
+    cmd: str = setting("tcp://127.0.0.1:5561", "str")
+    sndhwm: int = setting(1000, "int", lo=1, hi=1_000_000)
     """Messages queued per subscriber before PUB drops for that subscriber."""
-    max_request_bytes: int = 64 * 1024
+    max_request_bytes: int = setting(64 * 1024, "int", lo=256, hi=MAX_FRAME_BYTES)
 
     def __post_init__(self) -> None:
+        check_fields(self, "endpoints.")
         for name in ("pub", "cmd"):
             value = getattr(self, name)
-            if not isinstance(value, str) or "://" not in value:
+            if "://" not in value:
                 raise ConfigError(f"endpoints.{name} must be a ZeroMQ endpoint like "
                                   f"tcp://127.0.0.1:5560, got {value!r}")
-        if not (isinstance(self.sndhwm, int) and self.sndhwm >= 1):
-            raise ConfigError("endpoints.sndhwm must be an integer >= 1")
-        if not (isinstance(self.max_request_bytes, int)
-                and 256 <= self.max_request_bytes <= MAX_FRAME_BYTES):
-            raise ConfigError("endpoints.max_request_bytes must be 256 .. 16 MiB")
 
 
 @dataclass(frozen=True)
 class SecurityConfig:
     """CurveZMQ: required for any non-loopback bind (checked by service.wire.security)."""
 
-    curve: bool = False
-    server_secret_key: str = ""
+    curve: bool = setting(False, "bool")
+    server_secret_key: str = setting("", "str")
     """Path of the server's `.key_secret` file (from `haptic keygen`)."""
-    authorized_clients: str = ""
-    """Directory of client `.key` files allowed to connect."""
+    authorized_clients: str = setting("", "str")
+    """Directory of client `.key` files allowed to connect (read again when it changes)."""
 
     def __post_init__(self) -> None:
+        check_fields(self, "security.")
         if self.curve and not (self.server_secret_key and self.authorized_clients):
             raise ConfigError("security.curve needs server_secret_key and authorized_clients")
 
 
 @dataclass(frozen=True)
 class LeaseConfig:
-    ttl_s: float = 3.0
+    """The controller's lease and the watchdog behind it. Bounded both ways, so no
+    configuration can switch the watchdog off."""
+
+    ttl_s: float = setting(3.0, "float", lo=0.1, hi=10.0, unit="s")
     """A controller that sends nothing for this long loses control."""
-    hold_s: float = 1.0
+    hold_s: float = setting(1.0, "float", lo=0.0, hi=5.0, unit="s")
     """After the lease expires an active finger holds still this long, then torque goes off."""
 
     def __post_init__(self) -> None:
-        _positive("lease.ttl_s", self.ttl_s)
-        if not (isinstance(self.hold_s, (int, float)) and self.hold_s >= 0):
-            raise ConfigError("lease.hold_s must be >= 0 seconds")
+        check_fields(self, "lease.")
 
 
 @dataclass(frozen=True)
@@ -195,8 +171,11 @@ class DaemonConfig:
     endpoints: EndpointConfig = field(default_factory=EndpointConfig)
     security: SecurityConfig = field(default_factory=SecurityConfig)
     lease: LeaseConfig = field(default_factory=LeaseConfig)
-    auto_configure: bool = True
+    auto_configure: bool = setting(True, "bool")
     """Open the backend at start-up (state inactive) instead of waiting for `configure`."""
+
+    def __post_init__(self) -> None:
+        check_fields(self)
 
     def run_settings(self) -> RunSettings:
         """The scenario's settings; on hardware the localizer assumes encoder-level noise."""
@@ -227,7 +206,7 @@ def _section(cls: type, name: str, values: Any, base: Any = None) -> Any:
     if not isinstance(values, dict):
         raise ConfigError(f"[{name}] must be a table")
     known = {f.name for f in dataclasses.fields(cls)}
-    unknown = sorted(set(values) - known)
+    unknown = sorted(str(k)[:64] for k in values if k not in known)
     if unknown:
         raise ConfigError(f"[{name}] has unknown key(s) {', '.join(unknown)}; known: "
                           f"{', '.join(sorted(known))}")
@@ -239,16 +218,14 @@ def _section(cls: type, name: str, values: Any, base: Any = None) -> Any:
 
 def from_dict(data: dict[str, Any]) -> DaemonConfig:
     """A validated config from parsed TOML (or any nested dict)."""
-    unknown = sorted(set(data) - set(SECTIONS))
+    unknown = sorted(str(k)[:64] for k in data if k not in SECTIONS)
     if unknown:
         raise ConfigError(f"unknown config section(s) {', '.join(unknown)}; known: "
                           f"{', '.join(SECTIONS)}")
     kwargs: dict[str, Any] = {}
     for name, value in data.items():
         if name == "auto_configure":
-            if not isinstance(value, bool):
-                raise ConfigError("auto_configure must be true or false")
-            kwargs[name] = value
+            kwargs[name] = value  # checked by DaemonConfig
         else:
             cls = type(getattr(DaemonConfig(), name))
             kwargs[name] = _section(cls, name, value)

@@ -6,11 +6,12 @@ finger, localizer and policy through here, so a setting means the same thing eve
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, dataclass, replace
 from typing import Any
 
 import numpy as np
 
+from service.bounds import check_fields, check_keywords, setting
 from service.errors import ConfigError
 from service.localization.localizers.base import Estimate, Localizer, LocalizerContext, wrap_angle
 from service.localization.localizers.pose_table import grid_positions
@@ -22,40 +23,33 @@ from service.registry import LOCALIZERS, POLICIES
 
 @dataclass(frozen=True)
 class RunSettings:
-    """Everything that defines an episode. Defaults are BENCHMARKS.md B1 on `peaks`."""
+    """Everything that defines an episode. Defaults are BENCHMARKS.md B1 on `peaks`.
 
-    map: str = "peaks"
-    spacing: float | None = None
-    radius: float = 0.008
-    step: float = 0.01
-    algorithm: str = "particles"
-    policy: str = "info-gain"
-    seed: int = 0
-    noise: bool = False
-    start: tuple[float, float, float] | None = None
+    Each field's type and range is declared here once (`service.bounds`); the daemon's
+    `[scenario]` section reuses these declarations."""
+
+    map: str = setting("peaks", "str")
+    spacing: float | None = setting(None, "float", lo=1e-6, hi=0.1, unit="m", optional=True)
+    radius: float = setting(0.008, "float", lo=1e-4, hi=0.1, unit="m")
+    step: float = setting(0.01, "float", lo=1e-4, hi=0.1, unit="m")
+    algorithm: str = setting("particles", "str", choices=LOCALIZERS.names)
+    policy: str = setting("info-gain", "str", choices=POLICIES.names)
+    seed: int = setting(0, "int", lo=0, hi=2**63 - 1)
+    noise: bool = setting(False, "bool")
+    start: tuple[float, float, float] | None = setting(None, "vec3", lo=-1e3, hi=1e3,
+                                                       optional=True)
     """(x, y, heading) in metres and radians; None draws one from the seed."""
-    max_steps: int = 100
-    headings: int = 11
-    sensor_sigma: float | None = None
+    max_steps: int = setting(100, "int", lo=1, hi=100_000)
+    headings: int = setting(11, "int", lo=1, hi=360)
+    sensor_sigma: float | None = setting(None, "float", lo=1e-9, hi=0.01, unit="m",
+                                         optional=True)
     """Measurement noise (metres) the localizer assumes; None: what `noise` implies."""
-    localizer_options: dict[str, Any] = field(default_factory=dict)
+    localizer_options: dict[str, Any] = setting({}, "options")
 
     def __post_init__(self) -> None:
-        if not (np.isfinite(self.radius) and self.radius > 0):
-            raise ConfigError(f"--radius must be a positive number of metres, got {self.radius}")
-        if not (np.isfinite(self.step) and self.step > 0):
-            raise ConfigError(f"--step must be a positive number of metres, got {self.step}")
-        if self.max_steps < 1:
-            raise ConfigError(f"--max-steps must be at least 1, got {self.max_steps}")
-        if self.headings < 1:
-            raise ConfigError(f"headings must be at least 1, got {self.headings}")
-        if self.sensor_sigma is not None and not (np.isfinite(self.sensor_sigma)
-                                                  and self.sensor_sigma > 0):
-            raise ConfigError(f"--sensor-sigma must be a positive number of metres, "
-                              f"got {self.sensor_sigma}")
-        if self.seed < 0:
-            raise ConfigError(f"--seed must be >= 0, got {self.seed}")
-        LOCALIZERS.load(self.algorithm)
+        check_fields(self, flags=True)  # errors name `haptic run`'s options
+        check_keywords(LOCALIZERS.load(self.algorithm), self.localizer_options,
+                       f"algorithm '{self.algorithm}'")
         POLICIES.load(self.policy)
 
     @property

@@ -24,7 +24,7 @@ from typing import Any
 import msgpack
 import zmq
 
-from service.errors import ServiceError
+from service.errors import ConfigError, ServiceError
 from service.wire import envelope as wire
 from service.wire.stream import TOPICS
 
@@ -57,6 +57,16 @@ def _apply(sock: zmq.Socket, options: dict[int, Any] | None) -> None:
         sock.setsockopt(opt, value)
 
 
+def _connect(sock: zmq.Socket, endpoint: str) -> None:
+    """Connect, or close the socket and say what is wrong with the endpoint."""
+    try:
+        sock.connect(endpoint)
+    except zmq.ZMQError as exc:
+        sock.close(linger=0)
+        raise ConfigError(f"cannot connect to '{endpoint}': {exc.strerror}; an endpoint "
+                          f"looks like tcp://127.0.0.1:5561 or ipc:///path") from None
+
+
 class Subscriber:
     """A SUB socket on some topics; tracks sequence gaps per topic."""
 
@@ -73,7 +83,7 @@ class Subscriber:
                 self._sock.close()
                 raise ValueError(f"unknown topic '{topic}'; topics: {', '.join(TOPICS)}")
             self._sock.setsockopt(zmq.SUBSCRIBE, topic.encode())
-        self._sock.connect(endpoint)
+        _connect(self._sock, endpoint)
         self._last: dict[str, int] = {}
         self.gaps: dict[str, int] = dict.fromkeys(TOPICS, 0)
         """Messages missed per topic, from jumps in the sequence numbers."""
@@ -158,7 +168,7 @@ class Client:
         sock = self._ctx.socket(zmq.DEALER)
         sock.setsockopt(zmq.LINGER, 0)
         _apply(sock, self._options)
-        sock.connect(self.endpoint)
+        _connect(sock, self.endpoint)
         return sock
 
     def request(self, cmd: str, args: dict[str, Any] | None = None,

@@ -23,7 +23,7 @@ from typing import Any, Protocol
 
 import zmq
 
-from firmware_if.errors import FirmwareError
+from firmware_if.errors import FirmwareError, HandConfigError
 from service.errors import InputError, StateError
 from service.wire import envelope as wire
 from service.wire.security import bind_server_socket
@@ -263,7 +263,7 @@ class CommandServer:
             return self._error(rid, exc.code, str(exc))
         except StateError as exc:
             return self._error(rid, "bad_state", str(exc))
-        except InputError as exc:
+        except (InputError, HandConfigError) as exc:  # a bad value, map, name or hand file
             return self._error(rid, "bad_config", str(exc))
         except FirmwareError as exc:
             return self._error(rid, "hardware", str(exc))

@@ -165,7 +165,7 @@ def _refuse_ext(code: int, data: bytes) -> Any:
 def check_envelope(obj: dict[str, Any], *, need_seq: bool = True) -> None:
     """Raise WireError unless `obj` carries a valid envelope of our version."""
     v = obj.get("v")
-    if v != VERSION:
+    if type(v) is not int or v != VERSION:  # `true` and `1.0` are not version 1
         raise WireError("bad_version", f"schema version {v!r} is not supported; this "
                         f"service speaks v={VERSION}")
     if not isinstance(obj.get("type"), str):
