@@ -30,7 +30,7 @@ class RunSettings:
 
     map: str = setting("peaks", "str")
     spacing: float | None = setting(None, "float", lo=1e-6, hi=0.1, unit="m", optional=True)
-    radius: float = setting(0.008, "float", lo=1e-4, hi=0.1, unit="m")
+    radius: float = setting(0.008, "float", lo=1e-4, hi=10.0, unit="m")  # map_check: fit
     step: float = setting(0.01, "float", lo=1e-4, hi=0.1, unit="m")
     algorithm: str = setting("particles", "str", choices=LOCALIZERS.names)
     policy: str = setting("info-gain", "str", choices=POLICIES.names)

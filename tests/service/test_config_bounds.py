@@ -36,7 +36,7 @@ REPRODUCTIONS = [
     ("scenario", "start", ["a", "b", "c"]),
     ("scenario", "map", 5),
     ("scenario", "spacing", 1e-300),
-    ("scenario", "radius", 8.0),
+    ("scenario", "radius", 20.0),
     ("scenario", "localizer_options", {"work": "abc"}),
     ("scenario", "localizer_options", {"wrok": 10}),
     ("backend", "options", {"port": "/dev/null"}),
@@ -88,6 +88,9 @@ def test_refused_configure_changes_nothing_and_is_bad_config() -> None:
             with pytest.raises(CommandFailed) as err:
                 ctl.call("configure", changes={section: {key: value}})
             assert err.value.code == "bad_config", (section, key, err.value)
+        for spec in ("bumps:20:nan", "peaks:1e-300", "no-such-preset"):  # load-time errors
+            with pytest.raises(CommandFailed, match="bad_config"):
+                ctl.call("configure", changes={"scenario": {"map": spec}})
         # a change is validated whole: one bad key leaves the good one unapplied too
         with pytest.raises(CommandFailed, match="bad_config"):
             ctl.call("configure", changes={"loop": {"rate_hz": 100.0},
@@ -183,7 +186,7 @@ def test_an_unreadable_hand_file_is_a_hand_config_error(tmp_path: Path) -> None:
 
 @pytest.mark.parametrize("argv", [
     ["run", "--localizer-option", "work=abc"],
-    ["run", "--radius", "8"],
+    ["run", "--radius", "20"],
     ["run", "--spacing", "1e-300", "--map", "x.npy"],
     ["run", "--max-steps", "0"],
     ["ctl", "--cmd", "garbage", "status"],
