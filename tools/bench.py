@@ -15,6 +15,9 @@ SCENARIOS: dict[str, tuple[str, str]] = {
     "paper": ("tools.bench_paper", "B1: the paper's table (103 noise-free runs on peaks)"),
     "realistic": ("tools.bench_realistic", "B2: continuous pose, noise, model mismatch"),
     "scale": ("tools.bench_scale", "B3: compute per step as the map grows"),
+    "objects": ("tools.bench_objects", "surfaces like real objects (plates, shells, terrain) "
+                                       "under B2's noise"),
+    "profile": ("tools.bench_profile", "B5: 1-D profiles for the planar finger, B2's noise"),
     "service": ("tools.bench_service", "B4: the real-time loop under load"),
     "bus": ("tools.bench_bus", "bus cycle time on the servo-bus emulator"),
     "anytime": ("tools.bench_anytime", "longest localizer work slice under a time budget"),
