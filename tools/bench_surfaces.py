@@ -185,8 +185,9 @@ def run_surfaces(args: argparse.Namespace, *, scenario: str, label: str,
                                        "compute_ms_after_first_p99": TARGET_P99_MS},
                            "runs": [o.to_json() for o in outcomes]})
     if args.plot:
-        plot_rows(rows + family_rows, args.plot, title=f"{label}: {base.algorithm} + {base.policy}, "
-                                         f"B2's noise, {args.runs} runs per surface")
+        title = (f"{label}: {base.algorithm} + {base.policy}, B2's noise, {args.runs} runs "
+                 "per surface")
+        plot_rows(rows + family_rows, args.plot, title=title)
         print(f"figure written to {args.plot}")
     return 1 if total["wrong_declarations"] else 0
 
