@@ -30,6 +30,7 @@ from service.daemon.lifecycle import Lifecycle, State
 from service.daemon.loop import RateLoop, Samples, Tick
 from service.episode.scenario import RunSettings, Truth, draw_truth, episode_streams, surface_for
 from service.errors import ConfigError, StateError
+from service.localization.models import rotate
 from service.registry import BACKENDS
 from service.wire.commands import CommandServer, Lease
 from service.wire.security import CurveServer, check_binds
@@ -42,12 +43,14 @@ QUIET_COMMANDS = frozenset({"ping", "status", "get_config", "acquire"})
 
 def make_backend(config: DaemonConfig, settings: RunSettings, surface: Any
                  ) -> tuple[Backend, Truth | None, Any]:
-    """The configured backend (not yet opened), the sim's hidden truth, and an rng for search.
+    """The configured backend (not yet opened), the sim's hidden truth, and the localizer's
+    and policy's rngs.
 
-    The seed is split by `scenario.episode_streams`, as `haptic run` splits it, so both
-    hide the same start pose for the same seed.
+    The seed is split by `scenario.episode_streams`, as `haptic run` splits it, so the
+    first episode after configure is the episode `haptic run` runs with the same settings.
     """
-    truth_rng, world_rng, loc_rng, _ = episode_streams(settings.seed)
+    truth_rng, world_rng, loc_rng, policy_rng = episode_streams(settings.seed)
+    loc_rng = (loc_rng, policy_rng)
     cls = BACKENDS.load(config.backend.name)
     if config.backend.name != "sim":
         options = dict(config.backend.options)
@@ -78,6 +81,9 @@ class Node:
         self.endpoints: dict[str, str] = {}
         self.backend: Backend | None = None
         self.truth: Truth | None = None
+        """The simulator's hidden start pose as configured (None on hardware)."""
+        self.episode_truth: list[float] | None = None
+        """The simulator's hidden pose at the start of the current episode."""
         self.explorer: Explorer | None = None
         self.last_state: FingerState | None = None
         self.localizer_work = Samples()
@@ -174,18 +180,19 @@ class Node:
             self.localizer_work.add(loc_ns)
         if tick.index % self.config.loop.state_every == 0:
             self._publish_state(tick)
-        hyp = None
+        cloud = None
         if tick.start_ns >= self._next_cloud_ns and self.explorer:
             self._next_cloud_ns = tick.start_ns + int(1e9 / self.config.loop.cloud_hz)
-            hyp = self.explorer.cloud()
-        if hyp is not None:
+            cloud = self.explorer.cloud()
+        if cloud is not None:
             if self.explorer.estimate is not None:
                 # Re-sent at the cloud's pace so late subscribers catch up with the belief.
                 self.pub.publish("estimate", "estimate", self.explorer.estimate_fields())
+            hyp = cloud.hypotheses  # poses, weights, total and step of one moment
             self.pub.publish("cloud", "cloud", {
-                "episode": self.explorer.episode, "step": self.explorer.steps,
+                "episode": self.explorer.episode, "step": cloud.step,
                 "poses": hyp.poses.astype(np.float32), "weights": hyp.weights.astype(np.float32),
-                "total": self.explorer.estimate.candidates if self.explorer.estimate else 0})
+                "total": cloud.total})
 
     def _read(self) -> FingerState | None:
         if self.backend is None or self.lifecycle.state is State.UNCONFIGURED:
@@ -208,6 +215,11 @@ class Node:
             if self.explorer.estimate.converged:
                 self._next_cloud_ns = 0  # viewers get the final cloud now, not in 1/cloud_hz
         for name, fields in out.events:
+            if name == "episode_started":
+                self.episode_truth = self._truth_now()
+                fields["truth"] = self.episode_truth
+            elif name == "episode_done" and self.episode_truth is not None:
+                fields["true_pose_eliminated"] = self._truth_eliminated()
             self._event(name, **fields)
             if name == "episode_done" and not self._settled:
                 # the first episode loads what start-up did not (lazy imports, caches):
@@ -215,6 +227,23 @@ class Node:
                 self._settled = True
                 gc.collect()
                 gc.freeze()
+
+    def _truth_now(self) -> list[float] | None:
+        """The simulator's hidden pose where the finger is now (the start of an episode
+        begun here): the configured start moved by the finger's measured displacement."""
+        if self.truth is None or self.last_state is None:
+            return None
+        t = self.truth
+        dx, dy = rotate(np.asarray(t.heading), *self.last_state.centre[:2])
+        return [float(t.x + dx), float(t.y + dy), float(t.heading)]
+
+    def _truth_eliminated(self) -> bool | None:
+        """Whether a discrete localizer dropped the episode's true pose (None elsewhere)."""
+        retains = getattr(self.explorer.localizer, "retains", None)
+        if retains is None:
+            return None
+        kept = retains(tuple(self.episode_truth), 1e-6 * self.config.scenario.step, 1e-6)
+        return None if kept is None else not kept
 
     def _publish_state(self, tick: Tick) -> None:
         if tick.index % 20 == 0 or not self._timing_cache:
@@ -303,7 +332,8 @@ class Node:
             "timing": timing, "published": dict(self.pub.sent),
             "commands": {"handled": self.cmd.handled, "errors": self.cmd.errors},
             "backend": self.config.backend.name, "map": self.config.scenario.map,
-            "sim_truth": None if self.truth is None else list(self.truth.as_tuple()),
+            "sim_truth": self.episode_truth if self.episode_truth is not None else (
+                None if self.truth is None else list(self.truth.as_tuple())),
         }
 
     def config_dict(self) -> dict[str, Any]:
@@ -323,10 +353,13 @@ class Node:
         if self.backend is not None:
             self.backend.close()
         self.backend, self.truth, self.config = backend, truth, new
+        episode = 1
         if self.explorer is not None:
+            episode = self.explorer.episode + 1  # ids stay unique across configure
             self.explorer.close()
+        self.episode_truth = None
         offload = new.loop.localizer_mode == "thread"
-        self.explorer = Explorer(settings, surface, rng, offload=offload,
+        self.explorer = Explorer(settings, surface, rng, offload=offload, first_episode=episode,
                                  cloud_points=new.loop.cloud_points)
         if offload:  # let the loop thread take the GIL back from the worker promptly
             sys.setswitchinterval(min(sys.getswitchinterval(), 0.0005))
