@@ -32,7 +32,8 @@ from service.episode.scenario import RunSettings, Truth, draw_truth, episode_str
 from service.errors import ConfigError, StateError
 from service.localization.models import rotate
 from service.registry import BACKENDS
-from service.wire.commands import CommandServer, Lease
+from service.wire.commands import CommandServer
+from service.wire.lease import Lease
 from service.wire.security import CurveServer, check_binds
 from service.wire.stream import Publisher
 
@@ -96,6 +97,8 @@ class Node:
         self._next_cloud_ns = 0
         self._timing_cache: dict[str, Any] = {}
         self.error: BaseException | None = None
+        self._curve: CurveServer | None = None
+        self._revocations_seen = 0
 
     # -- running ---------------------------------------------------------------------------
     def serve(self) -> None:
@@ -108,6 +111,7 @@ class Node:
             if self.config.security.curve:
                 curve = CurveServer(ctx, self.config.security)
                 curve.start()
+                self._curve = curve
             self.pub = Publisher(ctx, ep.pub, ep.sndhwm, curve)
             self.cmd = CommandServer(ctx, ep.cmd, self, self.lease,
                                      max_request_bytes=ep.max_request_bytes, curve=curve)
@@ -152,9 +156,21 @@ class Node:
                 time.sleep(left_ms / 1e3)
 
     def _tick(self, tick: Tick) -> None:
-        holder = self.lease.expire_due()
-        if holder is not None:
-            self._lease_expired(holder)
+        """One tick; whatever goes wrong in it latches a fault and the loop goes on."""
+        try:
+            self._tick_body(tick)
+        except Exception as exc:  # a bug: the daemon stays up, torque goes off
+            log.exception("tick raised")
+            with contextlib.suppress(Exception):
+                self._fault(f"internal error in the loop: {type(exc).__name__}: {exc}")
+
+    def _tick_body(self, tick: Tick) -> None:
+        if self._curve is not None and tick.index % 50 == 0:
+            self._check_revocations()
+        self.pub.ensure_bound()
+        ended = self.lease.expire_due()
+        if ended is not None:
+            self._lease_expired(*ended)
         if self._hold_until_ns is not None and tick.start_ns >= self._hold_until_ns:
             self._hold_until_ns = None
             if self.lifecycle.state is State.ACTIVE:
@@ -193,6 +209,16 @@ class Node:
                 "episode": self.explorer.episode, "step": cloud.step,
                 "poses": hyp.poses.astype(np.float32), "weights": hyp.weights.astype(np.float32),
                 "total": cloud.total})
+
+    def _check_revocations(self) -> None:
+        """A key removed from authorized_clients: its requests are refused already; its
+        subscriptions end here (every subscriber handshakes again, the revoked one fails)."""
+        keyring = self._curve.keyring
+        keyring.refresh()
+        if keyring.revocations != self._revocations_seen:
+            self._revocations_seen = keyring.revocations
+            self.pub.rebind()
+            _log("key_revoked", level=logging.WARNING)
 
     def _read(self) -> FingerState | None:
         if self.backend is None or self.lifecycle.state is State.UNCONFIGURED:
@@ -260,7 +286,7 @@ class Node:
             "steps_done": 0 if s is None else s.steps_done,
             "torque_on": bool(s and s.torque_on),
             "exploring": bool(ex and ex.running), "phase": ex.phase.value if ex else "idle",
-            "episode": ex.episode if ex else 0, "lease_holder": self.lease.holder,
+            "episode": ex.episode if ex else 0, "lease_holder": self.lease.holder_name,
             "timing": self._timing_cache}, t_mono_ns=tick.start_ns)
 
     def _event(self, name: str, **fields: Any) -> None:
@@ -294,8 +320,8 @@ class Node:
         self.backend.set_torque(False)
         self._transition("deactivate", reason)
 
-    def _lease_expired(self, holder: str) -> None:
-        self._event("lease_expired", client=holder)
+    def _lease_expired(self, holder: str, reason: str) -> None:
+        self._event("lease_expired", client=holder, reason=reason)
         if self.lifecycle.state is State.ACTIVE:
             if self.explorer:
                 self.explorer.paused = True
@@ -328,7 +354,8 @@ class Node:
             "state": self.lifecycle.state.value, "fault": self.lifecycle.fault,
             "exploring": bool(ex and ex.running), "phase": ex.phase.value if ex else "idle",
             "estimate": ex.estimate_fields() if ex and ex.estimate else None,
-            "lease": {"holder": self.lease.holder, "remaining_s": self.lease.remaining_s()},
+            "lease": {"holder": self.lease.holder_name,
+                      "remaining_s": self.lease.remaining_s()},
             "timing": timing, "published": dict(self.pub.sent),
             "commands": {"handled": self.cmd.handled, "errors": self.cmd.errors},
             "backend": self.config.backend.name, "map": self.config.scenario.map,
