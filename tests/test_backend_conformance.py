@@ -10,7 +10,7 @@ from __future__ import annotations
 import argparse
 import json
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import pytest
@@ -193,7 +193,8 @@ def test_dynamixel_on_the_emulator_localizes_like_the_simulated_finger(seed):
         return DynamixelBackend(HAND, buses[-1].port)
 
     try:
-        hil = simulate(settings, MAP, backend_factory=factory)
+        # on hardware a blocked step is no evidence of the map's edge (`for_backend`)
+        hil = simulate(replace(settings, walls=False), MAP, backend_factory=factory)
     finally:
         for bus in buses:
             bus.stop()

@@ -56,7 +56,7 @@ def execute_step(backend: Backend, step: StepCommand, timeout_s: float = 10.0) -
 
 def run_episode(backend: Backend, localizer: Localizer, policy: Policy, *,
                 surface: ContactSurface, step_length: float, max_steps: int,
-                rng: np.random.Generator,
+                rng: np.random.Generator, walls: bool = False,
                 on_step: Callable[[StepRecord], None] | None = None,
                 on_start: Callable[[], None] | None = None) -> EpisodeResult:
     """Explore until the localizer converges or `max_steps` steps are taken."""
@@ -75,7 +75,8 @@ def run_episode(backend: Backend, localizer: Localizer, policy: Policy, *,
         t0 = time.perf_counter()
         view = PolicyInput(hypotheses=localizer.hypotheses(), displacement=displacement[:2],
                            blocked=frozenset(blocked_here), surface=surface,
-                           step_length=step_length, rng=rng)
+                           step_length=step_length, rng=rng, walls=walls,
+                           estimate=estimate)
         move = policy.next_move(view)
         policy_ms = (time.perf_counter() - t0) * 1e3
         command = MOVES[move] * step_length
@@ -87,7 +88,8 @@ def run_episode(backend: Backend, localizer: Localizer, policy: Policy, *,
             blocked_here.clear()
         t0 = time.perf_counter()
         update(localizer, Measurement(step=index, displacement=displacement,
-                                      blocked=state.blocked, t_ns=state.t_ns))
+                                      blocked=state.blocked, t_ns=state.t_ns,
+                                      command=(float(command[0]), float(command[1]))))
         compute_ms = (time.perf_counter() - t0) * 1e3
         estimate = localizer.estimate()
         record = StepRecord(index=index, move=move,

@@ -44,6 +44,9 @@ class RunSettings:
     sensor_sigma: float | None = setting(None, "float", lo=1e-9, hi=0.01, unit="m",
                                          optional=True)
     """Measurement noise (metres) the localizer assumes; None: what `noise` implies."""
+    walls: bool = setting(True, "bool")
+    """A blocked step means the map's edge stopped it (the simulated world); on hardware a
+    joint limit can too, so there it is no evidence about the pose (`for_backend`)."""
     localizer_options: dict[str, Any] = setting({}, "options")
 
     def __post_init__(self) -> None:
@@ -79,11 +82,12 @@ def surface_for(settings: RunSettings, height_map: HeightMap | None = None) -> C
 
 def for_backend(settings: RunSettings, backend: str) -> RunSettings:
     """`settings` for a run on `backend`: on hardware, unless told otherwise, the localizer
-    assumes the encoders' rounding as noise (`HARDWARE_SENSOR_SIGMA`); exact readings
-    would eliminate the truth."""
-    if backend == "sim" or settings.sensor_sigma is not None:
+    assumes the encoders' rounding as noise (`HARDWARE_SENSOR_SIGMA`; exact readings
+    would eliminate the truth), and a blocked step is no evidence of the map's edge."""
+    if backend == "sim":
         return settings
-    return replace(settings, sensor_sigma=HARDWARE_SENSOR_SIGMA)
+    return replace(settings, walls=False, sensor_sigma=(
+        HARDWARE_SENSOR_SIGMA if settings.sensor_sigma is None else settings.sensor_sigma))
 
 
 def episode_streams(seed: int) -> list[np.random.Generator]:
@@ -136,7 +140,7 @@ def build_localizer(settings: RunSettings, surface: ContactSurface,
                else NoiseSpec(measurement_sigma=settings.sensor_sigma))
     motion, sensor = models_for(assumed)
     ctx = LocalizerContext(surface=surface, motion=motion, sensor=sensor,
-                           step_length=settings.step, rng=rng)
+                           step_length=settings.step, rng=rng, walls=settings.walls)
     cls = LOCALIZERS.load(settings.algorithm)
     options = dict(settings.localizer_options)
     if settings.algorithm == "elimination":

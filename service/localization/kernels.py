@@ -22,6 +22,10 @@ import numpy as np
 
 _JIT = {"cache": True, "nogil": True}
 
+EDGE_STEP_SLACK = 0.1
+"""How far (in step lengths) a blocked step's target may lie inside the map's edge and
+still have been stopped by it: the step's length and direction noise."""
+
 
 @numba.njit(**_JIT)
 def _bilinear(grid: np.ndarray, spacing: float, x: float, y: float
@@ -65,11 +69,25 @@ def _inside(x: float, y: float, extent: tuple[float, float], profile: bool,
 
 
 @numba.njit(**_JIT)
+def _edge_explains(x0: float, y0: float, c: float, s: float, row: np.ndarray,
+                   extent: tuple[float, float], profile: bool, margin: float) -> bool:
+    """Whether a pose explains reading `row`'s blocked step, if it was one (columns 3-4
+    hold its command): the target must lie off the map, give or take `margin` plus a
+    tenth of the step (the step's own length and direction noise)."""
+    if row.shape[0] < 5 or (row[3] == 0.0 and row[4] == 0.0):
+        return True
+    tx, ty = row[0] + row[3], row[1] + row[4]
+    slack = margin + EDGE_STEP_SLACK * math.hypot(row[3], row[4])
+    return not _inside(x0 + c * tx - s * ty, y0 + s * tx + c * ty, extent, profile, -slack)
+
+
+@numba.njit(**_JIT)
 def relative_residuals(grid: np.ndarray, spacing: float, extent: tuple[float, float],
                        profile: bool, poses: np.ndarray, readings: np.ndarray, margin: float
                        ) -> tuple[np.ndarray, np.ndarray]:
-    """Residuals (N, K) of `readings` (K, 3) against each start pose, heights relative to
-    the pose's own first contact, and whether each reading lies on the map."""
+    """Residuals (N, K) of `readings` (K, 3 or 5) against each start pose, heights
+    relative to the pose's own first contact, and whether each reading lies on the map
+    (and a blocked step's target off it: `_edge_explains`)."""
     n, k = poses.shape[0], readings.shape[0]
     resid = np.empty((n, k))
     on_map = np.empty((n, k), dtype=np.bool_)
@@ -81,7 +99,9 @@ def relative_residuals(grid: np.ndarray, spacing: float, extent: tuple[float, fl
             x = px + c * readings[j, 0] - s * readings[j, 1]
             y = py + s * readings[j, 0] + c * readings[j, 1]
             resid[i, j] = _bilinear(grid, spacing, x, y)[0] - z0 - readings[j, 2]
-            on_map[i, j] = _inside(x, y, extent, profile, margin)
+            on_map[i, j] = (_inside(x, y, extent, profile, margin)
+                            and _edge_explains(px, py, c, s, readings[j], extent, profile,
+                                               margin))
     return resid, on_map
 
 
@@ -101,7 +121,9 @@ def offset_residuals(grid: np.ndarray, spacing: float, extent: tuple[float, floa
             x = poses[i, 0] + c * history[j, 0] - s * history[j, 1]
             y = poses[i, 1] + s * history[j, 0] + c * history[j, 1]
             resid[i, j] = _bilinear(grid, spacing, x, y)[0] - history[j, 2]
-            on_map[i, j] = _inside(x, y, extent, profile, margin)
+            on_map[i, j] = (_inside(x, y, extent, profile, margin)
+                            and _edge_explains(poses[i, 0], poses[i, 1], c, s, history[j],
+                                               extent, profile, margin))
             total += resid[i, j]
         mean = total / k
         for j in range(k):
@@ -166,10 +188,11 @@ def log_likelihood(resid: np.ndarray, on_map: np.ndarray, sigma: np.ndarray,
 @numba.njit(**_JIT)
 def gauss_newton(grid: np.ndarray, spacing: float, poses: np.ndarray, history: np.ndarray,
                  weights: np.ndarray, iterations: int, damping: float, max_move: float,
-                 lever: float) -> np.ndarray:
+                 lever: float, profile: bool) -> np.ndarray:
     """Damped Gauss-Newton steps on (x0, y0, heading) per pose, the height offset
     eliminated; a step is capped at `max_move` metres (and max_move / lever radians);
-    max_move <= 0 leaves it uncapped. See `fitting.gauss_newton`."""
+    max_move <= 0 leaves it uncapped. On a profile only x0 moves: y0 means nothing there
+    and the direction is one of two, not a continuum. See `fitting.gauss_newton`."""
     n, k = poses.shape[0], history.shape[0]
     w = weights / weights.sum()
     out = poses.copy()
@@ -202,7 +225,8 @@ def gauss_newton(grid: np.ndarray, spacing: float, poses: np.ndarray, history: n
             bump = damping * (1.0 + normal[0, 0] + normal[1, 1] + normal[2, 2]) / 3
             for a in range(3):
                 normal[a, a] += bump
-            step = _solve3(normal)
+            step = (np.array([normal[0, 3] / normal[0, 0], 0.0, 0.0]) if profile
+                    else _solve3(normal))
             if max_move > 0:
                 scale = max(math.hypot(step[0], step[1]) / max_move,
                             abs(step[2]) * lever / max_move, 1.0)
@@ -317,6 +341,68 @@ def information(readings: np.ndarray, weights: np.ndarray, sigma: float) -> np.n
     return out
 
 
+@numba.njit(**_JIT)
+def sweep_screen(grid: np.ndarray, spacing: float, extent: tuple[float, float],
+                 profile: bool, first: int, count: int, stride: int, shape: np.ndarray,
+                 origin: np.ndarray, pitch: np.ndarray, history: np.ndarray,
+                 sd: np.ndarray, margin: float, cap: float, limit: float, keep: int
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """The `keep` best of cells `first` .. `first + count` of a sweep over a grid of start
+    poses, best first.
+
+    Cell i of the sweep is grid cell (i * stride) mod n, n = prod(`shape`) (x, y, heading
+    counts), so any stretch of the sweep is spread over the whole map. Its pose is
+    `origin` + (index + 0.5) * `pitch`. A cell's misfit is the sum over readings of
+    min(z^2, cap), z its relative height residual over the reading's sd `sd` (K,); a
+    reading off the map, or a blocked step's target on it, costs `cap`. Only cells within
+    `limit` count, and once `keep` are held a cell must beat the worst of them: the sum is
+    abandoned as soon as it cannot, so most cells cost a reading or two.
+    """
+    n = shape[0] * shape[1] * shape[2]
+    k = history.shape[0]
+    poses = np.empty((keep, 3))
+    misfit = np.empty(keep)
+    held, worst = 0, 0
+    bound = limit
+    for c in range(first, first + count):
+        cell = (c * stride) % n
+        ih = cell % shape[2]
+        iy = (cell // shape[2]) % shape[1]
+        ix = cell // (shape[2] * shape[1])
+        px = origin[0] + (ix + 0.5) * pitch[0]
+        py = origin[1] + (iy + 0.5) * pitch[1]
+        heading = origin[2] + (ih + 0.5) * pitch[2]
+        co, si = math.cos(heading), math.sin(heading)
+        z0 = _bilinear(grid, spacing, px, py)[0]
+        total = 0.0
+        for j in range(1, k):
+            x = px + co * history[j, 0] - si * history[j, 1]
+            y = py + si * history[j, 0] + co * history[j, 1]
+            if not (_inside(x, y, extent, profile, margin)
+                    and _edge_explains(px, py, co, si, history[j], extent, profile, margin)):
+                total += cap
+            else:
+                z = (_bilinear(grid, spacing, x, y)[0] - z0 - history[j, 2]) / sd[j]
+                total += min(z * z, cap)
+            if total > bound:
+                break
+        if total > bound:
+            continue
+        slot = held if held < keep else worst
+        poses[slot, 0], poses[slot, 1], poses[slot, 2] = px, py, heading
+        misfit[slot] = total
+        if held < keep:
+            held += 1
+        if held == keep:  # the bar is now the worst held
+            worst = 0
+            for i in range(1, keep):
+                if misfit[i] > misfit[worst]:
+                    worst = i
+            bound = min(limit, misfit[worst])
+    order = np.argsort(misfit[:held])
+    return poses[:held][order], misfit[:held][order]
+
+
 def warm_up() -> None:
     """Compile (or load from the disk cache) every kernel now, not inside a deadline.
 
@@ -336,8 +422,10 @@ def warm_up() -> None:
         r, ok = relative_residuals(g, 1.0, (1.0, 1.0), is_profile, poses, history, 0.0)
         offset_residuals(g, 1.0, (1.0, 1.0), is_profile, poses, history, 0.0)
         log_likelihood(r, ok, np.ones(2), 0.0, 1.0)
-        gauss_newton(g, 1.0, poses, history, np.ones(2), 1, 1e-4, 0.0, 1.0)
+        gauss_newton(g, 1.0, poses, history, np.ones(2), 1, 1e-4, 0.0, 1.0, is_profile)
         heights_and_jacobian(g, 1.0, np.zeros(3), history)
+        sweep_screen(g, 1.0, (1.0, 1.0), is_profile, 0, 1, 1, np.ones(3, dtype=np.int64),
+                     np.zeros(3), np.ones(3), history, np.ones(2), 0.0, 9.0, 10.0, 4)
     first_of_each_mode(poses, 1.0, 1.0)
     best_per_key(np.zeros(1, dtype=np.int64), np.zeros(1))
     information(np.zeros((1, 2, 1)), np.ones(2), 1.0)

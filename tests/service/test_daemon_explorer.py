@@ -39,7 +39,7 @@ def test_sliced_exploration_matches_run_episode(noise: bool, offload: bool) -> N
     reference = run_episode(finger(settings, surface, 3), build_localizer(settings, surface,
                             loc_rng), build_policy(settings), surface=surface,
                             step_length=settings.step, max_steps=settings.max_steps,
-                            rng=policy_rng)
+                            rng=policy_rng, walls=settings.walls)
     # The same, one tick at a time: read, step, update and decide spread over ticks.
     f = finger(settings, surface, 3)
     explorer = Explorer(settings, surface, np.random.default_rng(7), offload=offload)

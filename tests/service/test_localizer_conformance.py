@@ -129,3 +129,64 @@ def test_estimate_fields_are_sane(name, surface):
         assert np.isnan(sd) or sd >= 0
     if est.converged:  # a declaration is a pose near the truth
         assert np.hypot(est.pose[0] - 0.07, est.pose[1] - 0.12) < 0.25 * STEP
+
+
+@pytest.fixture(scope="module")
+def profile():
+    """A 40 cm profile cut from a seeded bumps map: a planar finger's whole world."""
+    from service.localization.maps import bumps
+    from service.localization.surface import HeightMap
+
+    row = bumps(40.0, seed=3).heights[200]
+    return HeightMap(row, 0.001, name="bumps-profile")
+
+
+@pytest.mark.parametrize("name", NAMES)
+@pytest.mark.parametrize("noise", [False, True])
+def test_a_profile_is_localized_or_refused_naming_one_that_does(name, noise, profile):
+    """Noise-free every algorithm that takes a profile localizes it; with noise none
+    declares a wrong pose and the default localizes it."""
+    from service.errors import ConfigError
+
+    settings = RunSettings(map="profile", algorithm=name, seed=2, noise=noise, max_steps=40)
+    try:
+        report = simulate(settings, profile)
+    except ConfigError as exc:
+        named = [other for other in NAMES if other != name and other in str(exc)]
+        assert named, f"{name} refused a profile without naming one that takes it: {exc}"
+        return
+    assert not report.score.wrong_declaration
+    if not noise or name == RunSettings().algorithm:  # the pose table of Algorithm III
+        # has no entry near a continuous start, so with noise it may answer "none"
+        assert report.score.success, f"{name} did not localize the profile (noise={noise})"
+        est = report.result.estimate.pose
+        assert est[1] == 0.0 and est[2] in (0.0, np.pi, -np.pi)
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_a_step_blocked_by_the_edge_rules_out_poses_that_put_its_target_inside(name, surface):
+    """Start 5 mm from the left edge facing +x: the first step back (-x) is blocked. With
+    walls, the hypotheses left must (nearly all) put that step's target off the map."""
+    start = (0.005, 0.1, 0.0)
+    motion, sensor = models_for(NoiseSpec())
+    ctx = LocalizerContext(surface=surface, motion=motion, sensor=sensor, step_length=STEP,
+                           rng=np.random.default_rng(0), walls=True)
+    loc = LOCALIZERS.load(name)(ctx)
+    loc.start(Measurement(step=0, displacement=np.zeros(3)))
+    update(loc, Measurement(step=1, displacement=np.zeros(3), blocked=True,
+                            command=(-STEP, 0.0)))
+    for m in _measurements(surface, start)[:4]:
+        update(loc, Measurement(step=m.step + 1, displacement=m.displacement))
+    h = loc.hypotheses(limit=200)
+    tx, ty = motion.positions(h.poses, np.array([-STEP, 0.0]))
+    inside = surface.map.inside(tx, ty, -0.002)
+    assert h.weights[inside].sum() < 0.05
+
+
+def test_a_blocked_step_is_evidence_only_where_the_edge_blocks():
+    from service.localization.localizers.base import reading_row
+
+    m = Measurement(step=3, displacement=np.array([0.01, 0.0, 0.002]), blocked=True,
+                    command=(0.01, 0.0))
+    np.testing.assert_array_equal(reading_row(m, walls=True), [0.01, 0.0, 0.002, 0.01, 0.0])
+    np.testing.assert_array_equal(reading_row(m, walls=False), [0.01, 0.0, 0.002, 0.0, 0.0])

@@ -26,6 +26,25 @@ class Measurement:
     """(dx, dy, dz) since the first contact."""
     blocked: bool = False
     t_ns: int = 0
+    command: tuple[float, float] = (0.0, 0.0)
+    """The step commanded (dx, dy) in the finger's frame: with `blocked`, where the finger
+    could not go."""
+
+
+READING_COLUMNS = 5
+"""A reading as localizers keep it: (dx, dy, dz) since first contact, then the blocked
+step's command (wx, wy) when the map's edge stopped it, else zeros."""
+
+
+def reading_row(m: Measurement, walls: bool) -> np.ndarray:
+    """`m` as a history row. A blocked step is evidence only where the map's edge is what
+    blocks (`walls`, the simulated world): its command then says the target lay off the
+    map. On hardware a joint limit also stops a step, and the row carries no such claim."""
+    row = np.zeros(READING_COLUMNS)
+    row[:3] = np.asarray(m.displacement, dtype=np.float64)[:3]
+    if walls and m.blocked:
+        row[3:] = m.command
+    return row
 
 
 @dataclass(frozen=True)
@@ -89,6 +108,8 @@ class LocalizerContext:
     sensor: SensorModel
     step_length: float
     rng: np.random.Generator = field(default_factory=lambda: np.random.default_rng(0))
+    walls: bool = False
+    """Whether a blocked step means the map's edge (`reading_row`)."""
 
 
 class Localizer(Protocol):

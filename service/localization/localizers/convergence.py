@@ -95,7 +95,7 @@ class ConvergenceRule:
 
     min_readings: int = 4
     """Readings after first contact needed before any declaration (noise-free)."""
-    min_readings_noisy: int = 8
+    min_readings_noisy: int = 6
     """With noise. At 7, a pose 27 mm and 87 degrees off fitted all 8 readings of one B3
     episode at 0.96 sigma RMS and was declared (`bumps:20:1`, seed 8): a sampled pool
     that never held the truth has no rival to lose to, so only more readings rule such
@@ -149,6 +149,10 @@ class ConvergenceRule:
                  and fit.heading_sd <= self.max_heading_sd)
         return bool(fits and tight)
 
+
+SETTLED = 2.0
+"""How far (in the rule's largest spreads) a declared pose may have moved since the previous
+update: consecutive fits of a settled pose differ by about their spread, not more."""
 
 REFINED_RIVALS = 2
 """Rivals refined by least squares beside the leader before a declaration."""
@@ -241,8 +245,8 @@ def judge(surface: ContactSurface, history: np.ndarray, modes: Modes, *, sigma: 
         # with noise it must also agree with where the previous update put it: a pose that
         # still jumps between updates is not settled, however tight its covariance looks
         converged &= not noisy or previous is not None and bool(_near(
-            np.asarray([fit.pose]), np.asarray(previous), rule.max_position_sd * step_length,
-            rule.max_heading_sd)[0])
+            np.asarray([fit.pose]), np.asarray(previous),
+            SETTLED * rule.max_position_sd * step_length, SETTLED * rule.max_heading_sd)[0])
     return Verdict(fit, centres[order], mass, runner,
                    float(share[1]) if len(order) > 1 else 0.0, converged)
 

@@ -27,12 +27,15 @@ from typing import ClassVar
 import numpy as np
 
 from service.errors import ConfigError
+from service.localization import kernels
 from service.localization.localizers.base import (
+    READING_COLUMNS,
     Budget,
     Estimate,
     Hypotheses,
     LocalizerContext,
     Measurement,
+    reading_row,
     wrap_angle,
 )
 from service.localization.localizers.convergence import ConvergenceRule, Modes, Verdict, judge
@@ -74,7 +77,7 @@ class Elimination:
         self.noisy = float(ctx.sensor.sigma) > 1e-6
         self.rule = ConvergenceRule.for_map(ctx.surface.map.extent, ctx.step_length)
         self.motions = symmetries(ctx.surface) if self.noisy else np.empty((0, 3))
-        self.history = np.zeros((1, 3))
+        self.history = np.zeros((1, READING_COLUMNS))
         self.verdict = Verdict(None, np.empty((0, 3)), 0.0, None, 0.0, False)
 
     # -- updates ---------------------------------------------------------------------------
@@ -83,7 +86,7 @@ class Elimination:
         z0, inside = self.ctx.surface.lookup(self.poses[:, 0], self.poses[:, 1])
         self.z0 = z0
         self.alive &= inside
-        self.history = np.zeros((1, 3))
+        self.history = np.zeros((1, READING_COLUMNS))
 
     def begin_update(self, measurement: Measurement) -> None:
         self._pending = measurement
@@ -109,7 +112,7 @@ class Elimination:
             if self.sweep == "paper":
                 self._exact_tests_on_most_suspicious(m)
             self._pending = None
-            self.history = np.vstack([self.history, np.asarray(m.displacement, dtype=float)])
+            self.history = np.vstack([self.history, reading_row(m, self.ctx.walls)])
             if self.noisy:
                 self.verdict = self._judge()
             return True
@@ -121,6 +124,11 @@ class Elimination:
         surface = self.ctx.surface
         margin = 5 * self.ctx.motion.position_sigma
         ok = surface.map.inside(x, y, margin)
+        if self.ctx.walls and m.blocked:  # the map's edge stopped the step: its target is off
+            tx, ty = self.ctx.motion.positions(poses, np.asarray(m.displacement[:2])
+                                               + np.asarray(m.command))
+            slack = margin + kernels.EDGE_STEP_SLACK * float(np.hypot(*m.command))
+            ok &= ~surface.map.inside(tx, ty, -slack)
         if self.sweep == "full":
             ok &= self._exact_test(idx, x, y, m)
         else:

@@ -18,7 +18,8 @@ import numpy as np
 from service.localization import kernels
 from service.localization.surface import ContactSurface
 
-_SLOPES: weakref.WeakKeyDictionary[ContactSurface, float] = weakref.WeakKeyDictionary()
+_SLOPES: weakref.WeakKeyDictionary[ContactSurface, tuple[float, float]] = (
+    weakref.WeakKeyDictionary())
 
 
 def sample(surface: ContactSurface, x: np.ndarray, y: np.ndarray
@@ -33,11 +34,24 @@ def sample(surface: ContactSurface, x: np.ndarray, y: np.ndarray
 
 def typical_slope(surface: ContactSurface) -> float:
     """RMS gradient of the contact surface: converts a pose range into a height range."""
+    return _slopes(surface)[0]
+
+
+def steep_slope(surface: ContactSurface) -> float:
+    """The gradient 90 % of the contact surface stays under: a pose range turned into a
+    height range with it covers the truth's error on all but the steepest tenth."""
+    return _slopes(surface)[1]
+
+
+def _slopes(surface: ContactSurface) -> tuple[float, float]:
     cached = _SLOPES.get(surface)
     if cached is None:
-        gy, gx = np.gradient(surface.centre_heights, surface.map.spacing)
-        cached = float(np.sqrt(np.mean(gx**2 + gy**2))) if surface.centre_heights.size else 1.0
-        _SLOPES[surface] = cached = max(cached, 1e-3)
+        grid, spacing = surface.centre_heights, surface.map.spacing
+        gx = np.gradient(grid, spacing, axis=1)
+        gy = 0.0 if surface.map.is_profile else np.gradient(grid, spacing, axis=0)
+        g2 = gx**2 + gy**2
+        _SLOPES[surface] = cached = (max(float(np.sqrt(np.mean(g2))), 1e-3),
+                                     max(float(np.sqrt(np.percentile(g2, 90))), 1e-3))
     return cached
 
 
@@ -94,7 +108,18 @@ def gauss_newton(surface: ContactSurface, poses: np.ndarray, history: np.ndarray
     lever = max(float(np.max(np.hypot(history[:, 0], history[:, 1]))), max_move or 0.0)
     return kernels.gauss_newton(surface.centre_heights, surface.map.spacing, _rows(poses),
                                 history, _rows(weights), iterations,
-                                damping, max_move or 0.0, lever)
+                                damping, max_move or 0.0, lever, surface.map.is_profile)
+
+
+def on_pose_space(surface: ContactSurface, poses: np.ndarray) -> np.ndarray:
+    """`poses` (N, 3) as poses the surface allows: on a profile the start lies on the
+    profile (y0 = 0) and faces along it, one way or the other (heading 0 or pi)."""
+    if not surface.map.is_profile:
+        return poses
+    out = np.array(poses, dtype=np.float64)
+    out[:, 1] = 0.0
+    out[:, 2] = np.where(np.cos(out[:, 2]) >= 0, 0.0, np.pi)
+    return out
 
 
 def heights_and_jacobian(surface: ContactSurface, pose: np.ndarray, history: np.ndarray

@@ -30,11 +30,13 @@ from scipy import ndimage
 from service.errors import ConfigError
 from service.localization import kernels
 from service.localization.localizers.base import (
+    READING_COLUMNS,
     Budget,
     Estimate,
     Hypotheses,
     LocalizerContext,
     Measurement,
+    reading_row,
 )
 from service.localization.localizers.convergence import (
     ConvergenceRule,
@@ -51,6 +53,9 @@ from service.localization.models import rotate
 
 RING = 32
 """Directions of the ring a position-only grid spreads each step over."""
+EDGE_MISS = 1e-6
+"""Share of its mass a cell keeps when a blocked step says its pose cannot be the truth:
+a trace, not nothing, so a mistaken wall cannot erase the truth for good."""
 
 
 class Grid:
@@ -89,7 +94,7 @@ class Grid:
         self.outlier_range = float(getattr(ctx.sensor, "outlier_range_m", 1.0))
         self.margin = 5 * ctx.motion.position_sigma
         self.prob = np.zeros((headings, *self.gx.shape))
-        self.history = np.zeros((1, 3))
+        self.history = np.zeros((1, READING_COLUMNS))
         self.verdict = Verdict(None, np.empty((0, 3)), 0.0, None, 0.0, False)
         self.motions = symmetries(ctx.surface)  # found once, not inside an update's slice
         self._job: AnytimeJob | None = None
@@ -98,7 +103,7 @@ class Grid:
 
     # -- updates ---------------------------------------------------------------------------
     def start(self, first: Measurement) -> None:
-        self.history = np.zeros((1, 3))
+        self.history = np.zeros((1, READING_COLUMNS))
         self.prob[:] = 1.0 / self.prob.size
 
     def begin_update(self, measurement: Measurement) -> None:
@@ -110,9 +115,11 @@ class Grid:
 
     def _update(self, job: AnytimeJob, m: Measurement) -> Iterator[int]:
         previous = self.history[-1]
-        self.history = np.vstack([self.history, np.asarray(m.displacement, dtype=np.float64)])
+        self.history = np.vstack([self.history, reading_row(m, self.ctx.walls)])
         step = self.history[-1] - previous
         yield from self._predict_and_weigh(step[:2], step[2])
+        if self.ctx.walls and m.blocked:
+            yield from self._edge(np.asarray(m.command, dtype=np.float64))
         yield from self._after_update()
         job.expect(self._judge_ns)  # the judgement is one slice: start it in a fresh call
         yield self.prob.size
@@ -159,6 +166,23 @@ class Grid:
                 yield len(rows) * new.shape[2] * len(new)
         total = new.sum()
         self.prob = new / total if total > 0 else np.full_like(new, 1.0 / new.size)
+
+    def _edge(self, command: np.ndarray) -> Iterator[int]:
+        """A step the map's edge stopped: cells whose target lies well inside the map
+        could not have been stopped, and keep only a trace of their mass."""
+        length = float(np.hypot(*command))
+        slack = self.margin + kernels.EDGE_STEP_SLACK * length
+        for h, angle in enumerate(self.angles):
+            if self.headings > 1:
+                vx, vy = rotate(np.asarray(angle), command[0], command[1])
+                inside = self.ctx.surface.map.inside(self.gx + vx, self.gy + vy, -slack)
+            else:  # heading unknown: only cells no direction could take off the map
+                inside = self.ctx.surface.map.inside(self.gx, self.gy, -(length + slack))
+            self.prob[h][inside] *= EDGE_MISS
+            yield self.prob[h].size
+        total = self.prob.sum()
+        if total > 0:
+            self.prob /= total
 
     def _carry(self, layer: np.ndarray, vx: float, vy: float, dz: float) -> np.ndarray:
         """Mass arriving at each cell from the cell one step (vx, vy) back, times Eq. 3."""

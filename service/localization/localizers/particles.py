@@ -38,19 +38,23 @@ import numpy as np
 
 from service.localization import kernels
 from service.localization.localizers.base import (
+    READING_COLUMNS,
     Budget,
     Estimate,
     Hypotheses,
     LocalizerContext,
     Measurement,
+    reading_row,
     wrap_angle,
 )
 from service.localization.localizers.convergence import ConvergenceRule, Modes, group_modes, judge
 from service.localization.localizers.fitting import (
     gauss_newton,
     log_likelihood,
+    on_pose_space,
     residuals,
     sigmas,
+    steep_slope,
     typical_slope,
 )
 from service.localization.localizers.pool import (
@@ -62,6 +66,7 @@ from service.localization.localizers.pool import (
 )
 from service.localization.localizers.refine import Fit
 from service.localization.localizers.spread import pose_spread
+from service.localization.localizers.sweep import Sweep, SweepSettings
 from service.localization.localizers.symmetry import images, symmetries
 from service.localization.localizers.tracks import ModeTracks
 
@@ -81,7 +86,8 @@ class Particles:
                  scanned: int = 2000,
                  polish: int = 100_000, drop: float = 40.0, contraction: float = 0.6,
                  rivals: int = 32, kept_modes: int = 256,
-                 rule: ConvergenceRule | None = None) -> None:
+                 rule: ConvergenceRule | None = None,
+                 sweep: SweepSettings | None = None) -> None:
         kernels.warm_up()  # compile before the first update, not during it
         self.ctx = ctx
         self.initial, self.capacity, self.min_capacity = initial, capacity, min_capacity
@@ -104,7 +110,7 @@ class Particles:
         self.kept_modes = kept_modes
         self.outlier_p = float(getattr(ctx.sensor, "outlier_probability", 0.0))
         self.outlier_range = float(getattr(ctx.sensor, "outlier_range_m", 1.0))
-        self.history = np.zeros((1, 3))
+        self.history = np.zeros((1, READING_COLUMNS))
         self.poses = np.empty((0, 3))
         self.resid = np.empty((0, 0))
         self.on_map = np.empty((0, 0), dtype=bool)
@@ -116,6 +122,8 @@ class Particles:
         self.converged = False
         self.tracks = ModeTracks()
         self.motions = symmetries(ctx.surface)
+        self.sweep = Sweep(ctx.surface, step, self.sigma, steep_slope(ctx.surface),
+                           self.margin, sweep or SweepSettings())
         self._job: AnytimeJob | None = None
         self._judge_ns = 0
         """How long the last judgement took: a hint for slicing, never for results."""
@@ -124,9 +132,10 @@ class Particles:
     # -- updates ---------------------------------------------------------------------------
     def start(self, first: Measurement) -> None:
         """The initial pool: uniform over the map and every heading."""
-        self.history = np.zeros((1, 3))
+        self.history = np.zeros((1, READING_COLUMNS))
         self._sd_cache = (None, np.empty(0))
         self.tracks = ModeTracks()
+        self.sweep.reset()
         self.poses = self._random(self.initial)
         self.resid = np.zeros((len(self.poses), 0))
         self.on_map = np.ones((len(self.poses), 0), dtype=bool)
@@ -139,7 +148,7 @@ class Particles:
         return True if self._job is None else self._job.work(budget)
 
     def _update(self, job: AnytimeJob, m: Measurement) -> Iterator[int]:
-        self.history = np.vstack([self.history, np.asarray(m.displacement, dtype=np.float64)])
+        self.history = np.vstack([self.history, reading_row(m, self.ctx.walls)])
         reading = self.history[-1:]
         n = len(self.poses)
         column = np.empty(n)
@@ -163,6 +172,7 @@ class Particles:
         yield from self._breed(job)
         self._inject()
         yield 1
+        yield from self._swept(job)
         yield from self._prune()
         self._contract()
         job.expect(self._judge_ns)  # the judgement is one slice: start it in a fresh call
@@ -242,7 +252,7 @@ class Particles:
         parents = systematic_resample(w, count, self.ctx.rng)
         jitter = self.ctx.rng.standard_normal((count, 3)) * np.array(
             [self.pos_range, self.pos_range, self.head_range])
-        children = self.poses[parents] + jitter
+        children = on_pose_space(self.ctx.surface, self.poses[parents] + jitter)
         cursor = 0
         while cursor < count:
             part = children[cursor:cursor + job.take(self._slice_members())]
@@ -265,6 +275,17 @@ class Particles:
             self.pos_range = max(self.pos_range, 0.25 * self.ctx.step_length)
             self.head_range = max(self.head_range, np.deg2rad(5.0))
         self._add(self._screened(self._random(self.scanned)))
+
+    def _swept(self, job: AnytimeJob) -> Iterator[int]:
+        """This update's share of the global sweep (`sweep.py`): the cells that could
+        explain the readings, each polished onto them within its own reach, join the pool.
+        However the truth was lost, it is back once a sweep has passed its cell."""
+        w = 1.0 / np.concatenate([[self.sigma], self._sd()]) ** 2
+        for screened, centres in self.sweep.run(self.history, take=job.take(CHUNK)):
+            if len(centres):
+                self._add(gauss_newton(self.ctx.surface, centres, self.history, w,
+                                       iterations=3, max_move=self.sweep.reach[0]))
+            yield screened
 
     def _screened(self, candidates: np.ndarray) -> np.ndarray:
         """The `fresh` candidates that best fit the latest readings: a cheap first look
@@ -355,7 +376,10 @@ class Particles:
                   # may be the one left out (egg-crate, seed 2: a half turn, declared)
                   motions=self.motions,
                   refined_rivals=0, loose_mass=0.99)  # tracks are polished every update
-        self.fit, self.converged, self.mode_mass = v.fit, v.converged, v.mode_mass
+        # declared only once a sweep has covered the whole map (`sweep.py`): a pool that
+        # never held the truth has no rival to lose to
+        self.fit, self.mode_mass = v.fit, v.mode_mass
+        self.converged = v.converged and self.sweep.checked
         self.runner_up, self.runner_up_mass = v.runner_up, v.runner_up_mass
         if v.fit is not None:  # the polished modes and the fit join the pool
             self._add(np.vstack([self.tracks.centres[:self.rivals], [v.fit.pose]]))

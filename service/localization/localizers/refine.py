@@ -47,8 +47,16 @@ def reading_sigmas(surface: ContactSurface, history: np.ndarray, pose: np.ndarra
 
 def _model(surface: ContactSurface, history: np.ndarray, params: np.ndarray
            ) -> tuple[np.ndarray, np.ndarray]:
+    """Residuals of (x0, y0, heading, offset) and their Jacobian by the free parameters:
+    all four, or on a profile x0 and the offset (y0 and the direction are fixed there)."""
     z, jac = heights_and_jacobian(surface, params[:3], history)
-    return z - params[3] - history[:, 2], np.column_stack([jac, -np.ones(len(z))])
+    full = np.column_stack([jac, -np.ones(len(z))])
+    return z - params[3] - history[:, 2], full[:, _free(surface)]
+
+
+def _free(surface: ContactSurface) -> list[int]:
+    """Indexes of the fitted parameters among (x0, y0, heading, offset)."""
+    return [0, 3] if surface.map.is_profile else [0, 1, 2, 3]
 
 
 def refine(surface: ContactSurface, history: np.ndarray, start: np.ndarray,
@@ -100,7 +108,9 @@ def _fit_at(surface: ContactSurface, history: np.ndarray, params: np.ndarray,
     in sigmas, and the covariance their Jacobian implies."""
     r, j = _model(surface, history, params)
     r, j = r / sigma, j / sigma[:, np.newaxis]
-    cov = _covariance(j)
+    cov = np.zeros((4, 4))
+    free = _free(surface)
+    cov[np.ix_(free, free)] = _covariance(j)
     return Fit(pose=(float(params[0]), float(params[1]), float(wrap_angle(params[2]))),
                position_sd=float(np.sqrt(max(cov[0, 0] + cov[1, 1], 0.0))),
                heading_sd=float(np.sqrt(max(cov[2, 2], 0.0))),
@@ -120,18 +130,22 @@ def _covariance(jac: np.ndarray) -> np.ndarray:
 
 def _solve(surface: ContactSurface, history: np.ndarray, params: np.ndarray, sigma: np.ndarray,
            max_nfev: int) -> np.ndarray:
-    if len(history) < len(params):  # under-determined: nothing to fit yet
+    free = _free(surface)
+    if len(history) < len(free):  # under-determined: nothing to fit yet
         return params
-
     memo: dict[bytes, tuple[np.ndarray, np.ndarray]] = {}
 
     def model(p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         key = p.tobytes()
         if key not in memo:  # the solver asks for residuals and Jacobian at the same point
             memo.clear()
-            r, j = _model(surface, history, p)
+            full = params.copy()
+            full[free] = p
+            r, j = _model(surface, history, full)
             memo[key] = (r / sigma, j / sigma[:, np.newaxis])
         return memo[key]
 
-    return least_squares(lambda p: model(p)[0], params, jac=lambda p: model(p)[1],
-                         method="lm", max_nfev=max_nfev).x
+    out = params.copy()
+    out[free] = least_squares(lambda p: model(p)[0], params[free],
+                              jac=lambda p: model(p)[1], method="lm", max_nfev=max_nfev).x
+    return out

@@ -7,7 +7,7 @@ from typing import ClassVar, Protocol
 
 import numpy as np
 
-from service.localization.localizers.base import Hypotheses
+from service.localization.localizers.base import Estimate, Hypotheses
 from service.localization.models import rotate
 from service.localization.surface import ContactSurface
 
@@ -28,6 +28,10 @@ class PolicyInput:
     surface: ContactSurface
     step_length: float
     rng: np.random.Generator
+    walls: bool = False
+    """Whether the map's edge is what blocks a step, so a blocked step is evidence."""
+    estimate: Estimate | None = None
+    """The localizer's current belief: its leading pose and that pose's spread."""
 
 
 class Policy(Protocol):

@@ -1,0 +1,129 @@
+"""The global check: a systematic sweep over every start pose the map allows.
+
+A sampled localizer knows only the hypotheses it holds. When the truth has left its pool,
+the posterior over the survivors can look certain and be wrong (a real terrain patch: two
+wrong declarations at a leading-mode mass of 0.99999). So no pose is declared until a sweep
+has screened the whole pose space against the readings and handed the localizer the
+regions that explain them best, to polish and weigh against its leader.
+
+The space is tiled by cells (x, y, heading; position and direction on a profile), each
+standing for every pose within it: its centre's residuals are judged with the sd widened
+by how far a pose in the cell could move each reading (paper Eq. 4, as the pool's members
+are), so the truth's cell scores well wherever the truth is in it. A cell's misfit is the
+sum of its readings' z^2, each capped (one slip cannot sink it). Each update screens a
+bounded stretch of cells and hands over the best few; the truth's cell ranks among the
+first few dozen of a whole sweep even on a few readings (peaks under B2's noise), and the
+search for the best abandons a cell as soon as it cannot make the cut, so a cell costs a
+reading or two.
+
+The sweep runs in a fixed order that spreads any stretch of it over the whole map, a bounded
+number of cells per update, so an update's cost does not grow with the map: a bigger map
+takes more updates to cover. A sweep begun once the readings are selective
+(`start_readings`) and carried to its end is a check; sweeps repeat with the readings of
+their time. The result is a pure function of the readings: the same however it is sliced.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from dataclasses import dataclass
+
+import numpy as np
+
+from service.localization import kernels
+from service.localization.localizers.fitting import sigmas
+from service.localization.surface import ContactSurface
+
+CAP = 9.0
+"""A reading's largest share of a cell's misfit (3 sigmas): one slip cannot fail a cell."""
+
+
+@dataclass(frozen=True)
+class SweepSettings:
+    """How fine and how fast the sweep is; lengths in step lengths."""
+
+    cell: float = 0.6
+    """Cell width: a pose in the cell is at most 0.42 steps from its centre."""
+    heading_cell_deg: float = 15.0
+    cells_per_update: int = 8192
+    start_readings: int = 2
+    """Readings (after first contact) before a sweep begins: fewer pass too many cells."""
+    keep: int = 32
+    """Cells an update hands over: the best it screened. The truth's cell ranks among the
+    first few dozen of a whole sweep even on a few readings (peaks, B2)."""
+
+
+class Sweep:
+    """Sweeps over every cell of the pose space, a bounded share per update."""
+
+    def __init__(self, surface: ContactSurface, step_length: float, sensor_sigma: float,
+                 slope: float, margin: float, settings: SweepSettings | None = None) -> None:
+        self.surface = surface
+        self.settings = s = settings or SweepSettings()
+        self.sensor_sigma, self.slope, self.margin = sensor_sigma, slope, margin
+        profile = surface.map.is_profile
+        x_max, y_max = surface.map.extent
+        width = s.cell * step_length
+        nx = max(1, int(np.ceil(x_max / width)))
+        ny = 1 if profile else max(1, int(np.ceil(y_max / width)))
+        nh = 2 if profile else int(round(360.0 / s.heading_cell_deg))
+        self.shape = np.array([nx, ny, nh], dtype=np.int64)
+        self.pitch = np.array([x_max / nx, 0.0 if profile else y_max / ny, 2 * np.pi / nh])
+        self.origin = np.array([0.0, 0.0, -0.5 * self.pitch[2] if profile else -np.pi])
+        self.cells = int(self.shape.prod())
+        self.stride = _coprime_stride(self.cells)
+        self.reach = (float(np.hypot(*self.pitch[:2])) / 2, float(self.pitch[2]) / 2)
+        """How far a pose in a cell can lie from its centre (metres, radians)."""
+        self.reset()
+
+    def reset(self) -> None:
+        self.cursor = 0
+        self.begun_at: int | None = None
+        """Readings when the current sweep began (None: not begun)."""
+        self.checked_at: int | None = None
+        """Readings when the last sound sweep began: every pose that explains the
+        readings since was in a cell it handed over."""
+
+    @property
+    def checked(self) -> bool:
+        return self.checked_at is not None
+
+    def run(self, history: np.ndarray, take: int | None = None
+            ) -> Iterator[tuple[int, np.ndarray]]:
+        """One update's share, in slices of about `take` cells (for an anytime job): yields
+        the cells screened, and at the end the centres (M, 3) of the `keep` that fit the
+        readings best, best first."""
+        k = len(history) - 1
+        if k < self.settings.start_readings:
+            return
+        if self.begun_at is None:
+            self.begun_at, self.cursor = k, 0
+        sd = np.concatenate([[self.sensor_sigma],
+                             sigmas(self.sensor_sigma, self.slope, history[1:], *self.reach)])
+        limit = k + 3.0 * np.sqrt(2.0 * k) + CAP
+        left = self.settings.cells_per_update
+        poses, misfit = np.empty((0, 3)), np.empty(0)
+        while left > 0 and self.cursor < self.cells:
+            count = min(left, take or left, self.cells - self.cursor)
+            p, m = kernels.sweep_screen(
+                self.surface.centre_heights, self.surface.map.spacing, self.surface.map.extent,
+                self.surface.map.is_profile, self.cursor, count, self.stride, self.shape,
+                self.origin, self.pitch, history, sd, self.margin, CAP, limit,
+                self.settings.keep)
+            poses, misfit = np.vstack([poses, p]), np.concatenate([misfit, m])
+            self.cursor += count
+            left -= count
+            if self.cursor >= self.cells:  # a whole sweep
+                self.checked_at, self.begun_at = self.begun_at, None
+            yield count, np.empty((0, 3))
+        best = np.argsort(misfit, kind="stable")[:self.settings.keep]
+        yield 0, poses[best]
+
+
+def _coprime_stride(n: int) -> int:
+    """A stride near n / golden ratio sharing no factor with n: stepping by it visits every
+    cell once, and consecutive cells lie far apart."""
+    stride = max(1, int(n / 1.6180339887))
+    while np.gcd(stride, n) != 1:
+        stride += 1
+    return stride
