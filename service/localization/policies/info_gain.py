@@ -1,19 +1,31 @@
-"""Information-gain exploration: the move expected to shrink the uncertainty most.
+"""Information-gain exploration that plans ahead: go where the hypotheses disagree most.
 
-For the leading hypotheses (weighted), predict the relative height each compass move would
-read; the expected information of a move is the mutual information between that reading
-and which hypothesis is true. With Gaussian reading noise it has a closed pairwise form
-(the expected log of the predictive density; Huber et al.'s lower bound):
+For the leading hypotheses (weighted), predict the relative height a reading would give;
+the expected information of a reading is the mutual information between it and which
+hypothesis is true. With Gaussian reading noise it has a closed pairwise form (the expected
+log of the predictive density; Huber et al.'s lower bound):
 
-    I(m) = -sum_i w_i log sum_j w_j exp(-(z_i - z_j)^2 / (4 s^2))
+    I = -sum_i w_i log sum_j w_j exp(-(z_i - z_j)^2 / (4 s^2))
 
-All four moves are scored in one (4, N, N) pass. A hypothesis under which a move would
-leave the map predicts a blocked step: the finger stays put and reads its current height
-again, which tells nothing new, so that is what it is predicted to read (a policy that
-scored "blocked" as a distinct reading would keep walking into walls). Moves known to be
-blocked from here are never taken. An optional two-step
-lookahead scores each move by its best follow-up pair, which helps where a single step
-tells little (on plateaus, or next to an edge).
+One step rarely suffices where it matters most. On a plain every neighbour reads the same
+under every hypothesis, and the feature that would decide between them lies several steps
+away; a one-step policy wanders there (the paper: "a more long-term decision-making
+algorithm could possibly improve this problem"). So each decision scores every place within
+`reach` steps (a diamond of lattice points in the finger's frame) by the information of a
+reading there, per step of the route to it, and walks toward the best; it re-plans after
+every reading, and keeps its target unless another is clearly better, so it never dithers
+between two. Places not read yet earn a little credit (`NOVELTY`): where the hypotheses
+agree, new places still add the evidence a declaration needs, where shuttling between two
+read places adds none.
+
+Where the map's edge is what blocks a step (`PolicyInput.walls`), a hypothesis that puts a
+place off the map predicts a blocked step there: an outcome of its own, which the
+localizers use as evidence, so it counts as information. Elsewhere a blocked step tells
+nothing, and is predicted as a reading of where the finger stands. Moves found blocked
+from here are never taken again.
+
+The work per decision is bounded: the one-step scores use at most `samples` hypotheses,
+the plan at most `modes` distinct ones over at most 2 reach (reach + 1) + 1 places.
 """
 
 from __future__ import annotations
@@ -23,137 +35,182 @@ from typing import ClassVar
 import numpy as np
 
 from service.localization import kernels
+from service.localization.localizers.fitting import sample
+from service.localization.localizers.pool import niche
 from service.localization.models import rotate
-from service.localization.policies.base import MOVES, PolicyInput, allowed_moves, predicted_heights
+from service.localization.policies.base import MOVES, PolicyInput, allowed_moves
 
-NOVELTY = 0.01
-"""Gain (nats) credited to a move onto a place not read yet: a tie-breaker, not a goal."""
+NOVELTY = 0.05
+"""Information (nats) credited to a reading at a place not read yet."""
+REREAD = 0.25
+"""Share of its information a reading at a place already read is credited with: the
+localizer has weighed the hypotheses there once, so what they still disagree on there is
+mostly within the noise."""
+TRIVIAL = 0.01
+"""Information (nats) below which a reading counts as telling nothing: hypotheses that
+differ by less are one mode, and chasing their differences makes a policy dither."""
+BLOCKED = 1.0
+"""The predicted "reading" of a blocked step, metres: far from any height, so it stands
+apart from every real reading."""
+KEEP_TARGET = 1.5
+"""A new target must promise this many times the rate of the current one to replace it."""
 
 
 class InfoGainPolicy:
     name: ClassVar[str] = "info-gain"
 
-    def __init__(self, samples: int = 200, lookahead: int = 1, reach: int = 4,
-                 noise_floor: float = 0.03) -> None:
+    def __init__(self, samples: int = 200, reach: int = 6, modes: int = 32,
+                 noise_floor: float = 0.015) -> None:
         kernels.warm_up()  # compile before the first decision, not during it
         self.samples = samples
-        self.lookahead = lookahead
         self.reach = reach
-        """Steps of a straight run also scored (discounted): on a plateau, where no single
-        step tells anything, it walks toward where the hypotheses disagree."""
-        self._walls: list[tuple[np.ndarray, int]] = []
-        """(displacement, move) pairs found blocked this episode: the localizers do not
-        see which move was blocked, so the policy remembers, never retries one, and
-        judges the hypotheses by whether they put a wall there."""
-        self._visited: set[tuple[int, int]] = set()
+        self.modes = modes
         self.noise_floor = noise_floor
         """Smallest reading sd assumed, as a fraction of the step: hypotheses closer than
         this are treated as one, so a noise-free run does not chase negligible differences."""
+        self._walls: set[tuple[int, int, int]] = set()
+        """(place, move) pairs found blocked this episode, never tried again."""
+        self._visited: set[tuple[int, int]] = set()
+        self._unreachable: set[tuple[int, int]] = set()
+        """Places a blocked step could not reach: never targets again."""
+        self._target: tuple[int, int] | None = None
 
     def next_move(self, view: PolicyInput) -> int:
-        moves = self._moves(view)
+        here = _place(view.displacement, view.step_length)
+        self._visited.add(here)
+        for m in view.blocked:
+            self._walls.add((*here, m))
+            self._unreachable.add((here[0] + int(MOVES[m][0]), here[1] + int(MOVES[m][1])))
+        moves = self._moves(view, here)
         poses, weights = view.hypotheses.poses, view.hypotheses.weights
-        if len(poses) < 2:
-            return moves[int(view.rng.integers(len(moves)))]
+        if len(poses) == 0:
+            return moves[0]
+        s = self.noise_floor * view.step_length
+        offsets = _diamond(self.reach, view.surface.map.is_profile)
+        value = self._value(view, poses, weights, offsets, s)
+        dist = np.abs(offsets).sum(axis=1)
+        reachable = np.array([(here[0] + int(i), here[1] + int(j)) not in self._unreachable
+                              for i, j in offsets])
+        rate = np.where((dist > 0) & reachable, value / np.maximum(dist, 1), -np.inf)
+        best = int(np.argmax(rate))
+        target = (here[0] + int(offsets[best, 0]), here[1] + int(offsets[best, 1]))
+        if self._target is not None and self._target != here:
+            kept = np.flatnonzero((offsets[:, 0] == self._target[0] - here[0])
+                                  & (offsets[:, 1] == self._target[1] - here[1]))
+            if len(kept) and rate[best] < KEEP_TARGET * rate[kept[0]]:
+                target = self._target
+        self._target = target
+        return self._toward(view, here, target, moves, poses, weights, s)
+
+    # -- scoring ---------------------------------------------------------------------------
+    def _value(self, view: PolicyInput, poses: np.ndarray, weights: np.ndarray,
+               offsets: np.ndarray, s: float) -> np.ndarray:
+        """Information of a reading at each place (plus novelty), over distinct modes."""
+        keep = niche(poses, weights, 0.5 * view.step_length, np.deg2rad(15.0),
+                     limit=self.modes)
+        p, w = poses[keep], weights[keep] / weights[keep].sum()
+        z, inside = _readings(view, p, offsets)
+        info = information(z[:, :, np.newaxis], w, s) if len(p) > 1 else np.zeros(len(z))
+        info = info + _precision(view, offsets, s)
+        here = _place(view.displacement, view.step_length)
+        novel = np.array([(here[0] + int(i), here[1] + int(j)) not in self._visited
+                          for i, j in offsets])
+        return _credit(info, novel * (inside @ w))
+
+    def _toward(self, view: PolicyInput, here: tuple[int, int], target: tuple[int, int],
+                moves: list[int], poses: np.ndarray, weights: np.ndarray, s: float) -> int:
+        """The free move along a shortest route to `target` whose own reading tells most;
+        any free move if none leads there."""
+        di, dj = target[0] - here[0], target[1] - here[1]
+        route = [m for m in moves if (MOVES[m][0] * di > 0) or (MOVES[m][1] * dj > 0)]
+        options = route or moves
+        if len(options) == 1:
+            return options[0]
         k = min(self.samples, len(poses))
         top = np.argsort(-weights, kind="stable")[:k]
-        poses, w = poses[top], weights[top] * self._wall_consistent(view, poses[top])
-        w = w / w.sum() if w.sum() > 0 else weights[top] / weights[top].sum()
-        s = self.noise_floor * view.step_length
-        z, inside = predicted_heights(view, poses)
-        here = _current_heights(view, poses)
-        z = np.where(inside, z, here[np.newaxis, :])
-        gain = information(z[:, :, np.newaxis], w, s)  # (4,)
-        if self.lookahead >= 2:
-            gain = gain + 0.5 * self._second_step(view, poses, w, z, s)
-        if self.reach >= 2:
-            gain = gain + 0.25 * self._straight_run(view, poses, w, here, s)
-        # a small bonus for places not yet read: when the hypotheses agree (nothing left to
-        # tell apart), new places still add the evidence a declaration needs, where
-        # shuttling between two read places adds none; ties go to the first move
-        gain = gain + NOVELTY * self._novel(view)
-        return max(moves, key=lambda m: gain[m])
+        w = weights[top] / weights[top].sum()
+        z, inside = _readings(view, poses[top], MOVES[options].astype(np.int64))
+        steps = MOVES[options].astype(np.int64)
+        gain = (information(z[:, :, np.newaxis], w, s) if k > 1 else np.zeros(len(options)))
+        gain = gain + _precision(view, steps, s)
+        novel = np.array([(here[0] + int(MOVES[m][0]), here[1] + int(MOVES[m][1]))
+                          not in self._visited for m in options])
+        return options[int(np.argmax(_credit(gain, novel * (inside @ w))))]
 
-    def _novel(self, view: PolicyInput) -> np.ndarray:
-        """1 for each move whose target has not been read before, else 0."""
-        here = np.round(np.asarray(view.displacement) / view.step_length)
-        self._visited.add((int(here[0]), int(here[1])))
-        targets = here[np.newaxis, :] + MOVES
-        return np.array([0.0 if (int(t[0]), int(t[1])) in self._visited else 1.0
-                         for t in targets])  # four moves
-
-    def _moves(self, view: PolicyInput) -> list[int]:
-        """Allowed moves minus those remembered blocked from (about) here."""
-        here = np.asarray(view.displacement, dtype=np.float64)
-        for m in view.blocked:
-            if not any(mm == m and np.hypot(*(d - here)) < 0.3 * view.step_length
-                       for d, mm in self._walls):
-                self._walls.append((here.copy(), m))
+    def _moves(self, view: PolicyInput, here: tuple[int, int]) -> list[int]:
+        """Allowed moves minus those found blocked from here."""
         moves = allowed_moves(view)
-        free = [m for m in moves if not any(
-            mm == m and np.hypot(*(d - here)) < 0.3 * view.step_length for d, mm in self._walls)]
+        free = [m for m in moves if (*here, m) not in self._walls]
         return free or moves
 
-    def _wall_consistent(self, view: PolicyInput, poses: np.ndarray) -> np.ndarray:
-        """1 for poses that put every remembered blocked move off the map, else 0."""
-        ok = np.ones(len(poses))
-        x_max, y_max = view.surface.map.extent
-        for d, m in self._walls:  # a handful of walls, each test vectorized over poses
-            t = d + MOVES[m] * view.step_length
-            dx, dy = rotate(poses[:, 2], t[0], t[1])
-            x, y = poses[:, 0] + dx, poses[:, 1] + dy
-            inside = (x > 0.1 * view.step_length) & (x < x_max - 0.1 * view.step_length)
-            if not view.surface.map.is_profile:
-                inside &= (y > 0.1 * view.step_length) & (y < y_max - 0.1 * view.step_length)
-            ok[inside] = 0.0
-        return ok
 
-    def _second_step(self, view: PolicyInput, poses: np.ndarray, w: np.ndarray,
-                     z1: np.ndarray, s: float) -> np.ndarray:
-        """Best joint information of each first move followed by any second move."""
-        first = view.displacement[np.newaxis, :] + MOVES * view.step_length  # (4, 2)
-        targets = first[:, np.newaxis, :] + MOVES[np.newaxis, :, :] * view.step_length
-        targets = targets.reshape(16, 2)
-        dx, dy = rotate(poses[np.newaxis, :, 2], targets[:, 0:1], targets[:, 1:2])
-        x, y = poses[np.newaxis, :, 0] + dx, poses[np.newaxis, :, 1] + dy
-        z2, inside = view.surface.lookup(x, y)
-        z0, _ = view.surface.lookup(poses[:, 0], poses[:, 1])
-        stay = np.repeat(z1, 4, axis=0)  # blocked second step: the first step's reading
-        z2 = np.where(inside, z2 - z0[np.newaxis, :], stay).reshape(4, 4, -1)
-        pair = np.stack([np.repeat(z1[:, np.newaxis, :], 4, axis=1), z2], axis=-1)
-        joint = information(pair.reshape(16, -1, 2), w, s).reshape(4, 4)
-        return joint.max(axis=1)
+def _precision(view: PolicyInput, offsets: np.ndarray, s: float) -> np.ndarray:
+    """Expected information (nats) of a reading at each place about where exactly the
+    leading pose lies: 0.5 log(1 + j C j' / s^2), j the reading's sensitivity to the pose
+    at the leader and C the localizer's spread of it, weighted by the leading mode's
+    probability. Once one mode holds the belief its spread is what a declaration waits
+    for, and telling modes apart no longer shrinks it."""
+    est = view.estimate
+    if est is None or est.pose is None or not (np.isfinite(est.position_sd)
+                                                and np.isfinite(est.heading_sd)):
+        return np.zeros(len(offsets))
+    mass = float(est.mode_mass) if np.isfinite(est.mode_mass) else 0.0
+    x0, y0, heading = est.pose
+    cov = np.diag([est.position_sd**2 / 2, est.position_sd**2 / 2, est.heading_sd**2])
+    targets = np.asarray(view.displacement, dtype=np.float64)[np.newaxis, :2] \
+        + offsets * view.step_length
+    c, si = np.cos(heading), np.sin(heading)
+    tx, ty = targets[:, 0], targets[:, 1]
+    x, y = x0 + c * tx - si * ty, y0 + si * tx + c * ty
+    _, gx, gy = sample(view.surface, np.append(x, x0), np.append(y, y0))
+    jac = np.column_stack([gx[:-1] - gx[-1], gy[:-1] - gy[-1],
+                           gx[:-1] * (-si * tx - c * ty) + gy[:-1] * (c * tx - si * ty)])
+    var = np.einsum("ti,ij,tj->t", jac, cov, jac)
+    on_map = view.surface.map.inside(x, y)
+    return np.where(on_map, 0.5 * np.log1p(np.maximum(var, 0.0) / s**2) * mass, 0.0)
 
 
-    def _straight_run(self, view: PolicyInput, poses: np.ndarray, w: np.ndarray,
-                      here: np.ndarray, s: float) -> np.ndarray:
-        """Joint information of the readings of `reach` steps straight on, per move."""
-        j = np.arange(1, self.reach + 1)[np.newaxis, :, np.newaxis]
-        targets = view.displacement[np.newaxis, np.newaxis, :] + j * MOVES[:, np.newaxis, :] \
-            * view.step_length  # (4, reach, 2)
-        targets = targets.reshape(-1, 2)
-        dx, dy = rotate(poses[np.newaxis, :, 2], targets[:, 0:1], targets[:, 1:2])
-        z, inside = view.surface.lookup(poses[np.newaxis, :, 0] + dx,
-                                        poses[np.newaxis, :, 1] + dy)
-        z0, _ = view.surface.lookup(poses[:, 0], poses[:, 1])
-        z = (z - z0[np.newaxis, :]).reshape(4, self.reach, -1)
-        inside = np.logical_and.accumulate(inside.reshape(4, self.reach, -1), axis=1)
-        # once blocked the finger stays: it reads the last height it reached
-        reached = np.where(inside, z, np.nan)
-        reached = np.concatenate([np.broadcast_to(here, (4, 1, len(here))), reached], axis=1)
-        idx = np.where(~np.isnan(reached), np.arange(self.reach + 1)[None, :, None], 0)
-        idx = np.maximum.accumulate(idx, axis=1)
-        filled = np.take_along_axis(np.nan_to_num(reached), idx, axis=1)[:, 1:, :]
-        return information(np.moveaxis(filled, 1, 2), w, s)
+def _credit(info: np.ndarray, novel: np.ndarray) -> np.ndarray:
+    """What a reading is worth: its information (none if trivial, a share if the place
+    was read before), plus `NOVELTY` times the chance that it is a new place on the map."""
+    info = np.where(info < TRIVIAL, 0.0, info)
+    return np.where(novel > 0, info + NOVELTY * novel, REREAD * info)
 
 
-def _current_heights(view: PolicyInput, poses: np.ndarray) -> np.ndarray:
-    """Relative height each pose predicts where the finger is now."""
-    dx, dy = rotate(poses[:, 2], view.displacement[0], view.displacement[1])
-    z, _ = view.surface.lookup(np.concatenate([poses[:, 0] + dx, poses[:, 0]]),
-                               np.concatenate([poses[:, 1] + dy, poses[:, 1]]))
-    n = len(poses)
-    return z[:n] - z[n:]
+def _place(displacement: np.ndarray, step: float) -> tuple[int, int]:
+    """The lattice point (in steps, finger frame) nearest the finger's displacement."""
+    i, j = np.round(np.asarray(displacement, dtype=np.float64)[:2] / step)
+    return int(i), int(j)
+
+
+def _diamond(reach: int, profile: bool) -> np.ndarray:
+    """Lattice offsets (n, 2) within `reach` steps (Manhattan); along x only on a profile."""
+    r = np.arange(-reach, reach + 1)
+    if profile:
+        return np.column_stack([r, np.zeros_like(r)])
+    i, j = np.meshgrid(r, r, indexing="ij")
+    near = np.abs(i) + np.abs(j) <= reach
+    return np.column_stack([i[near], j[near]])
+
+
+def _readings(view: PolicyInput, poses: np.ndarray, offsets: np.ndarray
+              ) -> tuple[np.ndarray, np.ndarray]:
+    """Relative height each pose (N) predicts at each place (T, offsets in steps from
+    here), (T, N), and whether the place is on the map. A place off the map predicts a
+    blocked step: `BLOCKED` where the edge blocks, else the height where the finger stands
+    (nothing new)."""
+    step = view.step_length
+    targets = (np.asarray(view.displacement, dtype=np.float64)[np.newaxis, :2]
+               + offsets * step)
+    dx, dy = rotate(poses[np.newaxis, :, 2], targets[:, 0:1], targets[:, 1:2])
+    z, inside = view.surface.lookup(poses[np.newaxis, :, 0] + dx, poses[np.newaxis, :, 1] + dy)
+    hx, hy = rotate(poses[:, 2], view.displacement[0], view.displacement[1])
+    both, _ = view.surface.lookup(np.concatenate([poses[:, 0] + hx, poses[:, 0]]),
+                                  np.concatenate([poses[:, 1] + hy, poses[:, 1]]))
+    z0 = both[len(poses):]
+    here = both[:len(poses)] - z0
+    blocked = BLOCKED if view.walls else here[np.newaxis, :]
+    return np.where(inside, z - z0[np.newaxis, :], blocked), inside.astype(np.float64)
 
 
 def information(readings: np.ndarray, weights: np.ndarray, sigma: float) -> np.ndarray:
