@@ -96,10 +96,11 @@ class ConvergenceRule:
     min_readings: int = 4
     """Readings after first contact needed before any declaration (noise-free)."""
     min_readings_noisy: int = 6
-    """With noise. At 7, a pose 27 mm and 87 degrees off fitted all 8 readings of one B3
-    episode at 0.96 sigma RMS and was declared (`bumps:20:1`, seed 8): a sampled pool
-    that never held the truth has no rival to lose to, so only more readings rule such
-    a chance fit out. 8 cost B2 no steps at the median (9)."""
+    """With noise. Once at 7, a pose 27 mm and 87 degrees off fitted all 8 readings of
+    one B3 episode at 0.96 sigma RMS and was declared (`bumps:20:1`, seed 8): the pool had
+    never held the truth, so the chance fit had no rival to lose to. That took 8 readings
+    until the global sweep (`sweep.py`) gave every pool the truth's region to weigh; with
+    it, 6 (two more than the unknowns) declare that episode right."""
     mode_mass: float = 0.999
     max_rms: float = 1.3
     """Largest acceptable RMS residual of the refined pose, in sensor sigmas (noisy). On B2
