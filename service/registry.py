@@ -50,6 +50,12 @@ LOCALIZERS = Registry("algorithm", {
                        "Algorithm IV, evolutionary Monte Carlo with a bounded pool"),
 })
 
+OBJECT_LOCALIZERS = Registry("algorithm", {
+    "particles": Entry("service.localization.localizers.object_particles:ObjectParticles",
+                       "Algorithm IV on the held object's pose"),
+})
+"""Localizers of an object held by a hand (`haptic run --object`)."""
+
 POLICIES = Registry("policy", {
     "paper": Entry("service.localization.policies.paper:PaperPolicy",
                    "the paper's heuristic: the move 10 sampled candidates disagree on most"),

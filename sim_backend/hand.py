@@ -246,25 +246,13 @@ class SimulatedHand:
                 q[i] = self._ik(i, centres[0, i], q[i])
             self._check(poses[0], centres[0], q)
 
-        poses, centres = rolling.carry(self._field, self._pose[None], self._centres[None],
-                                       self._radii, moves, rolls,
-                                       substeps=self.config.substeps, noise=self._twist_noise,
-                                       on_substep=check)
+        noise = self.config.noise
+        poses, centres = rolling.carry(
+            self._field, self._pose[None], self._centres[None], self._radii, moves, rolls,
+            substeps=self.config.substeps, rng=self._rng, on_substep=check,
+            noise=rolling.TwistNoise(noise.step_length_fraction, noise.step_direction_sigma))
         self._pose, self._centres, self._q = poses[0], centres[0], q
         self._rolls += rolls
-
-    def _twist_noise(self, twists: np.ndarray) -> np.ndarray:
-        """B2's step noise on each substep's motion: its size by a fraction, its direction
-        by an angle."""
-        noise = self.config.noise
-        out = twists.copy()
-        scale = 1 + noise.step_length_fraction * self._rng.standard_normal(2)
-        turn = noise.step_direction_sigma * self._rng.standard_normal()
-        c, s = np.cos(turn), np.sin(turn)
-        out[:, 0] = scale[0] * (c * twists[:, 0] - s * twists[:, 1])
-        out[:, 1] = scale[0] * (s * twists[:, 0] + c * twists[:, 1])
-        out[:, 2] = scale[1] * twists[:, 2]
-        return out
 
     def _check(self, pose: np.ndarray, centres: np.ndarray, q: list[np.ndarray]) -> None:
         if self.config.fixed:

@@ -17,6 +17,7 @@ from service.localization.map_check import check_map
 from service.localization.maps import load_map
 from service.localization.policies.base import MOVE_NAMES
 from service.registry import BACKENDS
+from tools.hand_cli import add_object_options, run_hand
 from tools.scenario_options import add_scenario_options, settings_from_args
 
 FIGURE_STEPS = (0, 5, 10)
@@ -38,11 +39,15 @@ def register(p: argparse.ArgumentParser) -> None:
     hw.add_argument("--backend", default="sim", choices=BACKENDS.names(),
                     help="finger to use (default: %(default)s)")
     hw.add_argument("--port", help="serial port of the servo bus (dynamixel backend)")
-    hw.add_argument("--hand", help="hand preset or TOML file (dynamixel backend)")
+    hw.add_argument("--hand", help="hand preset or TOML file (dynamixel backend, or the hand "
+                    "holding --object)")
+    add_object_options(p)
     p.set_defaults(handler=run)
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.object is not None:
+        return run_hand(args)
     settings = settings_from_args(args)
     _check_outputs(args)
     height_map = load_map(settings.map, settings.spacing)

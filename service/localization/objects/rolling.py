@@ -19,14 +19,12 @@ the world's noise.
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import dataclass
 
 import numpy as np
 
 from service.localization.objects import kernels
 from service.localization.objects.field import ContactField
-
-Noise = Callable[[np.ndarray], np.ndarray]
-"""Perturbs a batch of substep twists (B, 3) -> (B, 3): the world's (or the model's) noise."""
 
 
 def contacts(field: ContactField, poses: np.ndarray, centres: np.ndarray, radii: np.ndarray
@@ -45,32 +43,6 @@ def contacts(field: ContactField, poses: np.ndarray, centres: np.ndarray, radii:
     return centres - radii[None, :, None] * normals, normals
 
 
-def twist(points: np.ndarray, normals: np.ndarray, origins: np.ndarray, radii: np.ndarray,
-          moves: np.ndarray, rolls: np.ndarray) -> np.ndarray:
-    """Least-squares object twist (B, 3) = (v_x, v_z, w) from the fingers' centre moves
-    (n, 2) and tip turns (n,) at contacts `points`/`normals` (B, n, 2)."""
-    lever = points - origins[:, None, :]
-    t = np.stack([-normals[..., 1], normals[..., 0]], axis=-1)
-    rhs = moves[None] - (radii * rolls)[None, :, None] * t  # (B, n, 2)
-    b, n = points.shape[:2]
-    a = np.zeros((b, n, 2, 3))
-    a[..., 0, 0] = 1.0
-    a[..., 1, 1] = 1.0
-    a[..., 0, 2] = -lever[..., 1]
-    a[..., 1, 2] = lever[..., 0]
-    a = a.reshape(b, 2 * n, 3)
-    normal = np.einsum("bki,bkj->bij", a, a) + 1e-12 * np.eye(3)
-    return np.linalg.solve(normal, np.einsum("bki,bk->bi", a, rhs.reshape(b, 2 * n))[..., None]
-                           )[..., 0]
-
-
-def apply_twist(poses: np.ndarray, twists: np.ndarray) -> np.ndarray:
-    """Poses (B, 3) after turning by w about their centroid and shifting it by v."""
-    out = poses + twists
-    out[:, 2] = (out[:, 2] + np.pi) % (2 * np.pi) - np.pi
-    return out
-
-
 def settle(field: ContactField, poses: np.ndarray, centres: np.ndarray, radii: np.ndarray
            ) -> np.ndarray:
     """Fingertip centres (B, n, 2) pressed back onto the object under `poses`."""
@@ -82,27 +54,47 @@ def settle(field: ContactField, poses: np.ndarray, centres: np.ndarray, radii: n
     return out
 
 
+@dataclass(frozen=True)
+class TwistNoise:
+    """How a carried object's motion strays from the rolling model, per substep: its size
+    by a fraction, its translation's direction by an angle (B2's step noise)."""
+
+    fraction: float = 0.0
+    direction_sigma: float = 0.0
+
+    @property
+    def any(self) -> bool:
+        return bool(self.fraction or self.direction_sigma)
+
+
+EXACT = TwistNoise()
+
+
 def carry(field: ContactField, poses: np.ndarray, centres: np.ndarray, radii: np.ndarray,
           moves: np.ndarray, rolls: np.ndarray, substeps: int = 8,
-          noise: Noise | None = None,
+          noise: TwistNoise = EXACT, rng: np.random.Generator | None = None,
           on_substep: Callable[[np.ndarray, np.ndarray], None] | None = None
           ) -> tuple[np.ndarray, np.ndarray]:
     """Poses (B, 3) and settled fingertip centres (B, n, 2) after every finger moves its
     centre by `moves` (n, 2) and turns its tip by `rolls` (n,), from `poses` with tips at
-    `centres` (B, n, 2). `on_substep(poses, centres)` sees every intermediate state."""
-    poses = np.array(poses, dtype=np.float64)
-    centres = np.array(centres, dtype=np.float64)
-    moves = np.asarray(moves, dtype=np.float64) / substeps
-    rolls = np.asarray(rolls, dtype=np.float64) / substeps
-    for _ in range(substeps):
-        points, normals = contacts(field, poses, centres, radii)
-        step = twist(points, normals, poses[:, :2], radii, moves, rolls)
-        if noise is not None:
-            step = noise(step)
-        poses = apply_twist(poses, step)
-        centres = settle(field, poses, centres + moves[None], radii)
-        if on_substep is not None:
-            on_substep(poses, centres)
+    `centres` (B, n, 2) (`kernels.carry`). With `noise` (and `rng`) each pose strays on its
+    own draw; `on_substep(poses, centres)` sees every intermediate state."""
+    poses = np.ascontiguousarray(poses, dtype=np.float64)
+    centres = np.ascontiguousarray(centres, dtype=np.float64)
+    moves = np.ascontiguousarray(moves, dtype=np.float64)
+    rolls = np.ascontiguousarray(rolls, dtype=np.float64)
+    radii = np.ascontiguousarray(radii, dtype=np.float64)
+    draws = (rng.standard_normal((len(poses), substeps, 3)) if noise.any and rng is not None
+             else np.zeros((len(poses), substeps, 3)))
+    if on_substep is None:
+        return kernels.carry(*field.args, poses, centres, radii, moves, rolls, substeps,
+                             draws, noise.fraction, noise.direction_sigma)
+    for k in range(substeps):
+        poses, centres = kernels.carry(*field.args, poses, centres, radii, moves / substeps,
+                                       rolls / substeps, 1,
+                                       np.ascontiguousarray(draws[:, k:k + 1]),
+                                       noise.fraction, noise.direction_sigma)
+        on_substep(poses, centres)
     return poses, centres
 
 

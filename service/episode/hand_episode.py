@@ -1,0 +1,260 @@
+"""A hand episode: explore a held object until its pose is known, without dropping it.
+
+`run_hand_episode` drives any hand (the simulated one, later the servos) step by step: the
+grasp-gated policy decides, the hand moves, the localizer updates, everything is recorded.
+`simulate_hand` builds a seeded episode from settings: what `haptic run --object` and
+`haptic bench grasp` call.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from firmware_if.backend import HandCommand, HandState
+from firmware_if.errors import BusTimeoutError
+from service.episode.hand_scenario import (
+    HandParts,
+    HandScore,
+    HandSettings,
+    build_localizer,
+    build_policy,
+    draw_truth,
+    load_parts,
+    score,
+    streams,
+)
+from service.localization.localizers.base import Budget, Estimate, Hypotheses
+from service.localization.localizers.object_base import HandMeasurement
+from service.localization.policies.grasp_gated import GraspGatedPolicy, HandView
+
+SNAPSHOT_LIMIT = 400
+
+
+@dataclass(frozen=True)
+class HandStepRecord:
+    index: int
+    kind: str
+    """'explore' or 'manipulate'."""
+    finger: int | None
+    command: tuple[tuple[float, float, float] | None, ...]
+    centres: tuple[tuple[float, float], ...]
+    """Every fingertip centre read after the step (hand plane, metres)."""
+    blocked: bool
+    predicted_quality: float
+    """Least quality the policy predicted over the plausible poses (newtons)."""
+    quality: float
+    """The grasp's true quality after the step (simulation only; NaN otherwise)."""
+    candidates: int
+    compute_ms: float
+    policy_ms: float
+    estimate: tuple[float, float, float] | None
+    truth: tuple[float, float, float] | None
+
+
+@dataclass
+class HandEpisodeResult:
+    steps: list[HandStepRecord] = field(default_factory=list)
+    estimate: Estimate | None = None
+    dropped: bool = False
+    stuck: bool = False
+    """The policy found no safe move left."""
+    start_centres: tuple[tuple[float, float], ...] = ()
+
+    @property
+    def converged(self) -> bool:
+        return bool(self.estimate and self.estimate.converged)
+
+
+def _centres(state: HandState) -> np.ndarray:
+    return np.array([[f.centre[0], f.centre[2]] for f in state.fingers])
+
+
+def execute(hand: Any, command: HandCommand, timeout_s: float = 10.0) -> HandState:
+    """Command a hand step and poll until the hand reports it finished."""
+    before = hand.read_hand().fingers[0].steps_done
+    hand.command_hand(command)
+    deadline = time.monotonic() + timeout_s
+    while True:
+        state = hand.read_hand()
+        if not state.moving and state.fingers[0].steps_done > before:
+            return state
+        if time.monotonic() > deadline:
+            raise BusTimeoutError(f"hand step did not finish within {timeout_s} s")
+        time.sleep(0.001)
+
+
+def run_hand_episode(hand: Any, localizer: Any, policy: GraspGatedPolicy, parts: HandParts,
+                     settings: HandSettings, *,
+                     on_step: Callable[[HandStepRecord], None] | None = None,
+                     truth: Callable[[], tuple[float, float, float]] | None = None,
+                     quality: Callable[[], float] | None = None) -> HandEpisodeResult:
+    """Explore until the localizer converges, `max_steps` pass, the object drops or no safe
+    move is left. `truth`/`quality` read the simulator's hidden state for the record."""
+    state = hand.read_hand()
+    centres = _centres(state)
+    result = HandEpisodeResult(start_centres=tuple(map(tuple, centres.tolist())))
+    n = len(state.fingers)
+    localizer.start(HandMeasurement(step=0, centres=centres, moved=tuple(range(n))))
+    estimate = localizer.estimate()
+    sigma = float(localizer.ctx.sigma)
+    blocked: set[tuple[int, int]] = set()
+    for index in range(1, settings.max_steps + 1):
+        if estimate.converged or estimate.candidates == 0:
+            break
+        t0 = time.perf_counter()
+        view = HandView(hypotheses=localizer.hypotheses(limit=500), centres=centres,
+                        joints=tuple(np.asarray(f.joints) for f in state.fingers),
+                        field=parts.field, fingers=parts.hand.fingers, torque=parts.torque,
+                        grasp=settings.grasp, step_length=settings.step, sigma=sigma,
+                        fixed=settings.single_finger, blocked=frozenset(blocked))
+        decision = policy.decide(view)
+        policy_ms = (time.perf_counter() - t0) * 1e3
+        if decision.command is None:
+            result.stuck = True
+            break
+        state = execute(hand, decision.command)
+        if state.dropped:
+            result.dropped = True
+        moved_now = decision.command.moving
+        was_blocked = any(state.fingers[i].blocked for i in moved_now)
+        if was_blocked:
+            if decision.finger is not None:
+                blocked.add((decision.finger, decision.direction))
+        else:
+            blocked.clear()
+        centres = _centres(state)
+        compute_ms = 0.0
+        if not (was_blocked or result.dropped):
+            manipulated = decision.kind == "manipulate"
+            carried = None
+            if manipulated:
+                cmd = decision.command.moves
+                carried = (np.array([[m.dx, m.dz] for m in cmd]), np.array([m.roll for m in cmd]))
+            measurement = HandMeasurement(step=index, centres=centres,
+                                          moved=tuple(range(n)) if manipulated else moved_now,
+                                          carried=carried, t_ns=state.t_ns)
+            t0 = time.perf_counter()
+            localizer.begin_update(measurement)
+            while not localizer.work(Budget.unlimited()):
+                pass
+            compute_ms = (time.perf_counter() - t0) * 1e3
+            estimate = localizer.estimate()
+        record = HandStepRecord(
+            index=index, kind=decision.kind, finger=decision.finger,
+            command=tuple(None if m is None else (m.dx, m.dz, m.roll)
+                          for m in decision.command.moves),
+            centres=tuple(map(tuple, centres.tolist())), blocked=was_blocked,
+            predicted_quality=decision.predicted_quality,
+            quality=float("nan") if quality is None else quality(),
+            candidates=estimate.candidates, compute_ms=compute_ms, policy_ms=policy_ms,
+            estimate=estimate.pose, truth=None if truth is None else truth())
+        result.steps.append(record)
+        if on_step:
+            on_step(record)
+        if result.dropped:
+            break
+    result.estimate = estimate
+    return result
+
+
+@dataclass
+class HandEpisodeReport:
+    settings: HandSettings
+    start: tuple[float, float, float]
+    truth: tuple[float, float, float]
+    """The object's true pose at the end."""
+    result: HandEpisodeResult
+    score: HandScore
+    parts: HandParts
+    min_quality: float
+    """The least true grasp quality at any substep of any move (newtons)."""
+    start_quality: float
+    snapshots: dict[int, Hypotheses] = field(default_factory=dict)
+
+    def to_json(self) -> dict[str, Any]:
+        est = self.result.estimate
+        return {
+            "settings": self.settings.to_json(),
+            "object": self.parts.contour.name,
+            "hand": self.parts.hand.name,
+            "start": list(self.start),
+            "truth": list(self.truth),
+            "start_centres": [list(c) for c in self.result.start_centres],
+            "steps": [_step_json(s) for s in self.result.steps],
+            "estimate": None if est is None or est.pose is None else {
+                "x": est.pose[0], "z": est.pose[1], "heading": est.pose[2],
+                "candidates": est.candidates, "position_sd": _num(est.position_sd),
+                "heading_sd": _num(est.heading_sd), "mode_mass": _num(est.mode_mass)},
+            "converged": self.result.converged,
+            "success": self.score.success,
+            "wrong_declaration": self.score.wrong_declaration,
+            "dropped": self.result.dropped,
+            "stuck": self.result.stuck,
+            "position_error": self.score.position_error,
+            "heading_error": self.score.heading_error,
+            "min_quality": _num(self.min_quality),
+            "start_quality": _num(self.start_quality),
+        }
+
+
+def _num(v: float) -> float | None:
+    return None if v is None or not math.isfinite(v) else float(v)
+
+
+def _step_json(s: HandStepRecord) -> dict[str, Any]:
+    return {"index": s.index, "kind": s.kind, "finger": s.finger,
+            "command": [None if m is None else list(m) for m in s.command],
+            "centres": [list(c) for c in s.centres], "blocked": s.blocked,
+            "predicted_quality": _num(s.predicted_quality), "quality": _num(s.quality),
+            "candidates": s.candidates, "compute_ms": s.compute_ms, "policy_ms": s.policy_ms,
+            "estimate": None if s.estimate is None else list(s.estimate),
+            "truth": None if s.truth is None else list(s.truth)}
+
+
+def simulate_hand(settings: HandSettings, parts: HandParts | None = None, *,
+                  on_step: Callable[[HandStepRecord], None] | None = None,
+                  snapshot_steps: tuple[int, ...] = ()) -> HandEpisodeReport:
+    """Run one seeded hand episode on the simulated hand. Same settings, same report."""
+    from sim_backend.hand import HandSimConfig, SimulatedHand  # chosen at run time
+
+    parts = parts or load_parts(settings)
+    truth_rng, world_rng, loc_rng, _ = streams(settings.seed)
+    start = draw_truth(settings, parts, truth_rng)
+    sim = SimulatedHand(parts.hand, parts.contour,
+                        HandSimConfig(pose=start, grasp=settings.grasp,
+                                      noise=settings.noise_spec, fixed=settings.single_finger),
+                        world_rng)
+    localizer = build_localizer(settings, parts, loc_rng)
+    snapshots: dict[int, Hypotheses] = {}
+
+    def record(step: HandStepRecord) -> None:
+        if step.index in snapshot_steps:
+            snapshots[step.index] = localizer.hypotheses(limit=SNAPSHOT_LIMIT)
+        if on_step:
+            on_step(step)
+
+    sim.open()
+    try:
+        sim.set_torque(True)
+        start_quality = sim.quality
+        result = run_hand_episode(sim, localizer, build_policy(settings), parts, settings,
+                                  on_step=record, truth=lambda: sim.pose,
+                                  quality=lambda: sim.quality)
+        if 0 in snapshot_steps:
+            snapshots.setdefault(0, localizer.hypotheses(limit=SNAPSHOT_LIMIT))
+    finally:
+        sim.close()
+    return HandEpisodeReport(settings=settings, start=start, truth=sim.pose, result=result,
+                             score=score(result.estimate, sim.pose, result.dropped),
+                             parts=parts,
+                             min_quality=float("nan") if settings.single_finger
+                             else sim.min_quality,
+                             start_quality=float("nan") if settings.single_finger
+                             else start_quality,
+                             snapshots=snapshots)

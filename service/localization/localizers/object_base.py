@@ -1,0 +1,67 @@
+"""What a localizer of a held object works from: the hand's readings and its context.
+
+The hypotheses are the object's pose (x, z, theta) in the hand plane now. Every fingertip
+centre in contact is evidence about that one pose: under the right pose it lies on the
+contour dilated by the tip's radius (`objects/field.py`). While the fingers explore, the
+object stays put and each reading adds to the history; when they manipulate it, every
+hypothesis moves through the motion model (`objects/rolling.py`, with noise), the evidence
+gathered so far goes with it as each hypothesis' prior, and a new history starts from the
+fingers' new centres.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from service.localization.models import SensorModel
+from service.localization.objects.field import ContactField
+from service.localization.objects.rolling import EXACT, TwistNoise
+
+
+@dataclass(frozen=True)
+class HandMeasurement:
+    """The hand's fingertip centres after a step, and what moved."""
+
+    step: int
+    centres: np.ndarray
+    """(n, 2) every fingertip centre in the hand plane, metres."""
+    moved: tuple[int, ...]
+    """Fingers whose centre is new evidence: all at first contact and after a manipulation,
+    else the one that explored."""
+    carried: tuple[np.ndarray, np.ndarray] | None = None
+    """(moves (n, 2), rolls (n,)) commanded when the fingers carried the object since the
+    previous measurement; None when it stayed put."""
+    t_ns: int = 0
+
+
+@dataclass(frozen=True)
+class ObjectContext:
+    """Everything an object localizer is built from."""
+
+    field: ContactField
+    radii: np.ndarray
+    """(n,) fingertip radius of each finger, metres."""
+    sensor: SensorModel
+    motion: TwistNoise = EXACT
+    """How a carried object's motion strays from the rolling model."""
+    substeps: int = 8
+    """Substeps the motion model integrates a manipulation in (as the hand does)."""
+    scale: float = 0.01
+    """Length unit of tolerances and the convergence rule (the paper's unit, 10 mm)."""
+    rng: np.random.Generator = field(default_factory=lambda: np.random.default_rng(0))
+
+    @property
+    def sigma(self) -> float:
+        """Residual sd of a reading (metres), floored at the contact field's own accuracy
+        (bilinear lookups of the distance grid are good to about a micrometre)."""
+        return max(float(self.sensor.sigma), 5e-6)
+
+    @property
+    def outlier_probability(self) -> float:
+        return float(getattr(self.sensor, "outlier_probability", 0.0))
+
+    @property
+    def outlier_range(self) -> float:
+        return float(getattr(self.sensor, "outlier_range_m", 1.0))

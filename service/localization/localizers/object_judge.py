@@ -1,0 +1,189 @@
+"""Honest declarations for a held object: mode tracks that carry their evidence through
+manipulations, and the judgement every object localizer's leader must pass.
+
+As for a finger (`tracks.py`, `convergence.py`): the distinct poses that explain the
+readings are kept as tracks until evidence removes them, never for want of room; the
+leader's images under the object's near symmetries join them, since a bounded pool may
+never have sampled the rotated pose that explains everything equally. When the fingers
+carry the object, each track moves through the motion model and keeps the evidence it had
+as its prior; its score is that prior plus the fit to the readings since.
+
+A pose is declared only when it leads with almost all the probability among the tracks, its
+least-squares refinement explains every reading since the last manipulation at about the
+sensor's noise and pins the pose tightly, there is enough evidence (distinct places felt),
+and it agrees with the previous update's.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+import numpy as np
+
+from service.localization.localizers.base import wrap_angle
+from service.localization.localizers.contour_fit import (
+    assess,
+    distinct_places,
+    fit_log_likelihood,
+    gauss_newton,
+    refine,
+)
+from service.localization.localizers.convergence import ConvergenceRule, distinct
+from service.localization.localizers.object_base import ObjectContext
+from service.localization.localizers.refine import Fit
+from service.localization.objects import kernels
+from service.localization.objects.symmetry import images
+
+REFINED_RIVALS = 2
+
+
+def near(a: np.ndarray, b: np.ndarray, position_tol: float, heading_tol: float) -> np.ndarray:
+    """(len(a), len(b)) mask of pose pairs within tolerance of each other."""
+    d_pos = np.hypot(a[:, None, 0] - b[None, :, 0], a[:, None, 1] - b[None, :, 1])
+    d_head = np.abs(wrap_angle(a[:, None, 2] - b[None, :, 2]))
+    return (d_pos <= position_tol) & (d_head <= heading_tol)
+
+
+class ObjectTracks:
+    """Up to `limit` polished mode centres, each with the evidence it carries (`prior`) and
+    its score on the readings since the last manipulation (`ll`)."""
+
+    def __init__(self, limit: int = 64, drop: float = 30.0) -> None:
+        self.limit, self.drop = limit, drop
+        self.centres = np.empty((0, 3))
+        self.prior = np.empty(0)
+        self.ll = np.empty(0)
+
+    @property
+    def total(self) -> np.ndarray:
+        return self.prior + self.ll
+
+    def update(self, ctx: ObjectContext, points: np.ndarray, radii: np.ndarray,
+               candidates: np.ndarray, candidate_prior: np.ndarray, *, sd: float,
+               position_tol: float, heading_tol: float) -> None:
+        """Add `candidates` far from every track, polish all, drop the clear losers."""
+        if len(candidates):
+            fresh = ~np.any(near(candidates, self.centres, 2 * position_tol, 2 * heading_tol),
+                            axis=1)
+            room = max(self.limit - len(self.centres), 0)
+            take = np.flatnonzero(fresh)[:room]
+            self.centres = np.vstack([self.centres, candidates[take]])
+            self.prior = np.concatenate([self.prior, candidate_prior[take]])
+        if len(self.centres) == 0:
+            self.ll = np.empty(0)
+            return
+        if len(points):
+            self.centres = gauss_newton(ctx.field, self.centres, points, radii, iterations=2,
+                                        max_move=position_tol)
+            self.ll = fit_log_likelihood(ctx.field, self.centres, points, radii, sd,
+                                         ctx.outlier_probability, ctx.outlier_range)
+        else:
+            self.ll = np.zeros(len(self.centres))
+        total = self.total
+        keep = distinct(self.centres, total, position_tol, heading_tol)
+        keep = keep[total[keep] >= total[keep[0]] - self.drop]
+        self.centres, self.prior, self.ll = self.centres[keep], self.prior[keep], self.ll[keep]
+
+    def carry(self, ctx: ObjectContext, centres: np.ndarray, moves: np.ndarray,
+              rolls: np.ndarray) -> None:
+        """Every track moved as the rolling model predicts; its evidence becomes its prior."""
+        if len(self.centres) == 0:
+            return
+        total = self.total
+        self.prior = total - total.max()
+        self.ll = np.zeros(len(self.centres))
+        tips = np.broadcast_to(centres, (len(self.centres), *centres.shape))
+        self.centres, _ = kernels.carry(
+            *ctx.field.args, np.ascontiguousarray(self.centres), np.ascontiguousarray(tips),
+            np.ascontiguousarray(ctx.radii, dtype=np.float64), np.ascontiguousarray(moves),
+            np.ascontiguousarray(rolls), ctx.substeps,
+            np.zeros((len(self.centres), ctx.substeps, 3)), 0.0, 0.0)
+
+    def shares(self) -> np.ndarray:
+        if len(self.centres) == 0:
+            return np.empty(0)
+        w = np.exp(self.total - self.total.max())
+        return w / w.sum()
+
+
+@dataclass(frozen=True)
+class ObjectVerdict:
+    fit: Fit | None
+    mode_mass: float
+    runner_up: tuple[float, float, float] | None
+    runner_up_mass: float
+    converged: bool
+
+
+def judge(ctx: ObjectContext, points: np.ndarray, radii: np.ndarray, tracks: ObjectTracks, *,
+          rule: ConvergenceRule, noisy: bool, places_before: int,
+          previous: tuple[float, float, float] | None, motions: np.ndarray) -> ObjectVerdict:
+    """Weigh the tracks (and the leader's near-symmetric images), refine the leader on the
+    readings since the last manipulation and ask `rule` whether to declare it.
+
+    `places_before` counts the distinct places felt before the last manipulation: their
+    evidence lives on in the priors, and counts towards enough readings."""
+    if len(tracks.centres) == 0 or len(points) < 4:
+        return ObjectVerdict(None, float(tracks.shares()[0]) if len(tracks.centres) else 0.0,
+                             None, 0.0, False)
+    scale = ctx.scale
+    sigma = ctx.sigma
+    sd = max(sigma, 0.01 * scale)
+    tol_pos, tol_head = 0.25 * scale, float(np.deg2rad(5.0))
+    total = tracks.total
+    lead = int(np.argmax(total))
+    mirrored = images(tracks.centres[lead], motions)
+    centres = np.vstack([tracks.centres, mirrored])
+    prior = np.concatenate([tracks.prior, np.full(len(mirrored), tracks.prior[lead])])
+    if len(mirrored):  # images are polished like tracks: they stand for their basin
+        mirrored = gauss_newton(ctx.field, mirrored, points, radii, iterations=3,
+                                max_move=tol_pos)
+        centres[len(tracks.centres):] = mirrored
+    score = prior + fit_log_likelihood(ctx.field, centres, points, radii, sd,
+                                       ctx.outlier_probability, ctx.outlier_range)
+    order = distinct(centres, score, tol_pos, tol_head)
+    share = np.exp(score[order] - score[order[0]])
+    share /= share.sum()
+    runner = tuple(float(v) for v in centres[order[1]]) if len(order) > 1 else None
+    runner_mass = float(share[1]) if len(order) > 1 else 0.0
+    mass = float(share[0])
+    best = centres[order[0]]
+    places = places_before + distinct_places(points, 0.25 * scale)
+    fit = _floored(ctx, points, radii, assess(ctx.field, points, radii, best, sigma))
+    enough_here = distinct_places(points, 0.25 * scale) >= 4
+    converged = False
+    if enough_here and rule.loosened().holds(readings=places - 1, noisy=noisy, mode_mass=mass,
+                                             fit=fit, step_length=scale):
+        outliers = len(points) // 8 if noisy else 0
+        fit = refine(ctx.field, points, radii, best, sigma, max_outliers=outliers)
+        rivals = [i for i, w in zip(order[1:1 + REFINED_RIVALS], share[1:1 + REFINED_RIVALS],
+                                    strict=False) if w > 1e-6]
+        fits = [fit] + [refine(ctx.field, points, radii, centres[i], sigma,
+                               max_outliers=outliers) for i in rivals]
+        refined = np.array([f.pose for f in fits])
+        ll = prior[[order[0]] + rivals] + fit_log_likelihood(
+            ctx.field, refined, points, radii, max(sigma, 0.002 * scale),
+            ctx.outlier_probability, ctx.outlier_range)
+        rest = share[1 + len(rivals):].sum()
+        w = np.exp(ll - ll.max())
+        mass = float(w[0] / w.sum()) * (1.0 - rest) if ll[0] >= ll.max() else 0.0
+        fit = _floored(ctx, points, radii, fit)
+        converged = rule.holds(readings=places - 1, noisy=noisy, mode_mass=mass, fit=fit,
+                               step_length=scale)
+        converged &= not noisy or previous is not None and bool(near(
+            np.asarray([fit.pose]), np.asarray([previous]), rule.max_position_sd * scale,
+            rule.max_heading_sd)[0, 0])
+    return ObjectVerdict(fit, mass, runner, runner_mass, bool(converged))
+
+
+def _floored(ctx: ObjectContext, points: np.ndarray, radii: np.ndarray, fit: Fit) -> Fit:
+    """`fit` with its spread recomputed at a reading sd of at least 0.05 % of the scale,
+    so a noise-free run's spread says how well the shape of the readings fixes the pose
+    (as `convergence._with_floored_spread`)."""
+    floor = max(ctx.sigma, 0.0005 * ctx.scale)
+    if floor <= ctx.sigma:
+        return fit
+    spread = assess(ctx.field, points, radii, np.asarray(fit.pose), floor)
+    return dataclasses.replace(fit, position_sd=spread.position_sd,
+                               heading_sd=spread.heading_sd)

@@ -1,0 +1,335 @@
+"""Grasp-gated exploration for a hand (paper §6): learn the most without dropping the object.
+
+Each step either rolls one finger a step along the object while the others hold, or - when
+no such move helps - manipulates: every finger works together to turn the object in place,
+bringing contour the fingers could not reach under them.
+
+* Options: each finger, either way along the object (the tangent under the leading pose),
+  by the step length or a share of it (`STEP_PARTS`).
+* Information: for the plausible poses (the heaviest hypotheses), predict where the
+  fingertip comes to rest
+  (`objects/rolling.settle`) and score the option by the mutual information between that
+  reading and the pose (`info_gain.information`), plus a small credit for contour not felt
+  yet.
+* The gate: the grasp's quality (`grasp.hand_quality`: the disturbance it resists beyond the
+  weight) is predicted for every plausible pose at the middle and the end of the move, and
+  a move is never taken if the chance that it falls below the threshold exceeds `RISK`
+  (or that it comes near the margin, where the object slips, `DROP_RISK`): the chance is
+  the posterior weight of the plausible poses under which it would. Plausible poses are
+  the heaviest hypotheses under which the grasp as it is holds the object (it is held).
+  While the pose is a continuum the quality spans every level across it, and a rule over
+  every sample would forbid every move; the weights say how likely each is. With the
+  gate off (the ablation), only reach limits moves.
+* Manipulation: turns of the object about its centroid in place (`rolling.plan_turn` under
+  the leading pose), each checked the same way at every substep of its rolling motion for
+  every plausible pose (`rolling.carry`); the safe turn whose readings tell most, or that
+  brings the most unfelt contour under the fingers, wins.
+
+With nothing safe left to do, the decision says so (`stuck`) and the episode ends undecided.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import ClassVar
+
+import numpy as np
+
+from firmware_if import kinematics as kin
+from firmware_if.backend import FingerMove, HandCommand
+from firmware_if.hand import Finger
+from service.localization.grasp import GraspSpec, hand_quality
+from service.localization.localizers.base import Hypotheses
+from service.localization.objects import rolling
+from service.localization.objects.field import ContactField
+from service.localization.policies.info_gain import information
+
+NOVELTY = 0.05
+"""Nats credited to a move whose fingertip lands on contour not felt yet."""
+FELT = 0.0015
+"""Metres: contour within this of a felt point counts as felt."""
+RISK = 0.02
+"""Most posterior weight of plausible poses a move may take below the threshold."""
+DROP_RISK = 0.002
+"""Most posterior weight a move may take within `BUFFER` of the margin, where it slips."""
+LIKELY = 0.05
+"""Poses holding at least this share of the posterior are likely: the gate holds for each.
+(A continuum of poses early on has none: there the chances decide.)"""
+RECOVERY = 0.5
+"""Nats per threshold's worth of quality a move wins back under the leading pose, while
+the grasp there is below twice the threshold: a weak grasp is strengthened first."""
+BUFFER = 0.5
+"""Share of the gap from the margin to the threshold counted as near the margin."""
+STEP_PARTS = (1.0, 0.5, 0.25)
+"""Shares of the step length tried: while the pose is uncertain, only a short roll may be
+safe under every plausible pose; as it narrows, longer ones become safe."""
+
+
+@dataclass(frozen=True)
+class HandView:
+    """What the policy may look at."""
+
+    hypotheses: Hypotheses
+    centres: np.ndarray
+    """(n, 2) every fingertip centre now."""
+    joints: tuple[np.ndarray, ...]
+    """Joint angles of each finger now."""
+    field: ContactField
+    fingers: tuple[Finger, ...]
+    torque: float
+    """N m each joint pushes with (goal current times torque per ampere)."""
+    grasp: GraspSpec
+    step_length: float
+    sigma: float
+    """Reading noise (metres) the localizer assumes."""
+    fixed: bool = False
+    """The object is clamped: nothing to drop, nothing to manipulate."""
+    blocked: frozenset[tuple[int, int]] = field(default_factory=frozenset)
+    """(finger, direction) moves found out of reach from here."""
+
+
+@dataclass(frozen=True)
+class HandDecision:
+    command: HandCommand | None
+    kind: str
+    """'explore', 'manipulate', or 'stuck' (no safe move: the episode ends)."""
+    finger: int | None = None
+    direction: int = 0
+    predicted_quality: float = float("nan")
+    """Least quality predicted over the plausible poses along the move (newtons)."""
+    gain: float = 0.0
+    """Expected information (nats) of the move's readings about the pose."""
+
+
+class GraspGatedPolicy:
+    name: ClassVar[str] = "grasp-gated"
+
+    def __init__(self, gate: bool = True, plausible: int = 160, min_gain: float = 0.02,
+                 turns: Sequence[float] = (0.2, -0.2, 0.4, -0.4, 0.7, -0.7),
+                 substeps: int = 8) -> None:
+        self.gate, self.plausible, self.min_gain = gate, plausible, min_gain
+        self.turns, self.substeps = tuple(turns), substeps
+        self._felt: list[np.ndarray] = []
+        self._decisions = 0
+        self._certified: tuple[np.ndarray, tuple[np.ndarray, ...]] | None = None
+        """Centres and joints of the grasp the hand last started from."""
+        self._now = np.empty(0)
+        """The grasp's quality as it is, under each plausible pose."""
+        """Object-frame points felt so far (under the leading pose when they were)."""
+
+    # -- the decision ----------------------------------------------------------------------
+    def decide(self, view: HandView) -> HandDecision:
+        poses, weights = self._plausible(view)
+        self._decisions += 1
+        radii = np.array([f.radius for f in view.fingers])
+        lead = poses[0]
+        self._remember(view.centres, lead)
+        explore = self._explore(view, poses, weights, radii)
+        if explore is not None and (explore.gain >= self.min_gain or view.fixed
+                                    or not _ambiguous(poses, weights)):
+            return explore  # it tells the modes apart, or there is one mode to pin down
+        if not view.fixed:
+            turn = self._manipulate(view, poses, weights, radii)
+            if turn is not None:
+                self._certified = None  # the grasp it ends in is the next start
+                return turn
+        return explore if explore is not None else HandDecision(None, "stuck")
+
+    def _plausible(self, view: HandView) -> tuple[np.ndarray, np.ndarray]:
+        """The `plausible` heaviest hypotheses under which the grasp as it is holds the
+        object (it is held) and the grasp the hand last started from - its first, or the
+        one a manipulation ended in - kept the threshold (the hand starts only from such a
+        grasp, and a manipulation is gated to end in one)."""
+        poses, w = view.hypotheses.poses[:self.plausible], view.hypotheses.weights[
+            :self.plausible]
+        if view.fixed:
+            return poses, w / w.sum()
+        if self._certified is None:
+            self._certified = (view.centres.copy(), view.joints)
+        now = self._quality(view, poses, view.centres, view.joints)
+        start = self._quality(view, poses, *self._certified)
+        for keep in ((now >= view.grasp.margin_n) & (start >= view.grasp.threshold_n),
+                     now >= view.grasp.margin_n):
+            if keep.any():
+                poses, w, now = poses[keep], w[keep], now[keep]
+                break
+        self._now = now
+        return poses, w / w.sum()
+
+    def _quality(self, view: HandView, poses: np.ndarray, centres: np.ndarray,
+                 joints: tuple[np.ndarray, ...]) -> np.ndarray:
+        """Quality under each pose of fingertips at `centres` settled onto it."""
+        n = len(view.fingers)
+        radii = np.array([f.radius for f in view.fingers])
+        tips = rolling.settle(view.field, poses,
+                              np.broadcast_to(centres, (len(poses), n, 2)).copy(), radii)
+        return hand_quality(view.field, poses, tips, view.fingers, joints, view.torque,
+                            view.grasp)
+
+    # -- exploring -------------------------------------------------------------------------
+    def _explore(self, view: HandView, poses: np.ndarray, weights: np.ndarray,
+                 radii: np.ndarray) -> HandDecision | None:
+        n = len(view.fingers)
+        _, normals = rolling.contacts(view.field, poses[:1], view.centres[None], radii)
+        tangents = np.stack([-normals[0, :, 1], normals[0, :, 0]], axis=-1)
+        options = [(f, d, part) for f in range(n) for d in (1, -1) for part in STEP_PARTS
+                   if (f, d) not in view.blocked]
+        if not options:
+            return None
+        h = len(poses)
+        readings, checks, targets = [], [], []
+        for f, d, part in options:
+            delta = d * part * view.step_length * tangents[f]
+            aims = []
+            for share in (0.5, 1.0):  # the middle and the end of the move
+                centres = np.broadcast_to(view.centres, (h, n, 2)).copy()
+                centres[:, f] = view.centres[f] + share * delta
+                aims.append(rolling.settle(view.field, poses, centres, radii))
+            readings.append(aims[1][:, f])
+            checks.append(aims)
+            targets.append(view.centres[f] + delta)
+        reach = [self._reach(view, f, np.array([targets[k], view.centres[f]
+                                                + 0.5 * (targets[k] - view.centres[f])]))
+                 for k, (f, _, _) in enumerate(options)]
+        quality = np.full((len(options), len(poses)), np.inf)
+        if not view.fixed:
+            quality = self._option_quality(view, poses, options, checks, reach)
+        safe = np.array([self._safe(view, q, weights) for q in quality])
+        allowed = [k for k in range(len(options)) if reach[k][0]
+                   and (not self.gate or view.fixed or safe[k])]
+        if not allowed:
+            return None
+        s = max(view.sigma, 1e-4)
+        gain = information(np.stack(readings)[allowed], weights, s)
+        novel = np.array([self._novel(readings[k][:1], poses[0]) for k in allowed])
+        larger = np.array([options[k][2] for k in allowed])
+        score = gain + NOVELTY * novel + 1e-3 * larger  # ties: the longer step
+        if not view.fixed and self._now[0] < 2 * view.grasp.threshold_n:
+            lead_after = np.array([quality[k, 0] for k in allowed])
+            score = score + RECOVERY * (lead_after - self._now[0]) / view.grasp.threshold_n
+        best = int(np.argmax(score))
+        k = allowed[best]
+        f, d, _ = options[k]
+        moves: list[FingerMove | None] = [None] * n
+        delta = targets[k] - view.centres[f]
+        moves[f] = FingerMove(float(delta[0]), float(delta[1]))
+        return HandDecision(HandCommand(tuple(moves)), "explore", f, d,
+                            float(quality[k].min()), float(gain[best]))
+
+    def _reach(self, view: HandView, f: int, targets: np.ndarray
+               ) -> tuple[bool, np.ndarray]:
+        """Whether finger f reaches every target (k, 2), and its joint angles there."""
+        finger = view.fingers[f]
+        q0 = np.broadcast_to(view.joints[f], (len(targets), len(view.joints[f])))
+        spatial = np.column_stack([targets[:, 0], np.zeros(len(targets)), targets[:, 1]])
+        result = kin.inverse(finger, spatial, q0, iterations=100)
+        return bool(np.all(result.reachable)), result.q
+
+    def _option_quality(self, view: HandView, poses: np.ndarray,
+                        options: list[tuple[int, int, float]],
+                        checks: list[list[np.ndarray]],
+                        reach: list[tuple[bool, np.ndarray]]) -> np.ndarray:
+        """Least predicted quality (options, poses) over each move's checkpoints."""
+        h, n = len(poses), len(view.fingers)
+        centres = np.concatenate([c for aims in checks for c in aims])  # (k*2*h, n, 2)
+        batch = len(centres)
+        angles = [np.broadcast_to(view.joints[i], (batch, len(view.joints[i]))).copy()
+                  for i in range(n)]
+        for k, (f, _, _) in enumerate(options):
+            for part in range(2):
+                rows = slice((2 * k + part) * h, (2 * k + part + 1) * h)
+                angles[f][rows] = reach[k][1][1 - part]  # targets were (end, middle)
+        q = hand_quality(view.field, np.tile(poses, (2 * len(options), 1)), centres,
+                         view.fingers, angles, view.torque, view.grasp)
+        return q.reshape(len(options), 2, h).min(axis=1)
+
+    def _safe(self, view: HandView, quality: np.ndarray, weights: np.ndarray) -> bool:
+        """The gate on a move's predicted quality per plausible pose: under a likely pose
+        (the leading modes) never below the threshold, or lower where it already is below;
+        the chance (posterior weight) that it takes the quality down below the threshold
+        at most `RISK`, and down near the margin at most `DROP_RISK`."""
+        grasp = view.grasp
+        near = grasp.margin_n + BUFFER * (grasp.threshold_n - grasp.margin_n)
+        worse = quality < self._now  # only what the move itself costs counts
+        likely = weights >= LIKELY  # weights sum to one
+        return bool(np.all((quality >= grasp.threshold_n) | ~worse | ~likely)
+                    and weights[worse & (quality < grasp.threshold_n)].sum() <= RISK
+                    and weights[worse & (quality < near)].sum() <= DROP_RISK)
+
+    # -- manipulating ----------------------------------------------------------------------
+    def _manipulate(self, view: HandView, poses: np.ndarray, weights: np.ndarray,
+                    radii: np.ndarray) -> HandDecision | None:
+        lead = poses[0]
+        h, n = len(poses), len(view.fingers)
+        best: tuple[float, HandDecision] | None = None
+        for turn in self.turns:
+            moves, rolls = rolling.plan_turn(view.field, lead, view.centres, radii, turn,
+                                             self.substeps)
+            if not all(self._reach(view, f, (view.centres[f] + moves[f])[None])[0]
+                       for f in range(n)):
+                continue
+            states: list[tuple[np.ndarray, np.ndarray]] = []
+            tips = np.broadcast_to(view.centres, (h, n, 2))
+            final_poses, final = rolling.carry(
+                view.field, poses, tips, radii, moves, rolls, self.substeps,
+                on_substep=lambda p, c, states=states: states.append((p.copy(), c.copy())))
+            per_pose = self._turn_quality(view, states)
+            if per_pose is None or (self.gate and not self._safe(view, per_pose, weights)):
+                continue
+            quality = float(per_pose.min())
+            s = max(view.sigma, 1e-4)
+            gain = float(information(final.reshape(1, h, 2 * n), weights, s)[0])
+            novel = float(np.mean([self._novel(final[:1, f], final_poses[0])
+                                   for f in range(n)]))
+            score = gain + NOVELTY * novel + 1e-3 * abs(turn)  # ties: the larger turn
+            if best is None or score > best[0]:
+                command = HandCommand(tuple(FingerMove(float(m[0]), float(m[1]), float(r))
+                                            for m, r in zip(moves, rolls, strict=True)))
+                best = (score, HandDecision(command, "manipulate", None, int(np.sign(turn)),
+                                            quality, gain))
+        return None if best is None else best[1]
+
+    def _turn_quality(self, view: HandView, states: list[tuple[np.ndarray, np.ndarray]]
+                      ) -> np.ndarray | None:
+        """Least quality over every substep, per plausible pose, the fingers' joint angles
+        taken from where the leading pose puts their tips; None when out of reach."""
+        n = len(view.fingers)
+        lead_tips = np.stack([c[0] for _, c in states])  # (substeps, n, 2)
+        angles = []
+        for f in range(n):
+            ok, q = self._reach(view, f, lead_tips[:, f])
+            if not ok:
+                return None
+            angles.append(np.repeat(q, len(states[0][0]), axis=0))
+        poses = np.concatenate([p for p, _ in states])
+        centres = np.concatenate([c for _, c in states])
+        q = hand_quality(view.field, poses, centres, view.fingers, angles, view.torque,
+                         view.grasp)
+        return q.reshape(len(states), -1).min(axis=0)
+
+    # -- felt contour ----------------------------------------------------------------------
+    def _remember(self, centres: np.ndarray, lead: np.ndarray) -> None:
+        self._felt.extend(_object_frame(centres, lead))
+
+    def _novel(self, centre: np.ndarray, pose: np.ndarray) -> float:
+        """1 if the fingertip at `centre` (1, 2) under `pose` is on contour not felt yet."""
+        if not self._felt:
+            return 1.0
+        local = _object_frame(centre, pose)[0]
+        felt = np.asarray(self._felt)
+        return float(np.min(np.hypot(*(felt - local).T)) > FELT)
+
+
+def _ambiguous(poses: np.ndarray, weights: np.ndarray) -> bool:
+    """Whether a plausible pose of any weight lies outside the leader's mode (2.5 mm, 5
+    degrees): then more readings where they agree cannot settle it."""
+    far = (np.hypot(*(poses[:, :2] - poses[0, :2]).T) > 0.0025) | (
+        np.abs(np.angle(np.exp(1j * (poses[:, 2] - poses[0, 2])))) > np.deg2rad(5.0))
+    return bool(np.any(far & (weights >= 1e-3 * weights[0])))
+
+
+def _object_frame(points: np.ndarray, pose: np.ndarray) -> np.ndarray:
+    c, s = np.cos(pose[2]), np.sin(pose[2])
+    w = np.asarray(points) - pose[:2]
+    return np.column_stack([c * w[:, 0] + s * w[:, 1], -s * w[:, 0] + c * w[:, 1]])

@@ -1,0 +1,67 @@
+"""The grasp-gated policy: the gate is what keeps the object in the hand."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from firmware_if.hand import load_hand
+from service.localization.grasp import GraspSpec, joint_torque
+from service.localization.localizers.base import Hypotheses
+from service.localization.objects.field import contact_field
+from service.localization.objects.presets import preset_object
+from service.localization.policies.grasp_gated import GraspGatedPolicy, HandView
+from sim_backend.hand import HandSimConfig, SimulatedHand
+
+HAND = load_hand("two-finger")
+OBJECT = preset_object("blob:2")
+SPEC = GraspSpec()
+
+
+def explore_knowing_the_pose(gate: bool, steps: int = 25) -> SimulatedHand:
+    """Let the policy drive the simulated hand with the true pose as its only hypothesis."""
+    sim = SimulatedHand(HAND, OBJECT, HandSimConfig(pose=(0.001, -0.001, 0.7)),
+                        np.random.default_rng(0))
+    sim.open()
+    sim.set_torque(True)
+    policy = GraspGatedPolicy(gate=gate)
+    field = contact_field(OBJECT)
+    for _ in range(steps):
+        state = sim.read_hand()
+        view = HandView(hypotheses=Hypotheses(np.array([sim.pose]), np.ones(1)),
+                        centres=np.array([[f.centre[0], f.centre[2]] for f in state.fingers]),
+                        joints=tuple(np.asarray(f.joints) for f in state.fingers),
+                        field=field, fingers=HAND.fingers,
+                        torque=joint_torque(HAND.goal_current_a, "XM430-W350"), grasp=SPEC,
+                        step_length=0.003, sigma=2e-4)
+        decision = policy.decide(view)
+        if decision.command is None:
+            break
+        if gate:
+            assert decision.predicted_quality >= SPEC.threshold_n
+        sim.command_hand(decision.command)
+        if sim.read_hand().dropped:
+            break
+    return sim
+
+
+def test_the_gate_holds_the_object_and_without_it_the_object_drops():
+    gated = explore_knowing_the_pose(gate=True)
+    assert not gated.read_hand().dropped
+    assert gated.min_quality >= SPEC.margin_n
+    assert explore_knowing_the_pose(gate=False).read_hand().dropped
+
+
+@pytest.mark.parametrize(("quality", "weights", "safe"), [
+    ([0.5, 0.6], [0.5, 0.5], True),           # above the threshold everywhere
+    ([0.35, 0.6], [0.5, 0.5], False),         # a likely pose goes below it
+    ([0.39, 0.6], [0.01, 0.99], True),        # an unlikely one may, within the risk
+    ([0.25, 0.6], [0.01, 0.99], False),       # but never near the margin
+])
+def test_the_gate_weighs_the_plausible_poses(quality, weights, safe):
+    policy = GraspGatedPolicy()
+    policy._now = np.array([0.45, 0.7])  # the grasp as it is, under each pose
+    view = HandView(hypotheses=Hypotheses(np.zeros((2, 3)), np.array(weights)),
+                    centres=np.zeros((2, 2)), joints=(), field=None, fingers=(), torque=0.5,
+                    grasp=SPEC, step_length=0.003, sigma=2e-4)
+    assert policy._safe(view, np.array(quality), np.array(weights)) is safe

@@ -1,0 +1,64 @@
+"""`haptic run --object`: a hand localizes a held object from the command line."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import trimesh
+
+from tools.cli import main
+
+
+def test_run_a_hand_with_json_and_figure(tmp_path, capsys):
+    out, fig = tmp_path / "run.json", tmp_path / "run.png"
+    assert main(["run", "--object", "blob:3", "--hand", "three-finger", "--noise", "--seed",
+                 "1", "--json", str(out), "--plot", str(fig)]) == 0
+    text = capsys.readouterr().out
+    assert "localized in" in text and "least quality" in text
+    episode = json.loads(out.read_text())
+    assert episode["success"] and not episode["dropped"] and episode["converged"]
+    assert episode["hand"] == "three-finger" and episode["object"] == "blob:3"
+    assert all(len(s["centres"]) == 3 for s in episode["steps"])
+    assert episode["min_quality"] >= episode["settings"]["margin_n"]
+    assert fig.stat().st_size > 10_000
+
+
+def prism(outline: np.ndarray, height: float) -> trimesh.Trimesh:
+    """A watertight prism over a star-shaped outline (caps fanned from the centre)."""
+    n = len(outline)
+    rim = np.vstack([np.column_stack([outline, np.zeros(n)]),
+                     np.column_stack([outline, np.full(n, height)]),
+                     [[0, 0, 0], [0, 0, height]]])
+    faces = []
+    for i in range(n):
+        j = (i + 1) % n
+        faces += [[i, j, n + j], [i, n + j, n + i], [2 * n, j, i], [2 * n + 1, n + i, n + j]]
+    return trimesh.Trimesh(rim, np.array(faces))
+
+
+def test_a_mesh_cross_section_is_an_object(tmp_path, capsys):
+    angles = np.linspace(0, 2 * np.pi, 96, endpoint=False)
+    radius = 0.022 + 0.003 * np.exp(-0.5 * (np.angle(np.exp(1j * (angles - 1.0))) / 0.25) ** 2)
+    outline = np.column_stack([1.2 * radius * np.cos(angles), radius * np.sin(angles)])
+    mesh = prism(outline, 0.02)
+    assert mesh.is_watertight
+    path = tmp_path / "part.stl"
+    mesh.export(path)
+    assert main(["run", "--object", str(path), "--plane", "z=0.01", "--hand", "three-finger",
+                 "--seed", "2", "--max-steps", "3", "--quiet"]) == 0
+    assert "object part" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize(("argv", "message"), [
+    (["--object", "cube"], "unknown object 'cube'"),
+    (["--object", "blob", "--algorithm", "grid"], "unknown algorithm 'grid'"),
+    (["--object", "blob", "--hand", "nope"], "no hand preset or file 'nope'"),
+    (["--object", "blob", "--mu", "0"], "mu must be > 0"),
+    (["--object", "blob", "--plane", "z=0"], "--plane applies to mesh files"),
+])
+def test_user_errors_are_one_line(argv, message, capsys):
+    assert main(["run", *argv]) == 2
+    err = capsys.readouterr().err
+    assert message in err and err.count("\n") == 1

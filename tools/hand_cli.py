@@ -1,0 +1,141 @@
+"""`haptic run --object`: a hand holds an object and localizes it (issue 10), narrated.
+
+The options join `haptic run`'s; `--object` switches the run from a finger on a map to a
+hand holding an object (`--hand` then names the hand, default `two-finger`).
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+from pathlib import Path
+
+from service.errors import ConfigError
+
+DEFAULT_HAND = "two-finger"
+
+
+def add_object_options(parser: argparse.ArgumentParser) -> None:
+    from service.episode.hand_scenario import HandSettings
+
+    d = HandSettings()
+    g = parser.add_argument_group(
+        "a hand holding an object (with --object; --hand names the hand, default "
+        f"{DEFAULT_HAND}; --seed, --noise, --max-steps, --algorithm, --plot and --json apply)")
+    g.add_argument("--object", metavar="NAME|FILE",
+                   help="an object preset (ellipse, rounded, blob, keyed; NAME:SEED picks a "
+                        "member) or a file: a .csv outline (x,z metres, first row repeated "
+                        "last) or a .stl/.obj/.ply mesh cut by --plane")
+    g.add_argument("--plane", metavar="AXIS=V|PX,PY,PZ,NX,NY,NZ",
+                   help="where a mesh is cut: x=V, y=V, z=V (metres) or a point and a normal; "
+                        "default: z through the mesh's centroid")
+    g.add_argument("--object-units", choices=("m", "mm"), default="m",
+                   help="units of an object file (default: %(default)s)")
+    g.add_argument("--roll", type=float, default=d.step, metavar="M",
+                   help="how far a finger rolls per step, metres (default: %(default)s)")
+    g.add_argument("--mu", type=float, default=d.mu, help="friction coefficient "
+                   "(default: %(default)s)")
+    g.add_argument("--mass", type=float, default=d.mass_kg, metavar="KG",
+                   help="the object's mass (default: %(default)s)")
+    g.add_argument("--margin", type=float, default=d.margin_n, metavar="N",
+                   help="disturbance the grasp must resist beyond the weight; below it the "
+                        "object drops (default: %(default)s)")
+    g.add_argument("--threshold", type=float, default=d.threshold_n, metavar="N",
+                   help="grasp quality every move must keep (default: %(default)s)")
+    g.add_argument("--no-gate", action="store_true",
+                   help="the ablation: explore without the grasp-quality gate")
+    g.add_argument("--single-finger", action="store_true",
+                   help="only the hand's first finger, the object clamped in place")
+
+
+def hand_settings(args: argparse.Namespace, **overrides):
+    from service.episode.hand_scenario import HandSettings
+
+    if args.object is None:
+        raise ConfigError("--object is needed for a hand run")
+    fields = dict(object=args.object, plane=args.plane, units=args.object_units,
+                  hand=args.hand or DEFAULT_HAND, algorithm=args.algorithm,
+                  seed=getattr(args, "seed", 0), noise=args.noise, step=args.roll,
+                  max_steps=args.max_steps, mu=args.mu, mass_kg=args.mass,
+                  margin_n=args.margin, threshold_n=args.threshold, gate=not args.no_gate,
+                  single_finger=args.single_finger)
+    fields.update(overrides)
+    return HandSettings(**fields)
+
+
+def run_hand(args: argparse.Namespace) -> int:
+    """The body of `haptic run --object ...`."""
+    from service.episode.hand_episode import simulate_hand
+    from service.episode.hand_scenario import load_parts
+
+    if args.backend != "sim":
+        raise ConfigError("--object runs on the simulated hand (--backend sim) for now")
+    if args.start is not None:
+        raise ConfigError("--start places a finger on a map; an object's start is drawn "
+                          "from --seed")
+    settings = hand_settings(args)
+    parts = load_parts(settings)
+    fingers = len(parts.hand.fingers)
+    print(f"object {parts.contour.name}: {parts.contour.extent * 1e3:.0f} mm across; hand "
+          f"{parts.hand.name}: {fingers} finger{'s' if fingers > 1 else ''}; roll "
+          f"{settings.step * 1e3:g} mm; {settings.algorithm}"
+          f"{' with noise' if settings.noise else ''}"
+          f"{'' if settings.gate else '; NO grasp gate (ablation)'}")
+    report = simulate_hand(settings, parts, on_step=None if args.quiet else _print_step,
+                           snapshot_steps=(0,) if args.plot else ())
+    _print_summary(report)
+    if args.json:
+        import json
+
+        Path(args.json).write_text(json.dumps(report.to_json(), indent=1))
+        print(f"episode written to {args.json}")
+    if args.plot:
+        from tools.hand_plots import hand_figure
+
+        hand_figure(report, args.plot)
+        print(f"figure written to {args.plot}")
+    return 0
+
+
+def _print_step(step) -> None:
+    what = (f"finger {step.finger} rolls" if step.kind == "explore" else "all turn the object")
+    if step.blocked:
+        what += " (blocked)"
+    quality = "" if math.isnan(step.quality) else f"  quality {step.quality:5.2f} N"
+    print(f"step {step.index:3d}  {what:<26} candidates {step.candidates:5d}  "
+          f"predicted {step.predicted_quality:5.2f} N{quality}  {step.compute_ms:6.2f} ms",
+          flush=True)
+
+
+def _pose_text(pose) -> str:
+    x, z, heading = pose
+    return (f"x {x * 1e3:7.2f} mm  z {z * 1e3:7.2f} mm  "
+            f"heading {round(math.degrees(heading), 1) % 360:6.1f} deg")
+
+
+def _print_summary(report) -> None:
+    est = report.result.estimate
+    print(f"truth     {_pose_text(report.truth)}")
+    if est is None or est.pose is None:
+        print("estimate  none")
+    else:
+        state = "converged" if est.converged else "not converged"
+        print(f"estimate  {_pose_text(est.pose)}  ({state})")
+    steps = len(report.result.steps)
+    s = report.score
+    if report.result.dropped:
+        print(f"result    DROPPED the object at step {steps}")
+    elif s.success:
+        print(f"result    localized in {steps} steps: position error "
+              f"{s.position_error * 1e3:.2f} mm, heading error "
+              f"{math.degrees(s.heading_error):.1f} deg")
+    elif s.wrong_declaration:
+        print(f"result    WRONG: converged after {steps} steps on a pose "
+              f"{s.position_error * 1e3:.1f} mm / {math.degrees(s.heading_error):.1f} deg away")
+    elif report.result.stuck:
+        print(f"result    not localized: no safe move left after {steps} steps")
+    else:
+        print(f"result    not localized after {steps} steps")
+    if math.isfinite(report.min_quality):
+        print(f"grasp     least quality {report.min_quality:.2f} N (drops below "
+              f"{report.settings.margin_n:g} N)")
