@@ -30,8 +30,10 @@ from service.daemon.lifecycle import Lifecycle, State
 from service.daemon.loop import RateLoop, Samples, Tick
 from service.episode.scenario import RunSettings, Truth, draw_truth, episode_streams, surface_for
 from service.errors import ConfigError, StateError
+from service.localization.models import rotate
 from service.registry import BACKENDS
-from service.wire.commands import CommandServer, Lease
+from service.wire.commands import CommandServer
+from service.wire.lease import Lease
 from service.wire.security import CurveServer, check_binds
 from service.wire.stream import Publisher
 
@@ -42,12 +44,14 @@ QUIET_COMMANDS = frozenset({"ping", "status", "get_config", "acquire"})
 
 def make_backend(config: DaemonConfig, settings: RunSettings, surface: Any
                  ) -> tuple[Backend, Truth | None, Any]:
-    """The configured backend (not yet opened), the sim's hidden truth, and an rng for search.
+    """The configured backend (not yet opened), the sim's hidden truth, and the localizer's
+    and policy's rngs.
 
-    The seed is split by `scenario.episode_streams`, as `haptic run` splits it, so both
-    hide the same start pose for the same seed.
+    The seed is split by `scenario.episode_streams`, as `haptic run` splits it, so the
+    first episode after configure is the episode `haptic run` runs with the same settings.
     """
-    truth_rng, world_rng, loc_rng, _ = episode_streams(settings.seed)
+    truth_rng, world_rng, loc_rng, policy_rng = episode_streams(settings.seed)
+    loc_rng = (loc_rng, policy_rng)
     cls = BACKENDS.load(config.backend.name)
     if config.backend.name != "sim":
         options = dict(config.backend.options)
@@ -78,6 +82,9 @@ class Node:
         self.endpoints: dict[str, str] = {}
         self.backend: Backend | None = None
         self.truth: Truth | None = None
+        """The simulator's hidden start pose as configured (None on hardware)."""
+        self.episode_truth: list[float] | None = None
+        """The simulator's hidden pose at the start of the current episode."""
         self.explorer: Explorer | None = None
         self.last_state: FingerState | None = None
         self.localizer_work = Samples()
@@ -90,6 +97,8 @@ class Node:
         self._next_cloud_ns = 0
         self._timing_cache: dict[str, Any] = {}
         self.error: BaseException | None = None
+        self._curve: CurveServer | None = None
+        self._revocations_seen = 0
 
     # -- running ---------------------------------------------------------------------------
     def serve(self) -> None:
@@ -102,6 +111,7 @@ class Node:
             if self.config.security.curve:
                 curve = CurveServer(ctx, self.config.security)
                 curve.start()
+                self._curve = curve
             self.pub = Publisher(ctx, ep.pub, ep.sndhwm, curve)
             self.cmd = CommandServer(ctx, ep.cmd, self, self.lease,
                                      max_request_bytes=ep.max_request_bytes, curve=curve)
@@ -146,9 +156,21 @@ class Node:
                 time.sleep(left_ms / 1e3)
 
     def _tick(self, tick: Tick) -> None:
-        holder = self.lease.expire_due()
-        if holder is not None:
-            self._lease_expired(holder)
+        """One tick; whatever goes wrong in it latches a fault and the loop goes on."""
+        try:
+            self._tick_body(tick)
+        except Exception as exc:  # a bug: the daemon stays up, torque goes off
+            log.exception("tick raised")
+            with contextlib.suppress(Exception):
+                self._fault(f"internal error in the loop: {type(exc).__name__}: {exc}")
+
+    def _tick_body(self, tick: Tick) -> None:
+        if self._curve is not None and tick.index % 50 == 0:
+            self._check_revocations()
+        self.pub.ensure_bound()
+        ended = self.lease.expire_due()
+        if ended is not None:
+            self._lease_expired(*ended)
         if self._hold_until_ns is not None and tick.start_ns >= self._hold_until_ns:
             self._hold_until_ns = None
             if self.lifecycle.state is State.ACTIVE:
@@ -174,18 +196,29 @@ class Node:
             self.localizer_work.add(loc_ns)
         if tick.index % self.config.loop.state_every == 0:
             self._publish_state(tick)
-        hyp = None
+        cloud = None
         if tick.start_ns >= self._next_cloud_ns and self.explorer:
             self._next_cloud_ns = tick.start_ns + int(1e9 / self.config.loop.cloud_hz)
-            hyp = self.explorer.cloud()
-        if hyp is not None:
+            cloud = self.explorer.cloud()
+        if cloud is not None:
             if self.explorer.estimate is not None:
                 # Re-sent at the cloud's pace so late subscribers catch up with the belief.
                 self.pub.publish("estimate", "estimate", self.explorer.estimate_fields())
+            hyp = cloud.hypotheses  # poses, weights, total and step of one moment
             self.pub.publish("cloud", "cloud", {
-                "episode": self.explorer.episode, "step": self.explorer.steps,
+                "episode": self.explorer.episode, "step": cloud.step,
                 "poses": hyp.poses.astype(np.float32), "weights": hyp.weights.astype(np.float32),
-                "total": self.explorer.estimate.candidates if self.explorer.estimate else 0})
+                "total": cloud.total})
+
+    def _check_revocations(self) -> None:
+        """A key removed from authorized_clients: its requests are refused already; its
+        subscriptions end here (every subscriber handshakes again, the revoked one fails)."""
+        keyring = self._curve.keyring
+        keyring.refresh()
+        if keyring.revocations != self._revocations_seen:
+            self._revocations_seen = keyring.revocations
+            self.pub.rebind()
+            _log("key_revoked", level=logging.WARNING)
 
     def _read(self) -> FingerState | None:
         if self.backend is None or self.lifecycle.state is State.UNCONFIGURED:
@@ -208,6 +241,11 @@ class Node:
             if self.explorer.estimate.converged:
                 self._next_cloud_ns = 0  # viewers get the final cloud now, not in 1/cloud_hz
         for name, fields in out.events:
+            if name == "episode_started":
+                self.episode_truth = self._truth_now()
+                fields["truth"] = self.episode_truth
+            elif name == "episode_done" and self.episode_truth is not None:
+                fields["true_pose_eliminated"] = self._truth_eliminated()
             self._event(name, **fields)
             if name == "episode_done" and not self._settled:
                 # the first episode loads what start-up did not (lazy imports, caches):
@@ -215,6 +253,23 @@ class Node:
                 self._settled = True
                 gc.collect()
                 gc.freeze()
+
+    def _truth_now(self) -> list[float] | None:
+        """The simulator's hidden pose where the finger is now (the start of an episode
+        begun here): the configured start moved by the finger's measured displacement."""
+        if self.truth is None or self.last_state is None:
+            return None
+        t = self.truth
+        dx, dy = rotate(np.asarray(t.heading), *self.last_state.centre[:2])
+        return [float(t.x + dx), float(t.y + dy), float(t.heading)]
+
+    def _truth_eliminated(self) -> bool | None:
+        """Whether a discrete localizer dropped the episode's true pose (None elsewhere)."""
+        retains = getattr(self.explorer.localizer, "retains", None)
+        if retains is None:
+            return None
+        kept = retains(tuple(self.episode_truth), 1e-6 * self.config.scenario.step, 1e-6)
+        return None if kept is None else not kept
 
     def _publish_state(self, tick: Tick) -> None:
         if tick.index % 20 == 0 or not self._timing_cache:
@@ -231,7 +286,7 @@ class Node:
             "steps_done": 0 if s is None else s.steps_done,
             "torque_on": bool(s and s.torque_on),
             "exploring": bool(ex and ex.running), "phase": ex.phase.value if ex else "idle",
-            "episode": ex.episode if ex else 0, "lease_holder": self.lease.holder,
+            "episode": ex.episode if ex else 0, "lease_holder": self.lease.holder_name,
             "timing": self._timing_cache}, t_mono_ns=tick.start_ns)
 
     def _event(self, name: str, **fields: Any) -> None:
@@ -265,8 +320,8 @@ class Node:
         self.backend.set_torque(False)
         self._transition("deactivate", reason)
 
-    def _lease_expired(self, holder: str) -> None:
-        self._event("lease_expired", client=holder)
+    def _lease_expired(self, holder: str, reason: str) -> None:
+        self._event("lease_expired", client=holder, reason=reason)
         if self.lifecycle.state is State.ACTIVE:
             if self.explorer:
                 self.explorer.paused = True
@@ -299,11 +354,13 @@ class Node:
             "state": self.lifecycle.state.value, "fault": self.lifecycle.fault,
             "exploring": bool(ex and ex.running), "phase": ex.phase.value if ex else "idle",
             "estimate": ex.estimate_fields() if ex and ex.estimate else None,
-            "lease": {"holder": self.lease.holder, "remaining_s": self.lease.remaining_s()},
+            "lease": {"holder": self.lease.holder_name,
+                      "remaining_s": self.lease.remaining_s()},
             "timing": timing, "published": dict(self.pub.sent),
             "commands": {"handled": self.cmd.handled, "errors": self.cmd.errors},
             "backend": self.config.backend.name, "map": self.config.scenario.map,
-            "sim_truth": None if self.truth is None else list(self.truth.as_tuple()),
+            "sim_truth": self.episode_truth if self.episode_truth is not None else (
+                None if self.truth is None else list(self.truth.as_tuple())),
         }
 
     def config_dict(self) -> dict[str, Any]:
@@ -323,10 +380,13 @@ class Node:
         if self.backend is not None:
             self.backend.close()
         self.backend, self.truth, self.config = backend, truth, new
+        episode = 1
         if self.explorer is not None:
+            episode = self.explorer.episode + 1  # ids stay unique across configure
             self.explorer.close()
+        self.episode_truth = None
         offload = new.loop.localizer_mode == "thread"
-        self.explorer = Explorer(settings, surface, rng, offload=offload,
+        self.explorer = Explorer(settings, surface, rng, offload=offload, first_episode=episode,
                                  cloud_points=new.loop.cloud_points)
         if offload:  # let the loop thread take the GIL back from the worker promptly
             sys.setswitchinterval(min(sys.getswitchinterval(), 0.0005))

@@ -2,12 +2,14 @@
 
     with Subscriber("tcp://127.0.0.1:5560", ["estimate"]) as sub:
         msg = sub.recv(timeout_s=1.0)          # a service.wire.envelope.Message, or None
-    with Client("tcp://127.0.0.1:5561") as c:
+    with Controller("tcp://127.0.0.1:5561") as c:   # holds the lease while open
         c.call("activate"); c.call("start_exploration")
 
-`Client` uses a DEALER socket: a request that gets no reply in `timeout_s` is resent with
+`Client` uses one DEALER socket: a request that gets no reply in `timeout_s` is resent with
 the same id (the daemon answers a repeat from its cache, so nothing runs twice); after
-`retries` resends the socket is rebuilt and CommandTimeout raised.
+`retries` resends the socket is rebuilt and CommandTimeout raised. The daemon's lease
+belongs to a connection, so control needs one Client for the whole session: a rebuilt
+socket is a new connection and has lost the lease. `Controller` keeps it for you.
 """
 
 from __future__ import annotations
@@ -150,7 +152,9 @@ class Subscriber:
 
 
 class Client:
-    """Commands with ids, timeouts and retries. One client id = one lease holder."""
+    """Commands with ids, timeouts and retries on one connection (which holds the lease, if
+    it takes it). `client_id` is only a label the daemon shows; it grants nothing.
+    Requests may come from several threads: one runs at a time."""
 
     def __init__(self, endpoint: str, *, client_id: str | None = None, timeout_s: float = 2.0,
                  retries: int = 2, ctx: zmq.Context | None = None,
@@ -162,6 +166,8 @@ class Client:
         self._ctx = ctx or zmq.Context.instance()
         self._options = socket_options
         self._ids = itertools.count(random.randrange(1 << 40))  # unique across processes
+        self._lock = threading.Lock()
+        """One request at a time on the socket (a LeaseKeeper thread shares it)."""
         self._sock = self._connect()
 
     def _connect(self) -> zmq.Socket:
@@ -174,6 +180,11 @@ class Client:
     def request(self, cmd: str, args: dict[str, Any] | None = None,
                 timeout_s: float | None = None) -> dict[str, Any]:
         """The full reply map (ok or not) of one request; CommandTimeout if none came."""
+        with self._lock:
+            return self._request(cmd, args, timeout_s)
+
+    def _request(self, cmd: str, args: dict[str, Any] | None,
+                 timeout_s: float | None) -> dict[str, Any]:
         rid = next(self._ids)
         payload = msgpack.packb({"v": wire.VERSION, "type": "request", "id": rid, "cmd": cmd,
                                  "client": self.client_id, "args": args or {}},
@@ -208,7 +219,8 @@ class Client:
         return self.call("status")
 
     def close(self) -> None:
-        self._sock.close(linger=0)
+        with self._lock:
+            self._sock.close(linger=0)
 
     def __enter__(self) -> Client:
         return self
@@ -218,19 +230,17 @@ class Client:
 
 
 class LeaseKeeper:
-    """Keep a client id's lease alive from a background thread (its own socket).
+    """Renew a Client's lease from a background thread, over the client's own connection.
 
-        with Client(cmd) as c, LeaseKeeper(cmd, c.client_id):
+        with Client(cmd) as c, LeaseKeeper(c):
             c.call("activate"); ...   # long waits on the stream no longer lose control
 
-    The lease belongs to the client id, not the socket, so a second socket can renew it.
+    The lease belongs to the connection that took it, so only that Client can renew it;
+    the keeper shares its socket (requests take turns).
     """
 
-    def __init__(self, endpoint: str, client_id: str, interval_s: float = 1.0,
-                 ctx: zmq.Context | None = None,
-                 socket_options: dict[int, Any] | None = None) -> None:
-        self._client = Client(endpoint, client_id=client_id, timeout_s=interval_s,
-                              retries=0, ctx=ctx, socket_options=socket_options)
+    def __init__(self, client: Client, interval_s: float = 1.0) -> None:
+        self._client = client
         self.interval_s = interval_s
         self.error: ServiceError | None = None
         """The last renewal that failed (lease taken by another, daemon gone), if any."""
@@ -238,15 +248,12 @@ class LeaseKeeper:
         self._thread = threading.Thread(target=self._run, name="lease-keeper", daemon=True)
 
     def _run(self) -> None:
-        try:
-            while not self._stop.wait(self.interval_s):
-                try:
-                    self._client.call("acquire")
-                    self.error = None
-                except (CommandFailed, CommandTimeout) as exc:
-                    self.error = exc
-        finally:
-            self._client.close()
+        while not self._stop.wait(self.interval_s):
+            try:
+                self._client.call("acquire", timeout_s=max(self.interval_s, 0.5))
+                self.error = None
+            except (CommandFailed, CommandTimeout) as exc:
+                self.error = exc
 
     def __enter__(self) -> LeaseKeeper:
         self._thread.start()
@@ -254,4 +261,43 @@ class LeaseKeeper:
 
     def __exit__(self, *exc: object) -> None:
         self._stop.set()
-        self._thread.join(5 * self.interval_s + 1)
+        self._thread.join(5 * self.interval_s + 5)
+
+
+class Controller(Client):
+    """A Client that takes the lease on entering and keeps it until it leaves.
+
+        with Controller(cmd) as c:
+            c.call("activate"); c.call("start_exploration")
+            ...                                   # the lease is renewed every `keepalive_s`
+        # on exit: the lease is released (the finger keeps its state: deactivate first)
+
+    `lease_error` tells whether renewing failed (another connection took over after a
+    lapse, or the daemon went away).
+    """
+
+    def __init__(self, endpoint: str, *, keepalive_s: float = 1.0, **options: Any) -> None:
+        super().__init__(endpoint, **options)
+        self._keeper = LeaseKeeper(self, keepalive_s)
+
+    @property
+    def lease_error(self) -> ServiceError | None:
+        return self._keeper.error
+
+    def __enter__(self) -> Controller:
+        try:
+            self.call("acquire")
+        except BaseException:
+            self.close()
+            raise
+        self._keeper.__enter__()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._keeper.__exit__()
+        try:
+            self.call("release", timeout_s=1.0)
+        except (CommandFailed, CommandTimeout):
+            pass  # the lease is gone already; closing the connection ends it anyway
+        finally:
+            self.close()

@@ -6,26 +6,29 @@ from the wire are looked up in TABLE, never with getattr, and arguments are chec
 against each command's declared fields before anything runs, so a malformed, unknown or
 out-of-state request is answered with an error and changes nothing.
 
-Control commands need the lease: the first client to send one holds it until it stops
-talking for `lease.ttl_s` (any request renews it) or sends `release`. Anyone may observe
-(status, get_config, ping) and anyone may `estop`. A retried request (the same bytes from
-the same client id) gets the cached reply instead of running twice.
+Control commands need the lease (`service.wire.lease`), which belongs to the connection
+that took it, not to the `client` label a request carries. Anyone may observe (status,
+get_config, ping) and anyone may `estop`. With CurveZMQ, a request whose key has been
+removed from `authorized_clients` is refused at once. A retried request (the same bytes
+on the same connection) gets the cached reply instead of running twice.
 """
 
 from __future__ import annotations
 
 import contextlib
-import time
+import dataclasses
 from collections import OrderedDict
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, Protocol
 
 import zmq
+from zmq.utils.monitor import recv_monitor_message
 
 from firmware_if.errors import FirmwareError, HandConfigError
 from service.errors import InputError, StateError
 from service.wire import envelope as wire
+from service.wire.lease import Lease, LeaseHeld, Peer
 from service.wire.security import bind_server_socket
 
 MAX_FRAME_BYTES = wire.MAX_FRAME_BYTES
@@ -105,43 +108,6 @@ TABLE: dict[str, Command] = {
 }
 
 
-class Lease:
-    """One controlling client at a time, until it goes quiet for `ttl_ns`."""
-
-    def __init__(self, ttl_s: float, clock: Callable[[], int] = time.monotonic_ns) -> None:
-        self.ttl_ns = int(ttl_s * 1e9)
-        self.holder: str | None = None
-        self.expires_ns = 0
-        self._clock = clock
-
-    def claim(self, client: str | None) -> None:
-        if not client:
-            raise CommandError("bad_args", "control commands need a 'client' id string")
-        now = self._clock()
-        if self.holder is not None and self.holder != client and now < self.expires_ns:
-            raise CommandError("lease_held", f"client '{self.holder}' holds the lease for "
-                               f"{(self.expires_ns - now) / 1e9:.1f} s more")
-        self.holder = client
-        self.expires_ns = now + self.ttl_ns
-
-    def touch(self, client: str | None) -> None:
-        if client is not None and client == self.holder:
-            self.expires_ns = self._clock() + self.ttl_ns
-
-    def release(self) -> None:
-        self.holder = None
-
-    def expire_due(self) -> str | None:
-        """The holder whose lease just ran out (and clear it), else None."""
-        if self.holder is not None and self._clock() >= self.expires_ns:
-            holder, self.holder = self.holder, None
-            return holder
-        return None
-
-    def remaining_s(self) -> float:
-        return max(0.0, (self.expires_ns - self._clock()) / 1e9) if self.holder else 0.0
-
-
 def validate(req: dict[str, Any]) -> tuple[Any, str, str | None, dict[str, Any], Command]:
     """(id, cmd, client, args, Command) of a request, or CommandError naming the problem."""
     try:
@@ -187,47 +153,63 @@ class CommandServer:
         self._sock, self.endpoint = bind_server_socket(
             ctx, zmq.ROUTER, endpoint, {zmq.MAXMSGSIZE: MAX_FRAME_BYTES, zmq.LINGER: 200},
             curve)
+        self._monitor = self._sock.get_monitor_socket(zmq.EVENT_DISCONNECTED)
+        self.curve = curve
         self.controls = controls
         self.lease = lease
         self.max_request_bytes = max_request_bytes
         self.seq = 0
         self.handled = 0
         self.errors = 0
-        self._recent: OrderedDict[tuple[str, Any], tuple[bytes, bytes]] = OrderedDict()
+        self._recent: OrderedDict[tuple[Any, Any], tuple[bytes, bytes]] = OrderedDict()
         self._poller = zmq.Poller()
         self._poller.register(self._sock, zmq.POLLIN)
 
     def poll(self, timeout_ms: float = 0, max_requests: int = 16) -> int:
         """Answer up to `max_requests` waiting requests, waiting up to `timeout_ms` for one."""
         if timeout_ms > 0 and not self._poller.poll(timeout_ms):
+            self._disconnects()
             return 0
         n = 0
         while n < max_requests:
             try:
-                frames = self._sock.recv_multipart(flags=zmq.NOBLOCK, copy=True)
+                frames = self._sock.recv_multipart(flags=zmq.NOBLOCK, copy=False)
             except zmq.Again:
                 break
             n += 1
+            self._disconnects()  # a holder that left is gone before its successor is heard
             reply = self._reply_frames(frames)
             if reply is not None:
                 with contextlib.suppress(zmq.ZMQError):  # the client went away
                     self._sock.send_multipart(reply, flags=zmq.NOBLOCK)
+        self._disconnects()
         return n
 
-    def _reply_frames(self, frames: list[bytes]) -> list[bytes] | None:
+    def _disconnects(self) -> None:
+        """Closed connections, from the socket monitor: the holder's ends its lease."""
+        while True:
+            try:
+                event = recv_monitor_message(self._monitor, flags=zmq.NOBLOCK)
+            except zmq.Again:
+                return
+            if event["event"] == zmq.EVENT_DISCONNECTED:
+                self.lease.disconnected(int(event["value"]))
+
+    def _reply_frames(self, frames: list[zmq.Frame]) -> list[bytes] | None:
         if len(frames) < 2:
             return None
-        identity, rest = frames[0], frames[1:]
+        identity, rest = frames[0].bytes, frames[1:]
         head = [identity]
-        if len(rest) >= 2 and rest[0] == b"":  # a REQ client's delimiter
+        if len(rest) >= 2 and len(rest[0]) == 0:  # a REQ client's delimiter
             head, rest = [identity, b""], rest[1:]
         if len(rest) != 1:
             return head + [self._error(None, "malformed", "a request is exactly one frame")]
-        return head + [self.handle(rest[0])]
+        return head + [self.handle(rest[0].bytes, _peer(identity, rest[0]))]
 
-    def handle(self, payload: bytes) -> bytes:
+    def handle(self, payload: bytes, peer: Peer | None = None) -> bytes:
         """One request payload to one reply payload; never raises."""
         self.handled += 1
+        peer = peer or Peer(b"")
         rid: Any = None
         try:
             try:
@@ -236,28 +218,34 @@ class CommandServer:
                 raise CommandError(exc.code, str(exc)) from None
             rid = req.get("id") if isinstance(req.get("id"), (int, str)) else None
             rid, cmd, client, args, spec = validate(req)
-            key = (client, rid) if client else None
-            cached = self._recent.get(key) if key is not None else None
+            if self.curve is not None and not self.curve.authorized(peer.key):
+                raise CommandError("unauthorized", "this client's key is no longer in "
+                                   "authorized_clients")
+            peer = dataclasses.replace(peer, label=client)
+            key = (peer.connection, peer.fd, rid)
+            cached = self._recent.get(key)
             if cached is not None and cached[0] == payload:
                 return cached[1]  # the same bytes again: a retry, answered from the cache
-            before = (self.lease.holder, self.lease.expires_ns)
+            before = self.lease.snapshot()
             if spec.lease:
-                self.lease.claim(client)
+                try:
+                    self.lease.claim(peer)
+                except LeaseHeld as exc:
+                    raise CommandError("lease_held", str(exc)) from None
             else:
-                self.lease.touch(client)
+                self.lease.touch(peer)
             try:
                 result = spec.run(self.controls, wire.decode_fields(args))
             except Exception:
-                self.lease.holder, self.lease.expires_ns = before  # a refusal changes nothing
+                self.lease.restore(before)  # a refusal changes nothing
                 raise
             if cmd == "release":
                 self.lease.release()
-            self.controls.on_command(cmd, client)
+            self.controls.on_command(cmd, peer.name())
             out = self._encode(rid, True, result=result)
-            if key is not None:
-                self._recent[key] = (bytes(payload), out)
-                while len(self._recent) > 256:
-                    self._recent.popitem(last=False)
+            self._recent[key] = (bytes(payload), out)
+            while len(self._recent) > 256:
+                self._recent.popitem(last=False)
             return out
         except CommandError as exc:
             return self._error(rid, exc.code, str(exc))
@@ -279,4 +267,20 @@ class CommandServer:
         return wire.encode("reply", self.seq, {"id": rid, "ok": ok, **fields})
 
     def close(self) -> None:
+        with contextlib.suppress(zmq.ZMQError):
+            self._sock.disable_monitor()
+        self._monitor.close(linger=0)
         self._sock.close()
+
+
+def _peer(identity: bytes, frame: zmq.Frame) -> Peer:
+    """The connection a request frame came on: routing id, CURVE key, file descriptor."""
+    try:
+        key = frame.get("User-Id")
+    except zmq.ZMQError:  # no ZAP handler: plain loopback
+        key = None
+    try:
+        fd = int(frame.get(zmq.SRCFD))
+    except zmq.ZMQError:
+        fd = -1
+    return Peer(identity, key or None, fd)

@@ -2,12 +2,15 @@
 
 A bind to a non-loopback address without CurveZMQ is refused at start-up, so a lab cannot
 expose the finger to its network by a typo. With curve on, the server loads its secret key
-and an authenticator admits only clients whose public keys sit in `authorized_clients`.
+and an authenticator admits only clients whose public keys sit in `authorized_clients`;
+the directory is read again when it changes, so a removed key is refused from then on.
 """
 
 from __future__ import annotations
 
 import ipaddress
+import threading
+import time
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -69,13 +72,70 @@ def check_binds(endpoints: list[str], security: SecurityConfig) -> None:
                           f"127.0.0.1")
 
 
+class KeyRing:
+    """The public keys in `authorized_clients`, read again whenever the directory changes,
+    so removing a key file revokes that client without a restart."""
+
+    def __init__(self, directory: str | Path, min_interval_s: float = 0.2) -> None:
+        self.directory = Path(directory)
+        self.min_interval_s = min_interval_s
+        self.keys: frozenset[str] = frozenset()
+        self.revocations = 0
+        """How many times a key has disappeared (the daemon re-binds its stream on a change)."""
+        self._stamp: tuple[int, int] | None = None
+        self._checked = 0.0
+        self._lock = threading.Lock()
+        self.refresh(force=True)
+
+    def refresh(self, force: bool = False) -> bool:
+        """Re-read the keys if the directory changed; True when a key was removed (which
+        also counts in `revocations`)."""
+        now = time.monotonic()
+        if not force and now - self._checked < self.min_interval_s:
+            return False
+        with self._lock:  # the ZAP thread and the loop both refresh
+            self._checked = now
+            try:
+                st = self.directory.stat()
+                stamp = (st.st_mtime_ns, st.st_ino)
+            except OSError:
+                stamp = (-1, -1)  # the directory vanished: nobody is authorized
+            if stamp == self._stamp and not force:
+                return False
+            self._stamp = stamp
+            keys = set()
+            for path in sorted(self.directory.glob("*.key")) if stamp[0] >= 0 else ():
+                try:
+                    public, _ = zmq.auth.load_certificate(path)
+                except (OSError, ValueError):
+                    continue  # an unreadable key file authorizes nobody
+                if public:
+                    keys.add(public.decode("ascii"))
+            removed = bool(self.keys - keys)
+            self.keys = frozenset(keys)
+            self.revocations += removed
+            return removed
+
+    def allowed(self, key: str | bytes | None) -> bool:
+        if key is None:
+            return False
+        self.refresh()
+        return (key.decode("ascii") if isinstance(key, bytes) else key) in self.keys
+
+    def callback(self, domain: str, key: bytes) -> bool:
+        """pyzmq's credentials-provider hook: called by the ZAP handler at each handshake."""
+        return self.allowed(key)
+
+
 class CurveServer:
-    """Loads the server keys and runs the ZAP authenticator for one context."""
+    """Loads the server keys and runs the ZAP authenticator for one context; the keys it
+    admits are `keyring`'s, so the loop can also refuse a revoked client's requests."""
 
     def __init__(self, ctx: zmq.Context, security: SecurityConfig) -> None:
         self.security = security
         self._ctx = ctx
         self._auth: ThreadAuthenticator | None = None
+        self.keyring: KeyRing | None = None
         self.public: bytes = b""
         self.secret: bytes = b""
 
@@ -87,15 +147,23 @@ class CurveServer:
                               f"run `haptic keygen`")
         if not clients.is_dir():
             raise ConfigError(f"authorized_clients '{clients}' is not a directory")
-        public, secret = zmq.auth.load_certificate(secret_file)
+        try:
+            public, secret = zmq.auth.load_certificate(secret_file)
+        except (OSError, ValueError) as exc:
+            raise ConfigError(f"'{secret_file}' is not a key file: {exc}") from None
         if not secret:
             raise ConfigError(f"'{secret_file}' holds no secret key (use the .key_secret file)")
         self.public, self.secret = public, secret
-        from zmq.auth.thread import ThreadAuthenticator
+        self.keyring = KeyRing(clients)
+        from zmq.auth.thread import ThreadAuthenticator  # the daemon's only, not clients'
 
         self._auth = ThreadAuthenticator(self._ctx)
         self._auth.start()
-        self._auth.configure_curve(domain="*", location=str(clients))
+        self._auth.configure_curve_callback(domain="*", credentials_provider=self.keyring)
+
+    def authorized(self, key: str | None) -> bool:
+        """Whether a request's CURVE key (its `User-Id`) is still authorized."""
+        return self.keyring is not None and self.keyring.allowed(key)
 
     def apply(self, socket: zmq.Socket) -> None:
         """Make `socket` a CurveZMQ server (before bind)."""

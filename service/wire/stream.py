@@ -27,6 +27,8 @@ class Publisher:
         self.seq = dict.fromkeys(TOPICS, 0)
         self.sent = dict.fromkeys(TOPICS, 0)
         self.dropped = 0
+        self.unbound = False
+        """Between `rebind`'s unbind and its bind (the messages go to nobody meanwhile)."""
         """Sends refused outright (PUB normally drops silently per subscriber instead)."""
 
     def publish(self, topic: str, type_: str, fields: dict[str, Any],
@@ -44,6 +46,23 @@ class Publisher:
     def event(self, name: str, **fields: Any) -> None:
         """An `event` message: lifecycle changes, faults, accepted commands."""
         self.publish("event", "event", {"event": name, **fields})
+
+    def rebind(self) -> None:
+        """Drop every subscriber (unbinding closes their connections) and listen again, so
+        each must pass the authenticator anew; sequence numbers carry on. The listener
+        closes asynchronously: `ensure_bound` (every tick) binds again once it can."""
+        self._sock.unbind(self.endpoint)
+        self.unbound = True
+        self.ensure_bound()
+
+    def ensure_bound(self) -> None:
+        if not self.unbound:
+            return
+        try:
+            self._sock.bind(self.endpoint)
+        except zmq.ZMQError:
+            return  # the old listener is still closing: next tick
+        self.unbound = False
 
     def close(self) -> None:
         self._sock.close()

@@ -16,7 +16,8 @@ from hypothesis import strategies as st
 from service.daemon.harness import loopback_config, running_node
 from service.daemon.node import Node
 from service.wire.client import Client, CommandFailed, Subscriber
-from service.wire.commands import TABLE, CommandServer, Lease, validate
+from service.wire.commands import TABLE, CommandServer, validate
+from service.wire.lease import Lease, Peer
 
 
 @pytest.fixture()
@@ -70,7 +71,7 @@ def test_garbage_gets_error_replies_and_changes_nothing(node: Node, raw: zmq.Soc
             (request(cmd="estop", args=[1]), "bad_args"),
             (request(cmd="set_map", client="intruder", args={}), "bad_args"),
             (request(cmd="deactivate", client="intruder"), "lease_held"),
-            (request(cmd="activate"), "bad_args"),  # control without a client id
+            (request(cmd="activate"), "lease_held"),  # another connection holds it
             (request(cmd=7), "malformed"),
             (msgpack.packb({"v": 1, "type": "request", "id": [1], "cmd": "ping"}),
              "malformed"),
@@ -154,15 +155,17 @@ def test_table_and_validator() -> None:
 def test_lease_expiry_on_a_fake_clock() -> None:
     now = [0]
     lease = Lease(2.0, clock=lambda: now[0])
-    lease.claim("a")
+    a, b = Peer(b"\x00a", fd=7, label="a"), Peer(b"\x00b", fd=8, label="b")
+    lease.claim(a)
     now[0] = int(1.5e9)
-    lease.touch("a")
+    lease.touch(a)
+    lease.touch(b)  # an observer never renews
     now[0] = int(3.0e9)
     assert lease.expire_due() is None
     now[0] = int(3.6e9)
-    assert lease.expire_due() == "a" and lease.holder is None
-    lease.claim("b")
-    assert lease.holder == "b"
+    assert lease.expire_due() == ("a", "silent") and lease.holder is None
+    lease.claim(b)
+    assert lease.holder_name == "b"
 
 
 def test_configure_from_unconfigured() -> None:

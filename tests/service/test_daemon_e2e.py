@@ -82,7 +82,10 @@ sys.stdin.read()
 """
 
 
-def test_controller_dies_lease_expires_finger_holds_then_stops() -> None:
+@pytest.mark.parametrize("how", ["killed", "silent"])
+def test_controller_dies_lease_expires_finger_holds_then_stops(how: str) -> None:
+    """A killed controller's connection closes: its lease ends at once. A silent one (still
+    connected, sending nothing) loses it after ttl_s."""
     config = loopback_config({"backend": {"step_duration_s": 0.1},
                               "lease": {"ttl_s": 0.5, "hold_s": 0.4}})
     with running_node(config) as node, \
@@ -93,27 +96,32 @@ def test_controller_dies_lease_expires_finger_holds_then_stops() -> None:
                                       text=True)
         try:
             assert controller.stdout.readline().strip() == "exploring"
-            assert sub.wait_for(lambda m: m.topic == "state" and m["moving"], 10.0)
-            controller.kill()
-            controller.wait(10)
+            last_state = sub.wait_for(lambda m: m.topic == "state" and m["moving"], 10.0)
+            assert last_state is not None
+            if how == "killed":
+                controller.kill()
+                controller.wait(10)
+            events: list[str] = []
+            steps_at_hold = None
+            for _ in range(2000):
+                m = sub.recv(5.0)
+                assert m is not None, f"stream stalled; events so far {events}"
+                if m.topic == "state":
+                    last_state = m
+                    continue
+                events.append(m["event"])
+                if m["event"] == "lease_expired":
+                    assert m["reason"] == ("disconnected" if how == "killed" else "silent")
+                    assert m["client"] == "doomed"
+                if m["event"] == "holding":
+                    steps_at_hold = last_state["steps_done"]
+                    assert observer.call("ping") == {"pong": True}  # others still served
+                if m["event"] == "stopped":
+                    break
         finally:
             if controller.poll() is None:
                 controller.kill()
-        events: list[str] = []
-        steps_at_hold = None
-        last_state = None
-        for _ in range(2000):
-            m = sub.recv(5.0)
-            assert m is not None, f"stream stalled; events so far {events}"
-            if m.topic == "state":
-                last_state = m
-                continue
-            events.append(m["event"])
-            if m["event"] == "holding":
-                steps_at_hold = last_state["steps_done"]
-                assert observer.call("ping") == {"pong": True}  # others still served
-            if m["event"] == "stopped":
-                break
+            controller.wait(10)
         assert events[events.index("lease_expired"):] [:2] == ["lease_expired", "holding"]
         assert events[-1] == "stopped"
         after = sub.wait_for(lambda m: m.topic == "state", 5.0)
@@ -163,7 +171,7 @@ def test_lease_keeper_holds_control_through_long_waits() -> None:
     with running_node(config) as node, Client(node.endpoints["cmd"]) as ctl, \
             Subscriber(node.endpoints["pub"], ["state"]) as sub:
         ctl.call("activate")
-        with LeaseKeeper(node.endpoints["cmd"], ctl.client_id, interval_s=0.05) as keeper:
+        with LeaseKeeper(ctl, interval_s=0.05) as keeper:
             first = sub.recv(5.0)
             later = sub.wait_for(lambda m: m.t_mono_ns - first.t_mono_ns > 1.0e9, 5.0)
             assert later["state"] == "active" and later["lease_holder"] == ctl.client_id

@@ -29,9 +29,10 @@ def test_ctl_exit_status_reflects_the_reply(node: Node, capsys) -> None:
     cmd = node.endpoints["cmd"]
     assert main(["ctl", "status", "--cmd", cmd]) == 0
     assert json.loads(capsys.readouterr().out)["state"] == "inactive"
-    assert main(["ctl", "activate", "--cmd", cmd, "--client", "a"]) == 0
-    assert main(["ctl", "deactivate", "--cmd", cmd, "--client", "b"]) == 1  # a holds it
-    assert "lease_held" in capsys.readouterr().err
+    with Client(cmd, client_id="a") as holder:  # the lease is this connection's
+        holder.call("activate")
+        assert main(["ctl", "deactivate", "--cmd", cmd, "--client", "a"]) == 1  # a name
+        assert "lease_held" in capsys.readouterr().err
     assert main(["ctl", "ping", "--cmd", "tcp://127.0.0.1:1", "--timeout", "0.2",
                  "--retries", "0"]) == 3
 

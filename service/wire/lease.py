@@ -1,0 +1,113 @@
+"""Who controls the finger: a lease held by one connection, never by a name.
+
+The daemon's ROUTER socket gives every connection its own routing identity; with CurveZMQ
+the ZAP handler also vouches for the peer's public key (the `User-Id` of each message).
+The lease belongs to that pair. The `client` string a request may carry is only a label
+for logs and the stream: anyone can type it, so it grants nothing. Only requests on the
+holder's connection renew the lease (observers never do), it ends on `release`, after
+`ttl_s` without a request from the holder, or at once when the holder's connection
+closes (the socket monitor reports the file descriptor; a new connection that reuses the
+routing identity is still a stranger).
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True)
+class Peer:
+    """Who sent a request."""
+
+    routing_id: bytes
+    """The ROUTER's identity for the connection."""
+    key: str | None = None
+    """The peer's CURVE public key (z85) as the ZAP handler reported it, when CURVE is on."""
+    fd: int = -1
+    """The connection's file descriptor (to match the monitor's disconnect events)."""
+    label: str | None = None
+    """The self-declared `client` string: shown, never trusted."""
+
+    @property
+    def connection(self) -> tuple[bytes, str | None]:
+        return (self.routing_id, self.key)
+
+    def name(self) -> str:
+        return self.label or "anonymous"
+
+
+class LeaseHeld(Exception):
+    """Another connection holds the lease (the message says for how long)."""
+
+
+class Lease:
+    """One controlling connection at a time, until it goes quiet for `ttl_ns` or leaves."""
+
+    def __init__(self, ttl_s: float, clock: Callable[[], int] = time.monotonic_ns) -> None:
+        self.ttl_ns = int(ttl_s * 1e9)
+        self.holder: Peer | None = None
+        self.expires_ns = 0
+        self.gone = False
+        """The holder's connection closed: the lease ends at the next check."""
+        self._clock = clock
+
+    @property
+    def holder_name(self) -> str | None:
+        return None if self.holder is None else self.holder.name()
+
+    def holds(self, peer: Peer) -> bool:
+        """Whether `peer` is the holder's own, still open, connection."""
+        return (self.holder is not None and not self.gone
+                and self.holder.connection == peer.connection and self.holder.fd == peer.fd)
+
+    def claim(self, peer: Peer) -> None:
+        """Take the lease if free, renew it if `peer` holds it, else LeaseHeld. A lease that
+        ran out is free only once the watchdog has handled its end (within one tick)."""
+        now = self._clock()
+        if self.holder is not None and not self.holds(peer):
+            if self.gone or now >= self.expires_ns:
+                raise LeaseHeld(f"the lease of '{self.holder.name()}' is ending; try again "
+                                f"in a moment")
+            raise LeaseHeld(f"'{self.holder.name()}' holds the lease on another connection "
+                            f"for {(self.expires_ns - now) / 1e9:.1f} s more; the lease "
+                            f"belongs to the connection that took it")
+        self.holder = peer
+        self.expires_ns = now + self.ttl_ns
+
+    def touch(self, peer: Peer) -> None:
+        """A request from the holder's own connection renews the lease; others never do."""
+        if self.holds(peer):
+            self.expires_ns = self._clock() + self.ttl_ns
+
+    def release(self) -> None:
+        self.holder = None
+        self.gone = False
+
+    def disconnected(self, fd: int) -> None:
+        """The monitor saw connection `fd` close: if it was the holder's, the lease ends."""
+        if self.holder is not None and fd >= 0 and self.holder.fd == fd:
+            self.gone = True
+            self.expires_ns = self._clock()
+
+    def expire_due(self) -> tuple[str, str] | None:
+        """(holder's name, why) for a lease that just ended, which is then free; else None.
+        Why: 'disconnected' (its connection closed) or 'silent' (nothing for ttl_s)."""
+        if self.holder is not None and (self.gone or self._clock() >= self.expires_ns):
+            ended = (self.holder.name(), "disconnected" if self.gone else "silent")
+            self.release()
+            return ended
+        return None
+
+    def remaining_s(self) -> float:
+        if self.holder is None:
+            return 0.0
+        return max(0.0, (self.expires_ns - self._clock()) / 1e9)
+
+    def snapshot(self) -> tuple[Peer | None, int, bool]:
+        return (self.holder, self.expires_ns, self.gone)
+
+    def restore(self, saved: tuple[Peer | None, int, bool]) -> None:
+        """Undo a claim (a refused request changes nothing)."""
+        self.holder, self.expires_ns, self.gone = saved
