@@ -5,18 +5,34 @@ back to Sync Read) of Present Current, Velocity and Position, plus one Sync Writ
 positions. Packet timeouts are bounded by the cycle budget; waiting sleeps in select().
 Consecutive failed cycles are tolerated up to `failure_tolerance`, then the bus latches a
 fault and turns torque off; `reset()` recovers it.
+
+Every SDK call goes through `_sdk`: an error of the port itself (OSError with EIO when the
+adapter is unplugged or the emulator stops, termios.error from tcflush, SerialException)
+latches a `PortLost` fault at once; any other exception the SDK raises on a bad packet is a
+failed cycle like a timeout. Nothing from the serial layer escapes as anything but a
+FirmwareError, and `reopen()` gives the bus a fresh port (the same path, or a new one).
 """
 
 from __future__ import annotations
 
+import contextlib
+import termios
 import time
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
+from typing import Any, TypeVar
 
 from dynamixel_sdk.group_sync_write import GroupSyncWrite
 from dynamixel_sdk.robotis_def import BROADCAST_ID, COMM_SUCCESS
 
-from firmware_if.errors import BusTimeoutError, CommunicationError, HardwareFault, NotReadyError
+from firmware_if.errors import (
+    BusTimeoutError,
+    CommunicationError,
+    FirmwareError,
+    HardwareFault,
+    NotReadyError,
+    PortLost,
+)
 from firmware_if.packets import PacketError, split_fast_read
 from firmware_if.registers import (
     ALERT_BIT,
@@ -32,6 +48,9 @@ FAST_READ_MIN_FIRMWARE = 45
 SETUP_TIMEOUT_MS = 34.0
 """Packet timeout outside the control cycle (setup, scan, single reads): the SDK's own."""
 _TIMEOUT_RESULTS = (-3001,)  # COMM_RX_TIMEOUT
+PORT_ERRORS = (OSError, termios.error)
+"""What a failing serial port raises (pyserial's SerialException is an OSError)."""
+T = TypeVar("T")
 
 
 @dataclass(frozen=True)
@@ -79,10 +98,12 @@ class DxlBus:
         try:
             if not port.openPort() or not port.setBaudRate(self.baud):
                 raise CommunicationError(f"cannot open {self.port_name} at {self.baud} baud")
-        except OSError as exc:
-            raise CommunicationError(f"cannot open {self.port_name}: {exc}") from None
+        except (*PORT_ERRORS, ValueError) as exc:
+            raise PortLost(f"cannot open {self.port_name}: {exc}; is the adapter plugged in "
+                           f"(or the emulator running)?") from None
         self._port = port
         self.stats = BusStats()
+        self.fault = None
 
     def close(self) -> None:
         """Torque off (best effort) and release the port. Safe to call twice."""
@@ -91,8 +112,20 @@ class DxlBus:
         try:
             self.torque(False, best_effort=True)
         finally:
-            self._port.closePort()
+            with contextlib.suppress(*PORT_ERRORS, ValueError):  # the port may be gone
+                self._port.closePort()
             self._port = None
+
+    def reopen(self, port: str | None = None) -> None:
+        """Release the port (whatever state it is in) and open it again, or `port` instead:
+        how a bus recovers from a lost adapter or a restarted emulator."""
+        if self._port is not None:
+            with contextlib.suppress(*PORT_ERRORS, ValueError):
+                self._port.closePort()
+            self._port = None
+        if port is not None:
+            self.port_name = port
+        self.open()
 
     def __enter__(self) -> DxlBus:
         self.open()
@@ -110,11 +143,30 @@ class DxlBus:
             raise NotReadyError(f"bus on {self.port_name} is not open: call open() first")
         return self._port
 
+    def _sdk(self, what: str, call: Callable[..., T], *args: Any) -> T:
+        """One SDK call: a port error latches PortLost, any other exception the SDK raises
+        is a CommunicationError (a failed exchange), never a crash."""
+        port = self._require()
+        try:
+            return call(*args)
+        except FirmwareError:
+            raise
+        except PORT_ERRORS as exc:
+            port.is_using = False  # the SDK leaves its busy flag set when a call raises
+            self.fault = f"serial port {self.port_name} failed ({what}: {exc})"
+            raise PortLost(f"bus on {self.port_name}: {self.fault}; torque is off as far as "
+                           f"the bus allows; reset (or configure another port) to recover"
+                           ) from None
+        except Exception as exc:
+            port.is_using = False
+            raise CommunicationError(f"{what}: the SDK failed: {type(exc).__name__}: {exc}",
+                                     self.ids) from None
+
     # -- single-servo access ---------------------------------------------------------------
     def ping(self, servo_id: int) -> tuple[int, int] | None:
         """(model number, firmware version), or None when nothing answers."""
         port = self._require()
-        data, result, error = self._ph.readTxRx(port, servo_id, 0, 7)
+        data, result, error = self._sdk("ping", self._ph.readTxRx, port, servo_id, 0, 7)
         if result != COMM_SUCCESS:
             return None
         return data[0] | data[1] << 8, data[6]
@@ -122,7 +174,7 @@ class DxlBus:
     def scan(self, ids: Iterable[int] | None = None) -> dict[int, tuple[int, int]]:
         """Servos present on the bus: {id: (model, firmware)} (broadcast ping, else one by one)."""
         port = self._require()
-        found, result = self._ph.broadcastPing(port)
+        found, result = self._sdk("scan", self._ph.broadcastPing, port)
         if result == COMM_SUCCESS and found:
             return {sid: (model, fw) for sid, (model, fw) in sorted(found.items())}
         out = {}
@@ -135,19 +187,20 @@ class DxlBus:
     def read(self, servo_id: int, name: str) -> int:
         """Read one control-table item (raw value)."""
         reg = REG[name]
-        data, result, error = self._ph.readTxRx(self._require(), servo_id, reg.address, reg.size)
+        data, result, error = self._sdk(f"read {name}", self._ph.readTxRx, self._require(),
+                                        servo_id, reg.address, reg.size)
         self._check(result, error, (servo_id,), f"read {name}")
         return reg.decode(bytes(data))
 
     def write(self, servo_id: int, name: str, value: int) -> None:
         """Write one control-table item (raw value), checked by the servo's status."""
         reg = REG[name]
-        result, error = self._ph.writeTxRx(self._require(), servo_id, reg.address, reg.size,
-                                           list(reg.encode(value)))
+        result, error = self._sdk(f"write {name}", self._ph.writeTxRx, self._require(),
+                                  servo_id, reg.address, reg.size, list(reg.encode(value)))
         self._check(result, error, (servo_id,), f"write {name}={value}")
 
     def reboot(self, servo_id: int) -> None:
-        result, error = self._ph.reboot(self._require(), servo_id)
+        result, error = self._sdk("reboot", self._ph.reboot, self._require(), servo_id)
         self._check(result, error & ~ALERT_BIT, (servo_id,), "reboot")
 
     def _check(self, result: int, error: int, ids: tuple[int, ...], what: str) -> None:
@@ -159,12 +212,16 @@ class DxlBus:
                                      ids)
 
     # -- configuration ---------------------------------------------------------------------
-    def configure(self, settings: dict[str, int]) -> None:
-        """Write the same raw settings to every servo (EEPROM items need torque off)."""
+    def configure(self, settings: dict[str, int], *, verify: bool = False) -> None:
+        """Write the same raw settings to every servo (EEPROM items need torque off); with
+        `verify`, read each back and raise if a servo does not hold it."""
         for sid in self.ids:
             for name, value in settings.items():
                 if self.read(sid, name) != value:
                     self.write(sid, name, value)
+                    if verify and (got := self.read(sid, name)) != value:
+                        raise CommunicationError(f"servo {sid}: {name} reads {got} after "
+                                                 f"writing {value}", (sid,))
 
     def detect_fast_read(self) -> bool:
         """Use Fast Sync Read only if every servo's firmware supports it and it answers."""
@@ -175,26 +232,30 @@ class DxlBus:
                 raise BusTimeoutError(f"servo {sid} does not answer a ping on {self.port_name}",
                                       (sid,))
             fast = fast and info[1] >= FAST_READ_MIN_FIRMWARE
-        if fast:
-            try:
-                self._fast_sync_read()
-            except CommunicationError:
-                fast = False
+        if fast:  # a late reply is not a refusal: only three failures in a row say no
+            for attempt in range(3):
+                try:
+                    self._fast_sync_read()
+                    break
+                except CommunicationError:
+                    fast = attempt < 2
         self.stats.fast_read = fast
         return fast
 
     def torque(self, on: bool, *, best_effort: bool = False) -> None:
         """Torque on or off for every servo (one Sync Write)."""
+        if self._port is None and best_effort:
+            return
         port = self._require()
         writer = GroupSyncWrite(port, self._ph, REG["torque_enable"].address, 1)
         for sid in self.ids:
             writer.addParam(sid, [int(on)])
         try:
-            result = writer.txPacket()
-        except OSError as exc:  # the adapter was unplugged
-            if best_effort:
+            result = self._sdk(f"torque {'on' if on else 'off'}", writer.txPacket)
+        except FirmwareError:
+            if best_effort:  # the adapter is gone: nothing more can be sent
                 return
-            raise CommunicationError(f"torque {'on' if on else 'off'}: {exc}", self.ids) from None
+            raise
         if result != COMM_SUCCESS and not best_effort:
             raise CommunicationError(f"torque {'on' if on else 'off'}: "
                                      f"{self._ph.getTxRxResult(result)}", self.ids)
@@ -243,20 +304,21 @@ class DxlBus:
         writer = GroupSyncWrite(self._require(), self._ph, REG["goal_position"].address, 4)
         for sid, ticks in goals.items():
             writer.addParam(sid, list(REG["goal_position"].encode(ticks)))
-        result = writer.txPacket()
+        result = self._sdk("sync write of goals", writer.txPacket)
         if result != COMM_SUCCESS:
             raise CommunicationError(f"sync write of goals: {self._ph.getTxRxResult(result)}",
                                      tuple(goals))
 
     def _sync_read(self) -> dict[int, ServoReading]:
         port = self._require()
-        result = self._ph.syncReadTx(port, SYNC_READ_START, SYNC_READ_LENGTH, list(self.ids),
-                                     len(self.ids), False)
+        result = self._sdk("sync read", self._ph.syncReadTx, port, SYNC_READ_START,
+                           SYNC_READ_LENGTH, list(self.ids), len(self.ids), False)
         if result != COMM_SUCCESS:
             raise CommunicationError(f"sync read: {self._ph.getTxRxResult(result)}", self.ids)
         out = {}
         for sid in self.ids:
-            data, result, error = self._ph.readRx(port, sid, SYNC_READ_LENGTH)
+            data, result, error = self._sdk("sync read", self._ph.readRx, port, sid,
+                                            SYNC_READ_LENGTH)
             if result != COMM_SUCCESS:
                 cls = BusTimeoutError if result in _TIMEOUT_RESULTS else CommunicationError
                 raise cls(f"sync read: servo {sid}: {self._ph.getTxRxResult(result)}", (sid,))
@@ -265,12 +327,12 @@ class DxlBus:
 
     def _fast_sync_read(self) -> dict[int, ServoReading]:
         port = self._require()
-        result = self._ph.syncReadTx(port, SYNC_READ_START, SYNC_READ_LENGTH, list(self.ids),
-                                     len(self.ids), True)
+        result = self._sdk("fast sync read", self._ph.syncReadTx, port, SYNC_READ_START,
+                           SYNC_READ_LENGTH, list(self.ids), len(self.ids), True)
         if result != COMM_SUCCESS:
             raise CommunicationError(f"fast sync read: {self._ph.getTxRxResult(result)}",
                                      self.ids)
-        rx, result = self._ph.rxPacket(port, True)
+        rx, result = self._sdk("fast sync read", self._ph.rxPacket, port, True)
         if result != COMM_SUCCESS:
             cls = BusTimeoutError if result in _TIMEOUT_RESULTS else CommunicationError
             raise cls(f"fast sync read: {self._ph.getTxRxResult(result)}", self.ids, bytes(rx))
@@ -286,7 +348,8 @@ class DxlBus:
         raise HardwareFault(f"bus on {self.port_name}: {reason}; torque is off, reset to recover")
 
     def reset(self) -> None:
-        """Clear a latched fault: reboot servos that report a hardware error, count afresh."""
+        """Clear a latched fault: reboot servos that report a hardware error (their RAM
+        returns to defaults: the caller configures them again), count afresh."""
         for sid in self.ids:
             try:
                 if self.read(sid, "hardware_error_status"):

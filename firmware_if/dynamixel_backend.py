@@ -24,9 +24,11 @@ from firmware_if.backend import FingerState, StepCommand, check_can_step
 from firmware_if.dxl_bus import DxlBus, ServoReading
 from firmware_if.errors import (
     CommunicationError,
+    FirmwareError,
     HandConfigError,
     HardwareFault,
     NotReadyError,
+    PortLost,
 )
 from firmware_if.hand import Hand, load_hand
 from firmware_if.registers import (
@@ -86,13 +88,17 @@ class DynamixelBackend:
         self._nominal_xy: np.ndarray | None = None
 
     @classmethod
-    def from_cli(cls, *, port: str, hand: str, radius: float, step: float) -> DynamixelBackend:
-        """Build from `haptic run` options (no I/O: that happens in `open`)."""
+    def from_cli(cls, *, port: str, hand: str, radius: float, step: float,
+                 cycle_budget_s: float = StepSettings.cycle_budget_s) -> DynamixelBackend:
+        """Build from `haptic run` options or hapticd's `[backend] options` (no I/O: that
+        happens in `open`). `cycle_budget_s` bounds one bus cycle (a read's timeout is half)."""
         h = load_hand(hand)
         if abs(h.radius - radius) > 1e-9:
             raise HandConfigError(f"--radius {radius} m does not match the hand's fingertip "
                                   f"radius {h.radius} m; pass --radius {h.radius}")
-        return cls(h, port)
+        if not 0.002 <= cycle_budget_s <= 0.5:
+            raise HandConfigError(f"cycle_budget_s must be 0.002 .. 0.5 s, got {cycle_budget_s}")
+        return cls(h, port, StepSettings(cycle_budget_s=cycle_budget_s))
 
     def centre_sigma(self) -> np.ndarray:
         """1-sigma error (metres, per hand axis) of the centre from encoder rounding at the
@@ -105,26 +111,44 @@ class DynamixelBackend:
         return RAD_PER_TICK / np.sqrt(12.0) * np.sqrt(np.sum(jac**2, axis=1))
 
     # -- lifecycle -------------------------------------------------------------------------
+    def servo_settings(self) -> dict[str, int]:
+        """Every register `open` sets on every servo, in the order written (EEPROM first,
+        which needs torque off). A reboot after a hardware error returns RAM to defaults,
+        so `clear_fault` writes all of them again."""
+        return {"return_delay_time": self.hand.return_delay_us // 2,
+                "status_return_level": 2,
+                "operating_mode": CURRENT_BASED_POSITION,
+                "goal_current": amp_to_current(self.hand.goal_current_a),
+                "profile_velocity": rad_s_to_velocity(self.hand.profile_velocity_rad_s)}
+
     def open(self) -> None:
         self.bus.open()
         try:
-            self.bus.torque(False)
-            self.bus.configure({"return_delay_time": self.hand.return_delay_us // 2,
-                                "status_return_level": 2,
-                                "operating_mode": CURRENT_BASED_POSITION})
-            goal_current = amp_to_current(self.hand.goal_current_a)
-            velocity = rad_s_to_velocity(self.hand.profile_velocity_rad_s)
-            for sid in self.hand.ids:
-                self.bus.write(sid, "goal_current", goal_current)
-                self.bus.write(sid, "profile_velocity", velocity)
-            self.bus.detect_fast_read()
-            self._state = self._read()
+            self._set_up()
         except BaseException:
             self.bus.close()
             raise
 
+    def _set_up(self) -> None:
+        """Torque off, every servo configured and checked, fast reads detected, first read."""
+        self.bus.torque(False)
+        self.bus.configure(self.servo_settings(), verify=True)
+        self.bus.detect_fast_read()
+        self._state = self._first_read()
+
+    def _first_read(self) -> FingerState:
+        """The first reading, allowing the bus's usual tolerance of missed cycles."""
+        for attempt in range(self.settings.failure_tolerance):
+            try:
+                return self._read()
+            except CommunicationError:
+                if attempt == self.settings.failure_tolerance - 1:
+                    raise
+        raise AssertionError("unreachable")
+
     def close(self) -> None:
         self._torque = False
+        self._step = None
         self.bus.close()
         self._state = None
 
@@ -154,21 +178,35 @@ class DynamixelBackend:
         self._touch_down()
 
     def clear_fault(self) -> None:
-        self._require_open()
-        self.bus.reset()
-        self._fault = None
-        self._step = None
+        """Recover from any fault: open the port afresh (an unplugged adapter or a restarted
+        emulator at the same path), reboot servos that report a hardware error, and write
+        every setting of `open` to every servo again. If that fails the fault stays."""
         self._torque = False
-        self._state = self._read()
+        self._step = None
+        self._pending_goals = None
+        for attempt in range(2):  # once more: a late reply still in flight can spoil one
+            try:
+                self.bus.reopen()
+                self.bus.reset()
+                self._set_up()
+                break
+            except FirmwareError as exc:
+                self.bus.close()
+                self._fault = f"reset failed: {exc}"
+                if attempt == 1 or isinstance(exc, PortLost):
+                    raise
+        self._fault = None
 
     # -- I/O -------------------------------------------------------------------------------
     def read_state(self) -> FingerState:
+        if self._fault and not self.bus.is_open:  # a reset could not reopen the port
+            return self._stale()
         self._require_open()
         goals, self._pending_goals = self._pending_goals, None
         try:
             state = self._read(goals)
         except HardwareFault as exc:
-            self._fault = str(exc)
+            self._fault = self._fault or str(exc)  # the first cause, not "reset first"
             self._torque = False
             if self._step is not None:
                 self._finish(blocked=True)  # whoever waits for the step sees it end

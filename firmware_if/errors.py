@@ -28,5 +28,10 @@ class HardwareFault(FirmwareError):
     """A servo reports a hardware error, or the bus failed too often: torque off, reset needed."""
 
 
+class PortLost(HardwareFault):
+    """The serial port itself failed (adapter unplugged, emulator gone): the bus latched a
+    fault; `reset` (or `configure` with a new port) opens the port again."""
+
+
 class NotReadyError(FirmwareError):
     """The backend was asked to act before it was opened or before a first valid read."""

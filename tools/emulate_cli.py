@@ -8,6 +8,7 @@ localizes the same hidden pose as the simulated finger would.
 from __future__ import annotations
 
 import argparse
+import os
 import threading
 from collections.abc import Callable
 
@@ -15,6 +16,7 @@ import numpy as np
 
 from firmware_if.hand import load_hand, presets
 from service.episode.scenario import RunSettings, Truth, draw_truth, episode_streams, surface_for
+from service.errors import ConfigError
 from service.localization.surface import HeightMap
 from sim_backend.emulator import ServoBus
 from sim_backend.emulator.plant import FingerPlant, hand_bus_servos
@@ -34,6 +36,9 @@ def register(p: argparse.ArgumentParser) -> None:
                    help="hidden start pose instead of the seed's (metres, metres, degrees)")
     p.add_argument("--no-fast-read", action="store_true",
                    help="emulate firmware older than v45 (no Fast Sync/Bulk Read)")
+    p.add_argument("--link", metavar="PATH",
+                   help="also make PATH a symlink to the port (a stable name, like "
+                        "/dev/serial/by-id/..., that a restarted emulator takes over)")
     p.set_defaults(handler=run)
 
 
@@ -48,8 +53,11 @@ def start_emulator(args: argparse.Namespace) -> tuple[ServoBus, Truth]:
     settings = settings_from_args(args, radius=hand.radius)
     truth, height_map = emulator_truth(settings)
     plant = FingerPlant(hand, height_map, truth.as_tuple())
+    link = getattr(args, "link", None)
+    if link is not None and os.path.exists(link) and not os.path.islink(link):
+        raise ConfigError(f"--link {link}: a file that is not a symlink is there already")
     bus = ServoBus(hand_bus_servos(hand, plant), plant=plant,
-                   fast_read=not args.no_fast_read).start()
+                   fast_read=not args.no_fast_read, link=link).start()
     return bus, truth
 
 

@@ -1,7 +1,7 @@
 """The daemon's lifecycle as an explicit transition table.
 
 unconfigured --configure--> inactive --activate--> active --deactivate--> inactive
-any opened state --fault--> fault (latched, torque off) --reset--> inactive
+any opened state --fault--> fault (latched, torque off) --reset or configure--> inactive
 
 Inactive means the backend is open, torque is off and state is streamed. Nothing is
 commanded to the servos (not even torque) until a first valid read since the backend was
@@ -23,7 +23,8 @@ class State(StrEnum):
 
 
 TRANSITIONS: dict[str, dict[State, State]] = {
-    "configure": {State.UNCONFIGURED: State.INACTIVE, State.INACTIVE: State.INACTIVE},
+    "configure": {State.UNCONFIGURED: State.INACTIVE, State.INACTIVE: State.INACTIVE,
+                  State.FAULT: State.INACTIVE},  # a new backend (e.g. on a new port)
     "activate": {State.INACTIVE: State.ACTIVE},
     "deactivate": {State.ACTIVE: State.INACTIVE, State.INACTIVE: State.INACTIVE},
     "fault": {State.INACTIVE: State.FAULT, State.ACTIVE: State.FAULT, State.FAULT: State.FAULT},
@@ -61,7 +62,7 @@ class Lifecycle:
         self.state = new
         if event == "fault":
             self.fault = reason or self.fault or "fault"
-        elif event in ("reset", "shutdown"):
+        elif event in ("reset", "shutdown", "configure"):
             self.fault = None
         if event in ("configure", "reset", "shutdown"):
             self.valid_read = False

@@ -23,7 +23,7 @@ import zmq
 from threadpoolctl import threadpool_limits
 
 from firmware_if.backend import Backend, FingerState
-from firmware_if.errors import FirmwareError
+from firmware_if.errors import FirmwareError, HardwareFault
 from service.daemon.config import DaemonConfig
 from service.daemon.explorer import Explorer, TickOutput
 from service.daemon.lifecycle import Lifecycle, State
@@ -226,7 +226,7 @@ class Node:
         try:
             state = self.backend.read_state()
         except FirmwareError as exc:
-            self._fault(f"read failed: {exc}")
+            self._fault(f"read failed: {exc}")  # once: in fault it only repeats
             return None
         self.last_state = state
         self.lifecycle.mark_read()
@@ -303,12 +303,16 @@ class Node:
         if old is not new:
             self._event("lifecycle", previous=old.value, state=new.value, reason=reason)
 
-    def _fault(self, reason: str) -> None:
+    def _fault(self, reason: str, *, again: bool = False) -> None:
+        """Latch a fault: exploring stops, torque goes off as far as the backend can. A
+        fault while faulted is not news (a dead port fails every read) unless `again`."""
+        if self.lifecycle.state is State.FAULT and not again:
+            return
         if self.explorer:
             self.explorer.stop()
         self._hold_until_ns = None
         if self.backend is not None:
-            with contextlib.suppress(FirmwareError):
+            with contextlib.suppress(Exception):  # torque off is best effort on a lost bus
                 self.backend.set_torque(False)
         self._transition("fault", reason)
         self._event("fault", reason=reason)
@@ -401,7 +405,11 @@ class Node:
     def activate(self) -> dict[str, Any]:
         self.lifecycle.check("activate")
         self.lifecycle.require_valid_read()
-        self.backend.set_torque(True)
+        try:
+            self.backend.set_torque(True)
+        except HardwareFault as exc:  # e.g. the bus went away while touching down
+            self._fault(f"activate failed: {exc}")
+            raise
         self._transition("activate")
         return {"state": self.lifecycle.state.value}
 
@@ -433,14 +441,17 @@ class Node:
         return {"was_exploring": was}
 
     def reset(self) -> dict[str, Any]:
+        """Clear the fault: the backend re-opens its port and configures every servo again;
+        if that fails the daemon stays in fault and the reply says why."""
         self.lifecycle.check("reset")
         self.backend.clear_fault()
+        self.last_state = None
         self._transition("reset")
         return {"state": self.lifecycle.state.value}
 
     def estop(self, reason: str) -> dict[str, Any]:
         if self.lifecycle.state is not State.UNCONFIGURED:
-            self._fault(f"estop: {reason}")
+            self._fault(f"estop: {reason}", again=True)
         return {"state": self.lifecycle.state.value}
 
     def reset_stats(self) -> dict[str, Any]:

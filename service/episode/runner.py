@@ -9,7 +9,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from firmware_if.backend import Backend, FingerState, StepCommand
-from firmware_if.errors import BusTimeoutError
+from firmware_if.errors import BusTimeoutError, HardwareFault
 from service.localization.localizers.base import Estimate, Localizer, Measurement, update
 from service.localization.policies.base import MOVES, Policy, PolicyInput
 from service.localization.surface import ContactSurface
@@ -47,6 +47,8 @@ def execute_step(backend: Backend, step: StepCommand, timeout_s: float = 10.0) -
     deadline = time.monotonic() + timeout_s
     while True:
         state = backend.read_state()
+        if state.fault:  # a latched fault (a lost port, a servo's error): no step will finish
+            raise HardwareFault(f"the finger faulted during a step: {state.fault}")
         if not state.moving and state.steps_done > before:
             return state
         if time.monotonic() > deadline:

@@ -50,7 +50,7 @@ class ServoBus:
 
     def __init__(self, servos: list[EmulatedServo], *, plant: Plant | None = None,
                  clock: Clock | None = None, fast_read: bool = True,
-                 honour_return_delay: bool = True) -> None:
+                 honour_return_delay: bool = True, link: str | None = None) -> None:
         self.servos = {s.id: s for s in servos}
         self.plant = plant
         self.clock = clock or MonotonicClock()
@@ -62,6 +62,9 @@ class ServoBus:
         self.errors: list[Exception] = []
         """Exceptions raised while handling packets (the packet is dropped, serving goes on)."""
         self.port = ""
+        self.link = link
+        """A stable path made a symlink to the pty (as udev's /dev/serial/by-id/... names an
+        adapter), so a restarted emulator is found where the last one was."""
         self._master = self._slave = -1
         self._wake_r = self._wake_w = -1
         self._thread: threading.Thread | None = None
@@ -75,6 +78,11 @@ class ServoBus:
         self._master, self._slave = os.openpty()
         tty.setraw(self._slave)
         self.port = os.ttyname(self._slave)
+        if self.link is not None:
+            tmp = f"{self.link}.{os.getpid()}.tmp"
+            os.symlink(self.port, tmp)
+            os.replace(tmp, self.link)  # atomically: a reader never sees no link
+            self.port = self.link
         self._wake_r, self._wake_w = os.pipe()
         self._stop.clear()
         self._thread = threading.Thread(target=self._serve, name="servo-bus", daemon=True)
@@ -88,9 +96,13 @@ class ServoBus:
         os.write(self._wake_w, b"x")
         self._thread.join(timeout=5)
         self._thread = None
+        tty_path = os.ttyname(self._slave)
         for fd in (self._master, self._slave, self._wake_r, self._wake_w):
             os.close(fd)
         self._master = self._slave = self._wake_r = self._wake_w = -1
+        if self.link is not None and os.path.islink(self.link) \
+                and os.readlink(self.link) == tty_path:
+            os.unlink(self.link)  # ours: a successor's link is left alone
 
     def __enter__(self) -> ServoBus:
         return self.start()

@@ -8,7 +8,7 @@ import pytest
 
 from firmware_if.backend import StepCommand
 from firmware_if.dynamixel_backend import DynamixelBackend
-from firmware_if.errors import CommunicationError, HandConfigError, HardwareFault
+from firmware_if.errors import CommunicationError, HandConfigError, HardwareFault, PortLost
 from firmware_if.hand import load_hand
 from service.episode.runner import execute_step
 from service.localization.maps import load_map
@@ -34,7 +34,7 @@ def test_from_cli_does_no_io_and_checks_the_radius():
     backend = DynamixelBackend.from_cli(port="/dev/does-not-exist", hand="spatial",
                                         radius=0.008, step=0.01)
     assert not backend.bus.is_open
-    with pytest.raises(CommunicationError, match="cannot open"):
+    with pytest.raises(PortLost, match="cannot open"):
         backend.open()
     with pytest.raises(HandConfigError, match="--radius 0.005"):
         DynamixelBackend.from_cli(port="x", hand="spatial", radius=0.005, step=0.01)

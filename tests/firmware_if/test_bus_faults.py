@@ -1,0 +1,156 @@
+"""Fault injection on the servo-bus emulator: a lost port, a mute servo, corrupt and late
+replies, hardware errors; each latches a fault with torque off, and `clear_fault` recovers
+with every servo configured as `open` left it (issue 12, findings 2 and 4)."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+from firmware_if.backend import StepCommand
+from firmware_if.dynamixel_backend import DynamixelBackend, StepSettings
+from firmware_if.errors import FirmwareError, HardwareFault, PortLost
+from firmware_if.hand import Hand, load_hand
+from firmware_if.registers import REG
+from service.episode.runner import execute_step
+from service.localization.maps import load_map
+from sim_backend.emulator import ServoBus
+from sim_backend.emulator.plant import FingerPlant, hand_bus_servos
+
+MAP = load_map("peaks")
+HAND = load_hand("spatial")
+SETTINGS = StepSettings(cycle_budget_s=0.1)  # generous: these tests run on a busy machine
+RAM = [r.name for r in REG.values() if not r.eeprom and r.access == "RW"
+       and r.name != "goal_position"]  # the goal follows the joint while torque is off
+
+
+def emulator(hand: Hand = HAND, link: Path | None = None) -> ServoBus:
+    plant = FingerPlant(hand, MAP, (0.1, 0.1, 0.3))
+    return ServoBus(hand_bus_servos(hand, plant), plant=plant,
+                    link=None if link is None else str(link)).start()
+
+
+def ram(bus: ServoBus, ids: tuple[int, ...] = HAND.ids) -> dict[tuple[int, str], int]:
+    """Every RW RAM register of every servo, as the servos hold them (the backend's own
+    read-back is `configure(verify=True)`)."""
+    return {(sid, name): bus.servos[sid].get(name) for sid in ids for name in RAM}
+
+
+@pytest.fixture
+def rig(tmp_path: Path) -> Iterator[tuple[DynamixelBackend, ServoBus, Path]]:
+    link = tmp_path / "ttyDXL"
+    bus = emulator(link=link)
+    backend = DynamixelBackend(HAND, str(link), SETTINGS)
+    backend.open()
+    try:
+        yield backend, bus, link
+    finally:
+        backend.close()
+        bus.stop()
+
+
+def test_open_writes_its_settings_to_every_servo(rig) -> None:
+    backend, bus, _ = rig
+    for servo in bus.servos.values():
+        for name, value in backend.servo_settings().items():
+            assert servo.get(name) == value, (servo.id, name)
+    assert backend.servo_settings()["goal_current"] == 149  # 0.4 A
+
+
+def test_a_lost_port_latches_a_fault_and_nothing_escapes(rig) -> None:
+    backend, bus, _ = rig
+    backend.set_torque(True)
+    backend.command_step(StepCommand(0.01, 0.0))
+    bus.stop()  # the emulator dies: EIO / termios.error on the host side
+    state = backend.read_state()
+    assert state.fault and "serial port" in state.fault and not state.torque_on
+    assert not state.moving  # the step under way ended (blocked)
+    assert backend.read_state().fault == state.fault  # the first cause stays
+    backend.set_torque(False)  # best effort on a dead port: no exception
+    with pytest.raises(HardwareFault):
+        backend.command_step(StepCommand(0.01, 0.0))
+
+
+def test_reset_reopens_the_port_on_a_new_emulator_and_reconfigures_it(rig) -> None:
+    backend, bus, link = rig
+    opened = ram(bus)
+    bus.stop()
+    assert backend.read_state().fault
+    with pytest.raises(PortLost):  # nothing at the port yet: the fault stays
+        backend.clear_fault()
+    assert backend.read_state().fault
+    fresh = emulator(link=link)  # servos at power-on defaults
+    try:
+        assert fresh.servos[1].get("goal_current") != 149
+        backend.clear_fault()
+        assert ram(fresh) == opened
+        state = backend.read_state()
+        assert state.fault is None
+        backend.set_torque(True)
+        assert not execute_step(backend, StepCommand(0.01, 0.0)).blocked
+    finally:
+        backend.close()
+        fresh.stop()
+
+
+def test_a_hardware_error_reboot_restores_every_ram_register(rig) -> None:
+    """The finding: after the reboot Goal Current read 0 instead of 149, and the finger
+    could no longer touch down."""
+    backend, bus, _ = rig
+    opened = ram(bus)
+    backend.set_torque(True)
+    bus.inject_hardware_error(2, 0x04)  # overheating: torque off, alert bit set
+    state = backend.read_state()
+    assert state.fault and "servo 2" in state.fault
+    backend.clear_fault()  # reboots servo 2: its RAM returns to defaults, then is rewritten
+    assert bus.servos[2].get("hardware_error_status") == 0
+    assert ram(bus) == opened
+    backend.set_torque(True)  # touches down again
+    assert not execute_step(backend, StepCommand(0.01, 0.0)).blocked
+
+
+@pytest.mark.parametrize("inject", ["mute", "corrupt", "late"])
+def test_a_misbehaving_servo_faults_the_bus_and_reset_recovers(rig, inject: str) -> None:
+    backend, bus, _ = rig
+    opened = ram(bus)
+    plan = bus.fault(3)
+    if inject == "mute":
+        plan.mute = True
+    elif inject == "corrupt":
+        plan.corrupt = 1000
+    else:
+        plan.late_s = 0.2  # past every timeout
+    for _ in range(SETTINGS.failure_tolerance):
+        state = backend.read_state()
+    assert state.fault and "consecutive failed cycles" in state.fault
+    assert bus.wait_until(lambda: not any(s.torque_on for s in bus.servos.values()))
+    if inject == "mute":  # (a late servo would pile up a backlog of stale replies)
+        with pytest.raises(FirmwareError):
+            backend.clear_fault()  # still misbehaving: the fault stays
+        assert backend.read_state().fault
+    plan.mute, plan.corrupt, plan.late_s = False, 0, 0.0
+    backend.clear_fault()
+    assert backend.read_state().fault is None
+    assert ram(bus) == opened
+
+
+def test_one_corrupt_reply_is_forgiven(rig) -> None:
+    backend, bus, _ = rig
+    bus.fault(1).corrupt = 1
+    assert backend.read_state().fault is None
+    assert backend.read_state().fault is None
+    assert backend.bus.stats.failures >= 1 and bus.stats["corrupted"] == 1
+
+
+def test_configure_on_a_new_port_is_a_new_bus(rig) -> None:
+    backend, bus, _ = rig
+    other = emulator()
+    try:
+        moved = DynamixelBackend(HAND, other.port, SETTINGS)
+        moved.open()
+        assert moved.read_state().fault is None
+        moved.close()
+    finally:
+        other.stop()

@@ -1,0 +1,103 @@
+"""Issue 12, findings 2 and 4, through hapticd: a lost bus latches a fault (never a crash),
+`reset` re-opens it (the emulator restarted at the same path) and `configure` can move to a
+new port; after any reset every servo holds what `open` wrote."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+from firmware_if.hand import load_hand
+from service.daemon.harness import loopback_config, running_node
+from service.localization.maps import load_map
+from service.wire.client import Controller, Subscriber
+from sim_backend.emulator import ServoBus
+from sim_backend.emulator.plant import FingerPlant, hand_bus_servos
+
+HAND = load_hand("spatial")
+MAP = load_map("peaks")
+TRUTH = (0.10, 0.10, 2 * 3.141592653589793 * 3 / 11)
+
+
+def emulator(link: Path | None = None) -> ServoBus:
+    plant = FingerPlant(HAND, MAP, TRUTH)
+    return ServoBus(hand_bus_servos(HAND, plant), plant=plant,
+                    link=None if link is None else str(link)).start()
+
+
+def options(port: str) -> dict:
+    return {"port": port, "hand": "spatial", "cycle_budget_s": 0.05}
+
+
+@pytest.fixture()
+def rig(tmp_path: Path) -> Iterator[tuple]:
+    link = tmp_path / "ttyDXL"
+    buses = [emulator(link)]
+    config = loopback_config({"backend": {"name": "dynamixel", "options": options(str(link))},
+                              "scenario": {"noise": True, "max_steps": 60}})
+    try:
+        with running_node(config) as node, \
+                Subscriber(node.endpoints["pub"], ["state", "event"]) as sub, \
+                Controller(node.endpoints["cmd"], timeout_s=10.0) as ctl:
+            yield node, sub, ctl, buses, link
+    finally:
+        for bus in buses:
+            bus.stop()
+
+
+def explore_until_moving(sub: Subscriber, ctl: Controller) -> None:
+    assert sub.wait_for(lambda m: m.topic == "state" and m["state"] == "inactive"
+                        and m["centre"] is not None, 10.0)
+    ctl.call("activate")
+    ctl.call("start_exploration", repeat=True)
+    assert sub.wait_for(lambda m: m.topic == "state" and m["moving"], 20.0)
+
+
+def wait_fault(sub: Subscriber) -> dict:
+    fault = sub.wait_for(lambda m: m.topic == "event" and m["event"] == "fault", 10.0)
+    assert fault is not None, "no fault event"
+    state = sub.wait_for(lambda m: m.topic == "state", 5.0)
+    assert state["state"] == "fault" and not state["torque_on"] and not state["exploring"]
+    return fault.body
+
+
+def test_killing_the_emulator_mid_exploration_faults_and_reset_recovers(rig) -> None:
+    node, sub, ctl, buses, link = rig
+    for _round in range(3):  # `haptic bench faults` does this 20 times with processes
+        explore_until_moving(sub, ctl)
+        buses[-1].stop()  # the emulator dies mid-exploration
+        assert "serial port" in wait_fault(sub)["reason"]
+        assert ctl.call("ping") == {"pong": True}  # the daemon stays up
+        buses.append(emulator(link))  # a new emulator at the same path
+        assert ctl.call("reset")["state"] == "inactive"
+        assert all(s.get("goal_current") == 149 for s in buses[-1].servos.values())
+    explore_until_moving(sub, ctl)  # and it explores again
+
+
+def test_reset_with_no_bus_keeps_the_fault_and_configure_moves_to_a_new_port(rig) -> None:
+    node, sub, ctl, buses, link = rig
+    explore_until_moving(sub, ctl)
+    buses[-1].stop()
+    wait_fault(sub)
+    with pytest.raises(Exception) as err:
+        ctl.call("reset")  # nothing at the port: refused, still faulted
+    assert err.value.code == "hardware" and "cannot open" in str(err.value)
+    assert ctl.status()["state"] == "fault"
+    buses.append(emulator())  # somewhere else: /dev/pts/N
+    result = ctl.call("configure", changes={"backend": {"options": options(buses[-1].port)}})
+    assert result["state"] == "inactive"
+    assert ctl.call("get_config")["backend"]["options"]["port"] == buses[-1].port
+    explore_until_moving(sub, ctl)
+
+
+def test_a_hardware_error_fault_then_reset_restores_goal_current_and_touch_down(rig) -> None:
+    node, sub, ctl, buses, link = rig
+    explore_until_moving(sub, ctl)
+    buses[-1].inject_hardware_error(2, 0x04)  # overheating: servo 2 turns its torque off
+    assert "servo 2" in wait_fault(sub)["reason"]
+    assert ctl.call("reset")["state"] == "inactive"
+    for servo in buses[-1].servos.values():
+        assert servo.get("goal_current") == 149 and servo.get("operating_mode") == 5
+    explore_until_moving(sub, ctl)  # activate touched down again: no "no surface found"
