@@ -232,13 +232,11 @@ class DxlBus:
                 raise BusTimeoutError(f"servo {sid} does not answer a ping on {self.port_name}",
                                       (sid,))
             fast = fast and info[1] >= FAST_READ_MIN_FIRMWARE
-        if fast:  # a late reply is not a refusal: only three failures in a row say no
-            for attempt in range(3):
-                try:
-                    self._fast_sync_read()
-                    break
-                except CommunicationError:
-                    fast = attempt < 2
+        if fast:
+            try:
+                self._fast_sync_read()
+            except CommunicationError:
+                fast = False
         self.stats.fast_read = fast
         return fast
 

@@ -7,7 +7,13 @@ import time
 import pytest
 
 from firmware_if.dxl_bus import DxlBus
-from firmware_if.errors import BusTimeoutError, CommunicationError, HardwareFault, NotReadyError
+from firmware_if.errors import (
+    BusTimeoutError,
+    CommunicationError,
+    HardwareFault,
+    NotReadyError,
+    PortLost,
+)
 from sim_backend.emulator import EmulatedServo, ServoBus
 
 IDS = (1, 2, 3)
@@ -31,7 +37,7 @@ def test_no_io_before_open():
     bus = DxlBus("/dev/does-not-exist", IDS)
     with pytest.raises(NotReadyError):
         bus.cycle()
-    with pytest.raises(CommunicationError, match="cannot open"):
+    with pytest.raises(PortLost, match="cannot open"):
         bus.open()
 
 

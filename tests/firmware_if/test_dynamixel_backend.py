@@ -8,7 +8,7 @@ import pytest
 
 from firmware_if.backend import StepCommand
 from firmware_if.dynamixel_backend import DynamixelBackend
-from firmware_if.errors import CommunicationError, HandConfigError, HardwareFault, PortLost
+from firmware_if.errors import HandConfigError, HardwareFault, PortLost
 from firmware_if.hand import load_hand
 from service.episode.runner import execute_step
 from service.localization.maps import load_map
