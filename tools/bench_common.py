@@ -13,17 +13,26 @@ import numpy as np
 from tqdm import tqdm
 
 from service.episode.scenario import RunSettings
-from service.episode.simulate import EpisodeReport, simulate
-from service.errors import ConfigError
+from service.episode.simulate import EpisodeReport
+from service.errors import ConfigError, ServiceError
 from service.localization.map_check import check_map
 from service.localization.maps import load_map
 from service.localization.surface import HeightMap
+from tools.executor import (
+    Executor,
+    Failed,
+    InProcess,
+    Outcome,
+    add_executor_options,
+    make_executor,
+)
 from tools.scenario_options import add_scenario_options, settings_from_args
 
 
 def add_bench_options(parser: argparse.ArgumentParser, *, defaults: RunSettings,
-                      runs: int, **scenario: Any) -> None:
-    """The scenario options of `haptic run` plus --runs, --first-seed, --json, --plot."""
+                      runs: int, workers: int | None = None, **scenario: Any) -> None:
+    """The scenario options of `haptic run` plus --runs, --first-seed, --json, --plot and
+    where the episodes run (--workers, default `workers` or one per core; --scheduler)."""
     add_scenario_options(parser, defaults=defaults, **scenario)
     parser.add_argument("--runs", type=int, default=runs,
                         help="number of seeded runs (default: %(default)s)")
@@ -32,6 +41,10 @@ def add_bench_options(parser: argparse.ArgumentParser, *, defaults: RunSettings,
                              "%(default)s)")
     parser.add_argument("--json", type=Path, metavar="FILE", help="write results as JSON")
     parser.add_argument("--plot", type=Path, metavar="FILE.png", help="write a figure")
+    add_executor_options(parser, default_workers=(
+        "the number of cores" if workers is None else
+        f"{workers}, so compute per step is timed without contention"))
+    parser.set_defaults(workers=workers)
 
 
 def check_bench_args(args: argparse.Namespace) -> None:
@@ -42,19 +55,41 @@ def check_bench_args(args: argparse.Namespace) -> None:
             raise ConfigError(f"cannot write {path}: folder {path.parent} does not exist")
 
 
+def collect(executor: Executor, settings: Sequence[RunSettings],
+            maps: dict[str, HeightMap], desc: str) -> list[Outcome]:
+    """Every episode's outcome, in the order of `settings`, with one progress bar."""
+    outcomes: list[Outcome | None] = [None] * len(settings)
+    ok = 0
+    with tqdm(total=len(settings), desc=desc, unit="run", leave=False, disable=None) as bar:
+        for index, outcome in executor.run(settings, maps):
+            outcomes[index] = outcome
+            ok += isinstance(outcome, EpisodeReport) and outcome.score.success
+            bar.update()
+            bar.set_postfix(ok=ok)
+    return outcomes  # type: ignore[return-value]
+
+
 def run_episodes(settings: Sequence[RunSettings], height_map: HeightMap | None = None,
-                 desc: str = "runs") -> list[EpisodeReport]:
-    """Run each episode with a progress bar; the map is loaded once and shared."""
+                 desc: str = "runs", executor: Executor | None = None) -> list[EpisodeReport]:
+    """Run every episode (in this process unless an executor is given); the map is loaded
+    once and shared. An episode that raises stops the benchmark, naming it."""
     if height_map is None and settings:
         height_map = load_map(settings[0].map, settings[0].spacing)
-    reports = []
-    with tqdm(settings, desc=desc, unit="run", leave=False, disable=None) as bar:
-        for s in bar:
-            report = simulate(s, height_map)
-            reports.append(report)
-            bar.set_postfix(steps=len(report.result.steps),
-                            ok=sum(r.score.success for r in reports))
-    return reports
+    maps = {s.map: height_map for s in settings}
+    outcomes = collect(executor or InProcess(), settings, maps, desc)
+    failed = [o for o in outcomes if isinstance(o, Failed)]
+    if failed:
+        raise ServiceError(f"{len(failed)} of {len(outcomes)} episodes raised, e.g. seed "
+                           f"{failed[0].settings.seed} on {failed[0].settings.map}: "
+                           f"{failed[0].error}")
+    return outcomes  # type: ignore[return-value]
+
+
+def executor_for(args: argparse.Namespace) -> Executor:
+    """The executor --workers / --scheduler ask for; says where the episodes run."""
+    executor = make_executor(args.workers, args.scheduler)
+    print(f"episodes run on {executor.describe()}")
+    return executor
 
 
 def run_seeded_scenario(args: argparse.Namespace, *, scenario: str, label: str,
@@ -70,11 +105,12 @@ def run_seeded_scenario(args: argparse.Namespace, *, scenario: str, label: str,
     settings = [settings_from_args(args, seed=args.first_seed + i, **overrides)
                 for i in range(args.runs)]
     title = f"{label} {base.algorithm} + {base.policy}"
-    reports = run_episodes(settings, height_map, desc=title)
+    with executor_for(args) as executor:
+        reports = run_episodes(settings, height_map, desc=title, executor=executor)
     summary = summarize(reports)
     print_table(summary, base)
     write_json(args.json, {"scenario": scenario, "settings": base.to_json(),
-                           "summary": summary, **(extra or {}),
+                           "summary": summary, **executor.info(), **(extra or {}),
                            "runs": [r.to_json() for r in reports]})
     if args.plot:
         from tools.plots import bench_figure

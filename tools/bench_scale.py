@@ -17,11 +17,13 @@ from tools.bench_common import B2_DEFAULTS as DEFAULTS
 from tools.bench_common import (
     add_bench_options,
     check_bench_args,
+    executor_for,
     fmt,
     run_episodes,
     summarize,
     write_json,
 )
+from tools.executor import Executor
 from tools.scenario_options import settings_from_args
 
 COMPARED = ("particles", "elimination")
@@ -30,7 +32,7 @@ TARGET_P99_MS = 5.0
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    add_bench_options(p, defaults=DEFAULTS, runs=20,
+    add_bench_options(p, defaults=DEFAULTS, runs=20, workers=1,
                       algorithm_help=f"default: compare {' and '.join(COMPARED)}")
     p.set_defaults(algorithm=None)  # none given: compare Algorithms IV and III
     p.add_argument("--sizes", default="20,40,80", metavar="UNITS,...",
@@ -58,13 +60,30 @@ def run(args: argparse.Namespace) -> int:
     if args.map != DEFAULTS.map:
         print("note: B3 builds its own bumps maps; --map is ignored (see --sizes, --map-seed)")
     rows = []
+    executor = executor_for(args)
+    if executor.workers > 1:
+        print(f"note: {executor.workers} workers share the machine, so the compute per step "
+              "below includes their contention; B3's reference is --workers 1")
+    with executor:
+        _run_sizes(args, sizes, algorithms, executor, rows)
+    write_json(args.json, {"scenario": "scale", "settings": settings_from_args(
+        args, algorithm=algorithms[0], noise=True).to_json(), "rows": rows, **executor.info()})
+    if args.plot:
+        plot_rows(rows, args.plot)
+        print(f"figure written to {args.plot}")
+    return 0
+
+
+def _run_sizes(args: argparse.Namespace, sizes: list[float], algorithms: list[str],
+               executor: Executor, rows: list[dict]) -> None:
     for size in sizes:
         spec = f"bumps:{size:g}:{args.map_seed}"
         height_map = load_map(spec)
         for name in algorithms:
             settings = [settings_from_args(args, map=spec, algorithm=name, noise=True,
                                            seed=args.first_seed + i) for i in range(args.runs)]
-            reports = run_episodes(settings, height_map, desc=f"B3 {name} {size:g}")
+            reports = run_episodes(settings, height_map, desc=f"B3 {name} {size:g}",
+                                   executor=executor)
             s = summarize(reports)
             rows.append({
                 "algorithm": name, "policy": settings[0].policy, "map": spec,
@@ -78,12 +97,6 @@ def run(args: argparse.Namespace) -> int:
                 "compute_ms_after_first_p99": s["compute_ms_after_first_p99"],
             })
             print_row(rows[-1])
-    write_json(args.json, {"scenario": "scale", "settings": settings_from_args(
-        args, algorithm=algorithms[0], noise=True).to_json(), "rows": rows})
-    if args.plot:
-        plot_rows(rows, args.plot)
-        print(f"figure written to {args.plot}")
-    return 0
 
 
 def print_row(r: dict) -> None:

@@ -12,39 +12,30 @@ from __future__ import annotations
 import argparse
 import dataclasses
 from collections.abc import Sequence
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-from tqdm import tqdm
 
-from service.episode.scenario import RunSettings
-from service.episode.simulate import EpisodeReport, simulate
+from service.episode.simulate import EpisodeReport
 from service.errors import ConfigError
 from service.localization.map_check import check_map
 from service.localization.maps import load_map
-from service.localization.surface import HeightMap
-from tools.bench_common import B2_DEFAULTS, check_bench_args, fmt, percentile, write_json
+from tools.bench_common import (
+    B2_DEFAULTS,
+    check_bench_args,
+    collect,
+    executor_for,
+    fmt,
+    percentile,
+    write_json,
+)
+from tools.executor import Failed, Outcome
 from tools.scenario_options import settings_from_args
 
 TARGET_SUCCESS = 0.9
 """Issue 9: at least 90 % within 60 steps on every surface one feature disambiguates."""
 TARGET_P99_MS = 5.0
-
-
-@dataclass(frozen=True)
-class Failed:
-    """An episode that raised instead of finishing."""
-
-    settings: RunSettings
-    error: str
-
-    def to_json(self) -> dict[str, Any]:
-        return {"settings": self.settings.to_json(), "error": self.error}
-
-
-Outcome = EpisodeReport | Failed
 
 
 def add_surface_options(p: argparse.ArgumentParser, *, families: str, seeds: str,
@@ -78,22 +69,6 @@ def families_from(text: str, allowed: Sequence[str]) -> list[str]:
     if not families or unknown:
         raise ConfigError(f"--families takes names from {', '.join(allowed)}, got '{text}'")
     return families
-
-
-def run_outcomes(settings: Sequence[RunSettings], maps: dict[str, HeightMap],
-                 desc: str) -> list[Outcome]:
-    """Run every episode on its map, keeping a raising episode as `Failed`."""
-    outcomes: list[Outcome] = []
-    with tqdm(settings, desc=desc, unit="run", leave=False, disable=None) as bar:
-        for s in bar:
-            try:
-                outcomes.append(simulate(s, maps[s.map]))
-            except Exception as exc:  # noqa: BLE001 - a benchmark reports a crash and goes on
-                first = str(exc).splitlines()[0] if str(exc) else ""
-                outcomes.append(Failed(s, f"{type(exc).__name__}: {first}"))
-            bar.set_postfix(ok=sum(isinstance(o, EpisodeReport) and o.score.success
-                                   for o in outcomes))
-    return outcomes
 
 
 def surface_row(name: str, outcomes: Sequence[Outcome]) -> dict[str, Any]:
@@ -163,7 +138,8 @@ def run_surfaces(args: argparse.Namespace, *, scenario: str, label: str,
                 for spec in specs for i in range(args.runs)]
     print(f"{label}: {base.algorithm} + {base.policy}, B2's noise, {args.runs} runs on each "
           f"of {len(specs)} surfaces, at most {base.max_steps} steps")
-    outcomes = run_outcomes(settings, maps, desc=label)
+    with executor_for(args) as executor:
+        outcomes = collect(executor, settings, maps, desc=label)
     by_map = {spec: [o for o in outcomes if o.settings.map == spec] for spec in specs}
     print(HEADER)
     rows = []
@@ -180,6 +156,7 @@ def run_surfaces(args: argparse.Namespace, *, scenario: str, label: str,
     _print_verdicts(rows, total)
     write_json(args.json, {"scenario": scenario, "settings": base.to_json(),
                            "surfaces": rows, "families": family_rows, "total": total,
+                           **executor.info(),
                            "targets": {"wrong_declarations": 0,
                                        "success_where_one_feature_decides": TARGET_SUCCESS,
                                        "compute_ms_after_first_p99": TARGET_P99_MS},

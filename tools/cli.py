@@ -45,6 +45,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "keygen": ("tools.stream_cli:register_keygen",
                "write a CurveZMQ key pair (NAME.key public, NAME.key_secret secret)"),
     "map": ("tools.map_cli", "list, check or build height maps"),
+    "campaign": ("tools.campaign_cli", "run a grid of benchmark scenarios from a TOML file "
+                                       "(resumable; a local pool or a Dask cluster)"),
     "emulate": ("tools.emulate_cli", "emulate a Dynamixel hand on a pseudo-terminal"),
     "bus": ("tools.bus_cli", "scan, read or check a Dynamixel servo bus"),
 }

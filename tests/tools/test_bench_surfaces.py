@@ -6,10 +6,10 @@ import json
 import pytest
 
 from service.episode.scenario import Score
-from tools import bench_surfaces
+from tools import executor
 from tools.cli import main
 
-SHORT = ["--runs", "2", "--map-seeds", "0", "--max-steps", "4"]
+SHORT = ["--runs", "2", "--map-seeds", "0", "--max-steps", "4", "--workers", "1"]
 
 
 def test_objects_reports_every_surface_and_family(tmp_path, capsys):
@@ -28,14 +28,14 @@ def test_objects_reports_every_surface_and_family(tmp_path, capsys):
 
 
 def test_a_raising_episode_is_an_error_and_the_rest_still_run(tmp_path, monkeypatch, capsys):
-    real = bench_surfaces.simulate
+    real = executor.simulate
 
     def flaky(settings, height_map):
         if settings.seed == 1:
             raise ValueError("boom\nsecond line")
         return real(settings, height_map)
 
-    monkeypatch.setattr(bench_surfaces, "simulate", flaky)
+    monkeypatch.setattr(executor, "simulate", flaky)
     out = tmp_path / "p.json"
     main(["bench", "profile", *SHORT, "--families", "smooth", "--algorithm", "elimination",
           "--policy", "paper", "--json", str(out)])
@@ -47,7 +47,7 @@ def test_a_raising_episode_is_an_error_and_the_rest_still_run(tmp_path, monkeypa
 
 
 def test_wrong_declarations_stand_out_and_fail_the_benchmark(tmp_path, monkeypatch, capsys):
-    real = bench_surfaces.simulate
+    real = executor.simulate
 
     def wrong_on_seed_0(settings, height_map):
         report = real(settings, height_map)
@@ -55,7 +55,7 @@ def test_wrong_declarations_stand_out_and_fail_the_benchmark(tmp_path, monkeypat
             report = dataclasses.replace(report, score=Score(0.03, 0.1745, False, True))
         return report
 
-    monkeypatch.setattr(bench_surfaces, "simulate", wrong_on_seed_0)
+    monkeypatch.setattr(executor, "simulate", wrong_on_seed_0)
     out = tmp_path / "w.json"
     assert main(["bench", "objects", *SHORT, "--families", "shell", "--json", str(out)]) == 1
     text = capsys.readouterr().out

@@ -1,0 +1,131 @@
+"""`haptic campaign`: a grid of scenarios, resumable, on a local pool or a Dask cluster."""
+
+import csv
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+
+from tools import campaign as campaign_module
+from tools.cli import main
+
+CAMPAIGN = """
+name = "tiny"
+runs = {runs}
+[fixed]
+noise = true
+max_steps = 4
+[grid]
+algorithm = ["particles", "elimination"]
+map = ["bumps:20:1"]
+"""
+TIMING_COLUMNS = ("compute_first_ms", "compute_after_first_median_ms",
+                  "compute_after_first_p99_ms", "policy_median_ms", "workers")
+
+
+def write(tmp_path, runs=2, name="c.toml"):
+    path = tmp_path / name
+    path.write_text(CAMPAIGN.format(runs=runs))
+    return path
+
+
+def episodes(folder):
+    """The episode table without timings (and who ran it)."""
+    with (folder / "episodes.csv").open() as f:
+        return [{k: v for k, v in row.items() if k not in TIMING_COLUMNS}
+                for row in csv.DictReader(f)]
+
+
+def stored(folder):
+    return [json.loads(line) for line in (folder / "episodes.jsonl").read_text().splitlines()]
+
+
+def test_a_campaign_writes_a_table_a_summary_and_figures(tmp_path, capsys):
+    assert main(["campaign", str(write(tmp_path)), "--workers", "1"]) == 0
+    out = tmp_path / "c-results"
+    rows = episodes(out)
+    assert len(rows) == 4 and {r["algorithm"] for r in rows} == {"particles", "elimination"}
+    assert {r["seed"] for r in rows} == {"0", "1"}
+    summary = (out / "summary.md").read_text()
+    assert "| algorithm=particles, map=bumps:20:1 | 2 |" in summary and "1 worker" in summary
+    assert len(list((out / "figures").glob("*.png"))) == 2
+    assert main(["campaign", str(write(tmp_path)), "--workers", "1"]) == 0
+    assert "4 already done, 0 to run" in capsys.readouterr().out
+
+
+def test_ctrl_c_keeps_finished_episodes_and_the_rerun_runs_only_the_rest(
+        tmp_path, monkeypatch, capsys):
+    real_append = campaign_module.Store.append
+    calls = []
+
+    def append_then_interrupt(self, record):
+        real_append(self, record)
+        calls.append(record)
+        if len(calls) == 2:
+            raise KeyboardInterrupt
+
+    monkeypatch.setattr(campaign_module.Store, "append", append_then_interrupt)
+    path = write(tmp_path, runs=2)
+    assert main(["campaign", str(path), "--workers", "1"]) == 130
+    out = tmp_path / "c-results"
+    assert len(stored(out)) == 2 and "interrupted" in (out / "summary.md").read_text()
+    monkeypatch.undo()
+    capsys.readouterr()
+    assert main(["campaign", str(path), "--workers", "1"]) == 0
+    assert "2 already done, 2 to run" in capsys.readouterr().out
+    assert len(stored(out)) == 4
+
+
+def test_a_killed_campaign_resumes_without_rerunning_finished_episodes(tmp_path, capsys):
+    path = write(tmp_path, runs=4)
+    store = tmp_path / "c-results" / "episodes.jsonl"
+    proc = subprocess.Popen([sys.executable, "-m", "tools.cli", "campaign", str(path),
+                             "--workers", "1"], stdout=subprocess.DEVNULL,
+                            stderr=subprocess.DEVNULL, env={**os.environ, "MPLBACKEND": "Agg"})
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline and proc.poll() is None:  # wait for 3 episodes
+        if store.exists() and store.read_text().count("\n") >= 3:
+            break
+        time.sleep(0.05)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    before = stored(tmp_path / "c-results")
+    assert 3 <= len(before) < 8, "the campaign finished before it could be killed"
+    assert main(["campaign", str(path), "--workers", "1"]) == 0
+    assert f"{len(before)} already done, {8 - len(before)} to run" in capsys.readouterr().out
+    after = stored(tmp_path / "c-results")
+    assert after[:len(before)] == before and len(after) == 8
+    assert len({(r["scenario"], r["seed"]) for r in after}) == 8
+
+
+def test_a_dask_cluster_gives_the_local_pools_results(tmp_path, capsys):
+    distributed = pytest.importorskip("distributed")
+    path = write(tmp_path, runs=2)
+    assert main(["campaign", str(path), "--workers", "2", "--out",
+                 str(tmp_path / "pool")]) == 0
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
+                                  host="127.0.0.1", dashboard_address=None) as cluster:
+        assert main(["campaign", str(path), "--scheduler", cluster.scheduler_address,
+                     "--out", str(tmp_path / "dask")]) == 0
+    assert "Dask cluster at tcp://127.0.0.1" in capsys.readouterr().out
+    assert episodes(tmp_path / "dask") == episodes(tmp_path / "pool")
+
+
+@pytest.mark.parametrize("text, message", [
+    ("runs = 2\n[grid]\nalgoritm = ['grid']\n", "did you mean 'algorithm'"),
+    ("runs = 2\n[fixed]\nnoise = 'yes'\n", "noise must be true or false"),
+    ("runs = 2\n[grid]\nradius = 0.008\n", "must be a non-empty list"),
+    ("runs = 0\n", "runs must be a whole number >= 1"),
+    ("runs = 2\ncolour = 1\n", "unknown key 'colour'"),
+    ("runs = [\n", "not valid TOML"),
+])
+def test_bad_campaign_files_are_one_line_errors(tmp_path, capsys, text, message):
+    path = tmp_path / "bad.toml"
+    path.write_text(text)
+    assert main(["campaign", str(path)]) == 2
+    err = capsys.readouterr().err
+    assert message in err and err.count("\n") == 1

@@ -1,0 +1,100 @@
+"""`haptic campaign FILE.toml`: run a grid of scenarios on an executor, resumably.
+
+One progress bar covers every episode; each finished episode is stored at once, so Ctrl-C
+(or a kill) loses only the episodes still running, and running the same command again
+finishes the rest. Reports are rebuilt from the store at the end, or on Ctrl-C.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+from pathlib import Path
+
+from tools.executor import add_executor_options
+
+
+def register(p: argparse.ArgumentParser) -> None:
+    from tools.campaign import __doc__ as format_doc
+
+    p.description = ("Run a grid of benchmark scenarios from a TOML file: one CSV row per "
+                     "episode (episodes.csv), a figure per scenario (figures/), a Markdown "
+                     "summary (summary.md). Interrupted, it resumes where it stopped.\n\n"
+                     "The file:\n" + format_doc.split("\n\n")[1] + "\n")
+    p.add_argument("campaign", type=Path, metavar="FILE.toml", help="the campaign to run")
+    p.add_argument("--out", type=Path, metavar="DIR",
+                   help="where results go (default: the file's `out`, or FILE-results "
+                        "beside it)")
+    p.add_argument("--fresh", action="store_true",
+                   help="forget finished episodes and run everything again")
+    add_executor_options(p)
+    p.set_defaults(handler=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from tqdm import tqdm
+
+    from service.errors import ConfigError
+    from service.localization.map_check import check_map
+    from service.localization.maps import load_map
+    from tools.campaign import Store, load_campaign
+    from tools.executor import Failed, make_executor
+
+    campaign = load_campaign(args.campaign, args.out)
+    if campaign.out.exists() and not campaign.out.is_dir():
+        raise ConfigError(f"--out {campaign.out} is a file, not a folder")
+    campaign.out.mkdir(parents=True, exist_ok=True)
+    (campaign.out / "campaign.toml").write_text(campaign.source)
+    store = Store(campaign.out)
+    if args.fresh and store.path.exists():
+        store.path.unlink()
+    done = store.load()
+    todo = [(sc, seed) for sc in campaign.scenarios for seed in campaign.seeds
+            if (sc.key, seed) not in done]
+    maps = {}
+    for sc in campaign.scenarios:
+        key = sc.settings.map
+        if key not in maps:
+            maps[key] = load_map(key, sc.settings.spacing)
+            for warning in check_map(maps[key], sc.settings.radius, sc.settings.step).warnings:
+                print(f"warning: {key}: {warning}")
+    executor = make_executor(args.workers, args.scheduler)
+    print(f"campaign {campaign.name}: {len(campaign.scenarios)} scenarios x {campaign.runs} "
+          f"runs = {campaign.episodes} episodes; {campaign.episodes - len(todo)} already "
+          f"done, {len(todo)} to run on {executor.describe()}; results in {campaign.out}")
+    settings = [dataclasses.replace(sc.settings, seed=seed) for sc, seed in todo]
+    finished = False
+    with executor, tqdm(total=campaign.episodes, initial=campaign.episodes - len(todo),
+                        desc=campaign.name, unit="episode", disable=None) as bar:
+        try:
+            for index, outcome in executor.run(settings, maps) if settings else ():
+                scenario, seed = todo[index]
+                failed = isinstance(outcome, Failed)
+                store.append({"scenario": scenario.key, "name": scenario.name, "seed": seed,
+                              "episode": None if failed else outcome.to_json(),
+                              "error": outcome.error if failed else None,
+                              "executor": executor.describe(), "workers": executor.workers})
+                bar.update()
+            finished = True
+        finally:
+            bar.close()
+            _report(campaign, store, complete=finished)
+    return 0
+
+
+def _report(campaign, store, complete: bool) -> None:
+    from tools.campaign_report import rows_of, write_csv, write_figures, write_summary
+
+    records = store.load()
+    grouped = rows_of(campaign, records)
+    executors = sorted({r.get("executor", "?") for r in records.values()})
+    write_csv(campaign.out / "episodes.csv", campaign, grouped)
+    write_summary(campaign.out / "summary.md", campaign, grouped, executors, complete)
+    figures = write_figures(campaign.out / "figures", grouped)
+    done = sum(len(rows) for _, rows in grouped)
+    state = "done" if complete else "interrupted: run the same command again to finish"
+    print(f"{done} of {campaign.episodes} episodes finished ({state}); "
+          f"{campaign.out / 'episodes.csv'}, {campaign.out / 'summary.md'}, "
+          f"{len(figures)} figures in {campaign.out / 'figures'}")
+    if complete:
+        print((campaign.out / "summary.md").read_text())

@@ -1,0 +1,250 @@
+"""Where benchmark episodes run: here, on a local pool of processes, or on a Dask cluster.
+
+An episode is a pure function of its settings (seed included) and its map, so it may run
+in any process and in any order: results come back as they finish and are put back in
+order, and they are the same, bit for bit apart from timings, for any number of workers
+(`tests/tools/test_executor.py`). Compute per step is timed inside each episode; when
+several workers share a machine they contend for its cores, so every report says how many
+did (`Executor.describe`).
+
+Maps travel once per worker (the pool's initializer, Dask's `scatter`), not once per
+episode; a finished episode travels back without its map and is given it again here.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import signal
+from abc import ABC, abstractmethod
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+from service.episode.scenario import RunSettings
+from service.episode.simulate import EpisodeReport, simulate
+from service.errors import ConfigError
+from service.localization.surface import HeightMap
+
+CONNECT_TIMEOUT_S = 10.0
+"""How long to try reaching a Dask scheduler."""
+PRELOAD = ["service.episode.simulate", "service.localization.kernels",
+           "service.localization.localizers.particles", "tools.executor",
+           "tools.executor_warm"]
+"""Imported once by the pool's fork server, so each worker starts warm."""
+
+
+@dataclass(frozen=True)
+class Failed:
+    """An episode that raised instead of finishing (a benchmark reports it and goes on)."""
+
+    settings: RunSettings
+    error: str
+
+    def to_json(self) -> dict[str, Any]:
+        return {"settings": self.settings.to_json(), "error": self.error}
+
+
+Outcome = EpisodeReport | Failed
+
+
+def cores() -> int:
+    """Cores this process may run on."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        return os.cpu_count() or 1
+
+
+def run_one(settings: RunSettings, maps: dict[str, HeightMap]) -> Outcome:
+    """One episode, in whichever process runs it; an exception becomes `Failed`."""
+    _one_thread()
+    try:
+        return simulate(settings, maps[settings.map])
+    except Exception as exc:  # noqa: BLE001 - reported per episode, the rest go on
+        first = str(exc).splitlines()[0] if str(exc) else ""
+        return Failed(settings, f"{type(exc).__name__}: {first}")
+
+
+def _portable(outcome: Outcome) -> Outcome:
+    """What crosses a process boundary: a report without its map (given back on arrival)."""
+    if isinstance(outcome, EpisodeReport):
+        return dataclasses.replace(outcome, height_map=None, snapshots={})  # type: ignore
+    return outcome
+
+
+def _arrived(outcome: Outcome, maps: dict[str, HeightMap]) -> Outcome:
+    if isinstance(outcome, EpisodeReport):
+        return dataclasses.replace(outcome, height_map=maps[outcome.settings.map])
+    return outcome
+
+
+_threads_limited = False
+
+
+def _one_thread() -> None:
+    """One BLAS thread per worker, as in `haptic` itself (and the same arithmetic)."""
+    global _threads_limited
+    if not _threads_limited:
+        from threadpoolctl import threadpool_limits
+
+        threadpool_limits(limits=1)
+        _threads_limited = True
+
+
+class Executor(ABC):
+    """Runs episodes; yields (index, outcome) as each finishes."""
+
+    workers: int
+
+    @abstractmethod
+    def describe(self) -> str:
+        """Where the episodes ran and who shared the machine, for reports."""
+
+    @abstractmethod
+    def run(self, settings: Sequence[RunSettings],
+            maps: dict[str, HeightMap]) -> Iterator[tuple[int, Outcome]]: ...
+
+    def info(self) -> dict[str, Any]:
+        return {"executor": self.describe(), "workers": self.workers, "cores": cores()}
+
+    @abstractmethod
+    def close(self) -> None:
+        """Release workers and connections."""
+
+    def __enter__(self) -> Executor:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+class InProcess(Executor):
+    """Episodes one after another in this process: the timing reference (one worker)."""
+
+    workers = 1
+
+    def describe(self) -> str:
+        return f"1 worker (this process) on a machine with {cores()} cores"
+
+    def run(self, settings, maps):
+        for i, s in enumerate(settings):
+            yield i, run_one(s, maps)
+
+    def close(self) -> None:
+        """Nothing to release."""
+
+
+_pool_maps: dict[str, HeightMap] = {}
+
+
+def _pool_start(maps: dict[str, HeightMap]) -> None:
+    """A pool worker's setup: keep the maps; Ctrl-C is the parent's to handle."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    _pool_maps.update(maps)
+    _one_thread()
+
+
+def _pool_task(item: tuple[int, RunSettings]) -> tuple[int, Outcome]:
+    index, settings = item
+    return index, _portable(run_one(settings, _pool_maps))
+
+
+class LocalPool(Executor):
+    """A pool of `workers` processes on this machine, forked from a warm fork server."""
+
+    def __init__(self, workers: int) -> None:
+        import multiprocessing
+
+        self.workers = workers
+        self._context = multiprocessing.get_context("forkserver")
+        self._context.set_forkserver_preload(PRELOAD)
+        self._pool: Any = None
+
+    def describe(self) -> str:
+        return (f"a local pool of {self.workers} worker processes sharing a machine with "
+                f"{cores()} cores")
+
+    def run(self, settings, maps):
+        self._pool = self._context.Pool(self.workers, initializer=_pool_start,
+                                        initargs=(maps,))
+        try:
+            for index, outcome in self._pool.imap_unordered(_pool_task,
+                                                            list(enumerate(settings))):
+                yield index, _arrived(outcome, maps)
+        finally:
+            self.close()
+
+    def close(self) -> None:
+        if self._pool is not None:
+            self._pool.terminate()  # an interrupted run leaves nothing running
+            self._pool.join()
+            self._pool = None
+
+
+def _dask_task(settings: RunSettings, maps: dict[str, HeightMap]) -> Outcome:
+    return _portable(run_one(settings, maps))
+
+
+class DaskCluster(Executor):
+    """An existing Dask distributed cluster, reached at its scheduler's address."""
+
+    def __init__(self, address: str) -> None:
+        from distributed import Client
+
+        try:
+            self._client = Client(address, timeout=f"{CONNECT_TIMEOUT_S}s",
+                                  set_as_default=False)
+        except (OSError, TimeoutError, ValueError) as exc:
+            raise ConfigError(f"cannot reach the Dask scheduler at {address}: "
+                              f"{str(exc).splitlines()[0] if str(exc) else exc!r}; start "
+                              "one (`dask scheduler`, `dask worker ADDRESS`) or drop "
+                              "--scheduler for the local pool") from None
+        self.address = address
+        self.workers = max(1, len(self._client.scheduler_info().get("workers", {})))
+        self._futures: list[Any] = []
+
+    def describe(self) -> str:
+        return f"the Dask cluster at {self.address} ({self.workers} workers)"
+
+    def run(self, settings, maps):
+        from distributed import as_completed
+
+        shared = self._client.scatter(maps, broadcast=True)
+        index = {}
+        for i, s in enumerate(settings):
+            future = self._client.submit(_dask_task, s, shared, pure=False)
+            index[future.key] = i
+            self._futures.append(future)
+        try:
+            for future in as_completed(self._futures, loop=self._client.loop):
+                yield index[future.key], _arrived(future.result(), maps)
+        finally:
+            self._client.cancel(self._futures)
+            self._futures = []
+
+    def close(self) -> None:
+        self._client.close()
+
+
+def make_executor(workers: int | None, scheduler: str | None) -> Executor:
+    """The executor the options ask for: Dask at `scheduler`, else a pool of `workers`
+    processes (default: one per core), or this process alone for one worker."""
+    if scheduler:
+        if workers is not None:
+            raise ConfigError("--workers applies to the local pool; a Dask cluster has its "
+                              "own workers")
+        return DaskCluster(scheduler)
+    n = cores() if workers is None else workers
+    if n < 1:
+        raise ConfigError(f"--workers must be at least 1, got {n}")
+    return InProcess() if n == 1 else LocalPool(n)
+
+
+def add_executor_options(parser, *, default_workers: str = "the number of cores") -> None:
+    g = parser.add_argument_group("where episodes run")
+    g.add_argument("--workers", type=int, default=None, metavar="N",
+                   help=f"local worker processes (default: {default_workers}); results are "
+                        "the same for any N, timings are shared between them")
+    g.add_argument("--scheduler", metavar="tcp://HOST:PORT",
+                   help="run the episodes on an existing Dask distributed cluster instead")
