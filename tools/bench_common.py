@@ -95,8 +95,14 @@ def executor_for(args: argparse.Namespace) -> Executor:
 def run_seeded_scenario(args: argparse.Namespace, *, scenario: str, label: str,
                         print_table: Callable[[dict[str, Any], RunSettings], None],
                         extra: dict[str, Any] | None = None,
+                        more_summary: Callable[[list[EpisodeReport]], dict[str, Any]]
+                        | None = None,
+                        figure: Callable[..., None] | None = None,
                         **overrides: Any) -> list[EpisodeReport]:
-    """The body of a seeded scenario: consecutive seeds, summary table, JSON, figure."""
+    """The body of a seeded scenario: consecutive seeds, summary table, JSON, figure.
+
+    `more_summary(reports)` adds the scenario's own figures to the summary; `figure(reports,
+    summary, path, title)` draws its plot (default: `plots.bench_figure`)."""
     check_bench_args(args)
     base = settings_from_args(args, **overrides)
     height_map = load_map(base.map, base.spacing)
@@ -108,14 +114,16 @@ def run_seeded_scenario(args: argparse.Namespace, *, scenario: str, label: str,
     with executor_for(args) as executor:
         reports = run_episodes(settings, height_map, desc=title, executor=executor)
     summary = summarize(reports)
+    if more_summary is not None:
+        summary.update(more_summary(reports))
     print_table(summary, base)
     write_json(args.json, {"scenario": scenario, "settings": base.to_json(),
                            "summary": summary, **executor.info(), **(extra or {}),
                            "runs": [r.to_json() for r in reports]})
     if args.plot:
-        from tools.plots import bench_figure
-
-        bench_figure(reports, args.plot, title=title)
+        if figure is None:
+            from tools.plots import bench_figure as figure
+        figure(reports, summary, args.plot, title)
         print(f"figure written to {args.plot}")
     return reports
 
@@ -132,8 +140,6 @@ def percentile(values: Iterable[float], q: float) -> float | None:
 def summarize(reports: Sequence[EpisodeReport]) -> dict[str, Any]:
     """The summary every scenario's JSON carries (keys fixed by the issues)."""
     steps = np.array([len(r.result.steps) for r in reports], dtype=float)
-    first_drop = [1 - r.result.steps[0].candidates / r.result.initial_candidates
-                  for r in reports if r.result.steps and r.result.initial_candidates]
     first_ms = [r.result.steps[0].compute_ms for r in reports if r.result.steps]
     all_ms = [s.compute_ms for r in reports for s in r.result.steps]
     later_ms = [s.compute_ms for r in reports for s in r.result.steps[1:]]
@@ -152,8 +158,6 @@ def summarize(reports: Sequence[EpisodeReport]) -> dict[str, Any]:
         "steps_max": int(steps.max()),
         "true_pose_eliminated_runs": (None if all(e is None for e in eliminated)
                                       else int(sum(bool(e) for e in eliminated))),
-        "first_step_elimination_mean": float(np.mean(first_drop)) if first_drop else None,
-        "first_step_elimination_max": float(np.max(first_drop)) if first_drop else None,
         "compute_ms_first_median": percentile(first_ms, 50),
         "compute_ms_median": percentile(all_ms, 50),
         "compute_ms_p99": percentile(all_ms, 99),

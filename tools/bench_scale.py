@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import argparse
 
+import numpy as np
+
 from service.errors import ConfigError
 from service.localization.maps import load_map
 from service.registry import LOCALIZERS
@@ -108,29 +110,44 @@ def print_row(r: dict) -> None:
 
 
 def plot_rows(rows: list[dict], path) -> None:
-    """Compute per step (after the first) against map size, one line per algorithm."""
-    import matplotlib
+    """Per map size and algorithm: compute per step after the first, and the outcomes."""
+    from matplotlib.figure import Figure
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    from matplotlib.ticker import LogLocator, NullFormatter, ScalarFormatter
+    from tools.plots import plain_log_ticks
 
-    fig, ax = plt.subplots(figsize=(8, 4))
-    for name in dict.fromkeys(r["algorithm"] for r in rows):
+    fig = Figure(figsize=(13, 4.4))
+    ax, ok_ax = fig.subplots(1, 2, width_ratios=(1.25, 1))
+    names = list(dict.fromkeys(r["algorithm"] for r in rows))
+    colour = {name: f"C{i}" for i, name in enumerate(names)}
+    for name in names:
         mine = [r for r in rows if r["algorithm"] == name]
         units = [r["map_units"] for r in mine]
         for key, style in (("compute_ms_after_first_median", "-o"),
                            ("compute_ms_after_first_p99", "--^")):
-            ax.plot(units, [r[key] or 0 for r in mine], style,
+            ax.plot(units, [r[key] or 0 for r in mine], style, color=colour[name],
                     label=f"{name} {key.rsplit('_', 1)[-1]}")
     ax.axhline(TARGET_P99_MS, color="grey", linewidth=0.8, linestyle=":",
                label=f"target: Algorithm IV p99 <= {TARGET_P99_MS:g} ms")
-    ax.set(xlabel="map size (units)", ylabel="ms per step after the first", yscale="log",
-           title="B3: compute per step as the map grows")
-    ax.yaxis.set_major_locator(LogLocator(subs=(1.0, 2.0, 5.0)))  # 0.5, 1, 2, 5 ms
-    ax.yaxis.set_major_formatter(ScalarFormatter())
-    ax.yaxis.set_minor_formatter(NullFormatter())
-    ax.legend(fontsize=7, loc="center left", bbox_to_anchor=(1.01, 0.5))
+    ax.set(xlabel="map size (units of 10 mm)", ylabel="ms per step after the first",
+           yscale="log", title="compute per step as the map grows")
+    plain_log_ticks(ax.yaxis)
+    ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.0, 1.0))
+    sizes = sorted({r["map_units"] for r in rows})
+    width = 0.8 / len(names)
+    for i, name in enumerate(names):
+        mine = {r["map_units"]: r for r in rows if r["algorithm"] == name}
+        x = np.arange(len(sizes)) + (i - (len(names) - 1) / 2) * width
+        ok = [100 * mine[u]["successes"] / mine[u]["runs"] if u in mine else 0 for u in sizes]
+        wrong = [100 * mine[u]["wrong_declarations"] / mine[u]["runs"] if u in mine else 0
+                 for u in sizes]
+        bars = ok_ax.bar(x, ok, width, color=colour[name], label=f"{name}: localized")
+        ok_ax.bar(x, wrong, width, bottom=ok, color="tab:red",
+                  label="wrong pose declared" if i == 0 else None)
+        ok_ax.bar_label(bars, labels=[f"{v:.0f}%" for v in ok], fontsize=7)
+    ok_ax.set_xticks(np.arange(len(sizes)), [f"{u:g}" for u in sizes])
+    ok_ax.set(xlabel="map size (units of 10 mm)", ylabel="% of runs", ylim=(0, 112),
+              title="success (the rest: not yet localized)")
+    ok_ax.legend(fontsize=7, loc="lower left")
+    fig.suptitle(f"B3: bumps maps, {rows[0]['runs']} runs per size and algorithm")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
-    plt.close(fig)

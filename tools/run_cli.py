@@ -19,8 +19,11 @@ from service.localization.policies.base import MOVE_NAMES
 from service.registry import BACKENDS
 from tools.hand_cli import add_object_options, run_hand
 from tools.scenario_options import add_scenario_options, settings_from_args
+from tools.words import belief_text, pose_text, why_not_converged
 
 FIGURE_STEPS = (0, 5, 10)
+"""Steps whose hypotheses `--plot` shows, besides the last (tools/plots.py)."""
+
 
 
 def register(p: argparse.ArgumentParser) -> None:
@@ -68,7 +71,7 @@ def run(args: argparse.Namespace) -> int:
           f"{height_map.extent[0] * 1e3:.0f} x {height_map.extent[1] * 1e3:.0f} mm; "
           f"finger radius {settings.radius * 1e3:g} mm, step {settings.step * 1e3:g} mm; "
           f"{settings.algorithm} + {settings.policy}{' with noise' if settings.noise else ''}")
-    report = simulate(settings, height_map, on_step=None if args.quiet else _print_step,
+    report = simulate(settings, height_map, on_step=None if args.quiet else StepPrinter(),
                       snapshot_steps=FIGURE_STEPS if args.plot else (),
                       backend_factory=backend_factory)
     _print_summary(report)
@@ -90,27 +93,34 @@ def _check_outputs(args: argparse.Namespace) -> None:
             raise ConfigError(f"cannot write {path}: folder {path.parent} does not exist")
 
 
-def _print_step(step: StepRecord) -> None:
-    move = MOVE_NAMES[step.move] + (" (blocked)" if step.blocked else "")
-    print(f"step {step.index:3d}  move {move:<13} dz {step.measurement[2] * 1e3:+8.3f} mm  "
-          f"candidates {step.candidates:5d}  {step.compute_ms:6.2f} ms", flush=True)
+class StepPrinter:
+    """One line per step: the move, this step's height change, how sure the localizer is."""
 
+    def __init__(self) -> None:
+        self.z = 0.0
+        print("dz: this step's height change (z: relative to the start). spread: sd of the "
+              "estimate's position / heading\n(over all hypotheses until one pose fits the "
+              "readings). leading mode: the probability of the best pose.")
 
-def _pose_text(pose: tuple[float, float, float]) -> str:
-    x, y, heading = pose
-    return (f"x {x * 1e3:7.2f} mm  y {y * 1e3:7.2f} mm  "
-            f"heading {round(math.degrees(heading), 1) % 360:6.1f} deg")  # never "360.0"
+    def __call__(self, step: StepRecord) -> None:
+        move = MOVE_NAMES[step.move] + (" (blocked)" if step.blocked else "")
+        z = step.measurement[2]
+        dz, self.z = z - self.z, z
+        belief = belief_text(step.position_sd, step.heading_sd, step.mode_mass)
+        print(f"step {step.index:3d}  move {move:<12} dz {dz * 1e3:+7.3f} mm "
+              f"(z {z * 1e3:+7.3f} mm)  {belief:<44} {step.compute_ms:6.2f} ms", flush=True)
 
 
 def _print_summary(report: EpisodeReport) -> None:
     est = report.result.estimate
-    print(f"truth     {_pose_text(report.truth.as_tuple())}")
-    if est is None or est.pose is None:
-        print("estimate  none: every candidate was eliminated")
-    else:
-        state = "converged" if est.converged else "not converged"
-        print(f"estimate  {_pose_text(est.pose)}  ({est.candidates} candidates, {state})")
     steps = len(report.result.steps)
+    print(f"truth     {pose_text(report.truth.as_tuple())}")
+    if est is None or est.pose is None:
+        print("estimate  none: every hypothesis was eliminated")
+    else:
+        belief = belief_text(est.position_sd, est.heading_sd, est.mode_mass)
+        state = "converged" if est.converged else "not converged"
+        print(f"estimate  {pose_text(est.pose)}  ({belief}; {state})")
     s = report.score
     if s.success:
         print(f"result    localized in {steps} steps: position error "
@@ -120,6 +130,15 @@ def _print_summary(report: EpisodeReport) -> None:
         print(f"result    WRONG: converged after {steps} steps on a pose "
               f"{s.position_error * 1e3:.1f} mm / {math.degrees(s.heading_error):.1f} deg away")
     else:
-        print(f"result    not localized after {steps} steps")
+        why = why_not_converged(
+            candidates=0 if est is None else est.candidates, steps=steps,
+            max_steps=report.settings.max_steps, pose=None if est is None else est.pose,
+            mode_mass=None if est is None else est.mode_mass,
+            runner_up=None if est is None else est.runner_up,
+            runner_up_mass=None if est is None else est.runner_up_mass)
+        print(f"result    not localized after {steps} steps: {why}")
+        if est is not None and est.pose is not None and s.position_error is not None:
+            print(f"          (the leading pose is {s.position_error * 1e3:.1f} mm / "
+                  f"{math.degrees(s.heading_error):.1f} deg from the truth)")
     if report.true_pose_eliminated:
         print("warning   the true pose was eliminated")

@@ -79,7 +79,7 @@ def cmd_view(args: argparse.Namespace) -> int:
     with subscriber_from(args, ["state", "estimate", "cloud"]) as sub:
         if args.png:
             end = deadline(args.duration)
-            while time.monotonic() < end and not view.converged:
+            while time.monotonic() < end and not view.complete:
                 msg = sub.recv(min(0.2, max(0.0, end - time.monotonic())))
                 if msg is not None:
                     view.update(msg)
@@ -88,8 +88,9 @@ def cmd_view(args: argparse.Namespace) -> int:
             return 0
         import matplotlib.pyplot as plt
 
-        fig, ax = plt.subplots(figsize=(7, 6.5))
+        fig, ax = plt.subplots(figsize=(7.6, 6.5))
         plt.ion()
+        colour_bar = None
         try:
             while plt.fignum_exists(fig.number):
                 end = time.monotonic() + 0.2
@@ -97,7 +98,9 @@ def cmd_view(args: argparse.Namespace) -> int:
                     msg = sub.recv(left)
                     if msg is not None:
                         view.update(msg)
-                draw(ax, height_map, view)
+                filled = draw(ax, height_map, view)
+                if colour_bar is None and filled is not None:
+                    colour_bar = fig.colorbar(filled, ax=ax, label="height (mm)")
                 plt.pause(0.01)
         except KeyboardInterrupt:
             pass

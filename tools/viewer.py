@@ -1,10 +1,10 @@
-"""A live picture of localization, after the paper's Figure 4: surface, cloud, estimate, path.
+"""A live picture of localization, drawn as `haptic run --plot` draws an episode: the map in
+millimetres with a height colour bar, the hypotheses where each would put the finger now
+(darker = likelier), the estimate and the finger's path under it.
 
-The surface is drawn as filled contours in the map frame; the hypothesis cloud (start-pose
-candidates) as dots; the estimated start pose as a star with a heading arrow; the finger's
-path as the measured displacements carried onto the map by the estimated pose. `ViewModel`
-folds stream messages into what is drawn, so the same code serves live views, PNG
-snapshots and recordings.
+`ViewModel` folds stream messages into what is drawn, so the same code serves the live
+window, PNG snapshots and recordings. Episode ids are the daemon's (unique while it runs),
+so a new id always starts a new path.
 """
 
 from __future__ import annotations
@@ -14,9 +14,11 @@ from typing import Any
 
 import numpy as np
 
-from service.localization.models import rotate
+from service.localization.localizers.base import Hypotheses
 from service.localization.surface import HeightMap
 from service.wire.envelope import Message
+from tools.plots import CLOUD, ESTIMATE, MM, draw_hypotheses, draw_surface, finger_positions
+from tools.words import belief_text
 
 
 @dataclass
@@ -24,86 +26,100 @@ class ViewModel:
     """What the picture shows, updated message by message."""
 
     cloud: np.ndarray = field(default_factory=lambda: np.empty((0, 3)))
+    weights: np.ndarray = field(default_factory=lambda: np.empty(0))
     total: int = 0
     pose: tuple[float, float, float] | None = None
     converged: bool = False
-    candidates: int = 0
+    belief: str = ""
+    step: int = 0
+    cloud_step: int = -1
     episode: int = 0
-    path: list[tuple[float, float]] = field(default_factory=list)
+    path: dict[int, tuple[float, float]] = field(default_factory=dict)
+    """The finger's displacement (finger frame) after each reading seen, by step."""
     state: str = "?"
+
+    @property
+    def complete(self) -> bool:
+        """Converged, with the cloud of the final belief in hand."""
+        return self.converged and self.cloud_step == self.step
 
     def update(self, msg: Message) -> None:
         if msg.topic == "cloud":
             if msg["episode"] != self.episode:
                 self._new_episode(msg["episode"])
             self.cloud = np.asarray(msg["poses"], dtype=np.float64).reshape(-1, 3)
+            self.weights = np.asarray(msg["weights"], dtype=np.float64).reshape(-1)
             self.total = int(msg["total"])
+            self.cloud_step = int(msg["step"])
         elif msg.topic == "estimate":
             if msg["episode"] != self.episode:
                 self._new_episode(msg["episode"])
             self.pose = None if msg["pose"] is None else tuple(msg["pose"])
             self.converged = bool(msg["converged"])
-            self.candidates = int(msg["candidates"])
+            self.step = int(msg["step"])
+            self.belief = belief_text(msg.get("position_sd"), msg.get("heading_sd"),
+                                      msg.get("mode_mass"))
             d = msg["displacement"]
-            if not self.path or self.path[-1] != (d[0], d[1]):
-                self.path.append((float(d[0]), float(d[1])))
+            self.path[self.step] = (float(d[0]), float(d[1]))
         elif msg.topic == "state":
             self.state = str(msg["state"])
 
     def _new_episode(self, episode: int) -> None:
         self.episode = episode
-        self.path = [(0.0, 0.0)]
+        self.path = {}
+        self.cloud_step = -1
         self.pose = None
         self.converged = False
+        self.cloud, self.weights = np.empty((0, 3)), np.empty(0)
 
-    def path_on_map(self) -> np.ndarray:
-        """The finger's path in the map frame under the current estimate."""
+    def path_on_map(self) -> tuple[np.ndarray, np.ndarray]:
+        """The finger's positions in the map frame under the current estimate (metres), and
+        their step numbers (a viewer that joined late has not seen every step)."""
         if self.pose is None or not self.path:
-            return np.empty((0, 2))
-        d = np.asarray(self.path)
-        x, y = rotate(np.asarray(self.pose[2]), d[:, 0], d[:, 1])
-        return np.column_stack([self.pose[0] + x, self.pose[1] + y])
+            return np.empty((0, 2)), np.empty(0, int)
+        steps = np.array(sorted(self.path))
+        moves = np.array([self.path[k] for k in steps]).T
+        return finger_positions(np.array([self.pose] * len(steps)), moves), steps
 
 
-def draw(ax: Any, hm: HeightMap, view: ViewModel) -> None:
-    """Draw one frame on a matplotlib Axes (cleared first)."""
+def draw(ax: Any, hm: HeightMap, view: ViewModel) -> Any:
+    """Draw one frame on a matplotlib Axes (cleared first); returns the surface's mappable
+    for a colour bar."""
     ax.clear()
-    x_max, y_max = hm.extent
-    heights = np.atleast_2d(hm.heights)
-    if heights.shape[0] > 1:
-        ny, nx = heights.shape
-        xs, ys = np.linspace(0, x_max, nx), np.linspace(0, y_max, ny)
-        ax.contourf(xs, ys, heights * 1e3, levels=20, cmap="terrain", alpha=0.8)
-        ax.contour(xs, ys, heights * 1e3, levels=20, colors="k", linewidths=0.3, alpha=0.4)
+    filled = draw_surface(ax, hm) if not hm.is_profile else None
+    now = view.path.get(view.cloud_step, (0.0, 0.0))
     if len(view.cloud):
-        ax.scatter(view.cloud[:, 0], view.cloud[:, 1], s=6, c="tab:blue", alpha=0.5,
-                   label=f"hypotheses ({view.total})")
-    path = view.path_on_map()
+        draw_hypotheses(ax, Hypotheses(view.cloud, view.weights), now, 0.006)
+        ax.plot([], [], ".", color=CLOUD,
+                label=f"hypotheses: finger now ({len(view.cloud)} of {view.total})")
+    path, steps = view.path_on_map()
+    path = path * MM
     if len(path):
-        ax.plot(path[:, 0], path[:, 1], "-o", color="tab:red", ms=3, lw=1.5, label="path")
-    if view.pose is not None:
-        x, y, h = view.pose
-        ax.plot([x], [y], "*", color="gold", mec="k", ms=16, label="estimate")
-        arrow = 0.05 * max(x_max, y_max)
-        ax.arrow(x, y, arrow * np.cos(h), arrow * np.sin(h), width=arrow * 0.05, color="k")
-    ax.set_xlim(0, x_max)
-    ax.set_ylim(0, max(y_max, 1e-3))
-    ax.set_aspect("equal")
-    ax.set_xlabel("x (m)")
-    ax.set_ylabel("y (m)")
-    status = "converged" if view.converged else f"{view.candidates} candidates"
-    ax.set_title(f"{hm.name}: episode {view.episode}, {status} [{view.state}]")
+        ax.plot(path[:, 0], path[:, 1], "o", color=ESTIMATE, ms=3,
+                label="path under the estimate (steps seen)")
+        for k in np.flatnonzero(np.diff(steps) == 1):  # join consecutive steps only
+            ax.plot(path[k:k + 2, 0], path[k:k + 2, 1], "-", color=ESTIMATE, lw=1.2)
+        pose = np.asarray(view.pose) * [MM, MM, 1]
+        ax.plot(*pose[:2], "s", color=ESTIMATE, mfc="none", ms=7, label="estimated start")
+        ax.plot(*path[-1], "x", color=ESTIMATE, ms=10, mew=2.5,
+                label="finger now (estimate)")
+    ax.set_ylabel("y (mm)")
+    status = "CONVERGED" if view.converged else view.belief or "waiting for an estimate"
+    ax.set_title(f"{hm.name}: episode {view.episode}, step {view.step}: {status} "
+                 f"[{view.state}]", fontsize=10)
     if len(view.cloud) or view.pose is not None:
-        ax.legend(loc="upper right", fontsize=8)
+        ax.legend(loc="upper right", fontsize=7)
+    return filled
 
 
 def save_png(path: str, hm: HeightMap, view: ViewModel) -> None:
-    """A snapshot without a display (Agg), whatever backend pyplot would pick."""
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    """A snapshot without a display."""
     from matplotlib.figure import Figure
 
-    fig = Figure(figsize=(7, 6.5), dpi=100)
-    FigureCanvasAgg(fig)
-    draw(fig.add_subplot(1, 1, 1), hm, view)
+    fig = Figure(figsize=(7.6, 6.5), dpi=100)
+    ax = fig.add_subplot(1, 1, 1)
+    filled = draw(ax, hm, view)
+    if filled is not None:
+        fig.colorbar(filled, ax=ax, label="height (mm)")
     fig.tight_layout()
     fig.savefig(path)

@@ -198,7 +198,6 @@ class Explorer:
                 # a worker error raises here
                 self.estimate, hypotheses, self._update_ns = self._future.result()
                 self._cloud = Cloud(hypotheses, self.estimate.candidates, self.steps)
-                self._belief_step, self._belief_displacement = self.steps, self.displacement
                 self._cloud_current = True
                 self._future = None
                 self._updated(out)
@@ -209,7 +208,6 @@ class Explorer:
             self._update_ns += out.localizer_ns
             if done:
                 self.estimate = self.localizer.estimate()
-                self._belief_step, self._belief_displacement = self.steps, self.displacement
                 self._updated(out)
         # The policy gets a tick of its own once the localizer has run in this one, so a
         # tick's work is the larger of the two, not their sum.
@@ -223,7 +221,8 @@ class Explorer:
         it (its JSON's `steps` entry), so a recording can be exported like a run."""
         out.estimate_updated = True
         self.phase = Phase.DECIDE
-        est = self.estimate
+        self._belief_step, self._belief_displacement = self.steps, self.displacement
+        est, belief = self.estimate, self.estimate_fields()
         command = MOVES[self._move] * self.settings.step
         out.events.append(("step", {
             "episode": self.episode, "index": self.steps, "move": self._move,
@@ -231,7 +230,8 @@ class Explorer:
             "measurement": [float(v) for v in self.displacement], "blocked": self._blocked,
             "candidates": est.candidates, "compute_ms": self._update_ns / 1e6,
             "policy_ms": self._policy_ms,
-            "estimate": None if est.pose is None else [float(v) for v in est.pose]}))
+            "estimate": None if est.pose is None else [float(v) for v in est.pose],
+            **{k: belief[k] for k in ("position_sd", "heading_sd", "mode_mass")}}))
 
     def _check_step(self, state: FingerState) -> None:
         if state.steps_done > self._before and not state.moving:

@@ -27,6 +27,11 @@ class StepRecord:
     """Localizer update time for this step."""
     policy_ms: float
     estimate: tuple[float, float, float] | None
+    position_sd: float = float("nan")
+    """Spread of the hypotheses after this step (m, rad) and the leading mode's probability,
+    as the localizer's Estimate gives them (NaN where it has none)."""
+    heading_sd: float = float("nan")
+    mode_mass: float = float("nan")
 
 
 @dataclass
@@ -98,7 +103,9 @@ def run_episode(backend: Backend, localizer: Localizer, policy: Policy, *,
                             command=(float(command[0]), float(command[1])),
                             measurement=tuple(float(v) for v in displacement),
                             blocked=state.blocked, candidates=estimate.candidates,
-                            compute_ms=compute_ms, policy_ms=policy_ms, estimate=estimate.pose)
+                            compute_ms=compute_ms, policy_ms=policy_ms, estimate=estimate.pose,
+                            position_sd=estimate.position_sd, heading_sd=estimate.heading_sd,
+                            mode_mass=estimate.mode_mass)
         result.steps.append(record)
         if on_step:
             on_step(record)

@@ -69,7 +69,9 @@ def _step_json(s: StepRecord) -> dict[str, Any]:
     return {"index": s.index, "move": s.move, "command": list(s.command),
             "measurement": list(s.measurement), "blocked": s.blocked,
             "candidates": s.candidates, "compute_ms": s.compute_ms, "policy_ms": s.policy_ms,
-            "estimate": None if s.estimate is None else list(s.estimate)}
+            "estimate": None if s.estimate is None else list(s.estimate),
+            "position_sd": _num(s.position_sd), "heading_sd": _num(s.heading_sd),
+            "mode_mass": _num(s.mode_mass)}
 
 
 def simulate(settings: RunSettings, height_map: HeightMap | None = None, *,
@@ -109,6 +111,8 @@ def simulate(settings: RunSettings, height_map: HeightMap | None = None, *,
                              on_start=lambda: snapshot(0))
     finally:
         finger.close()
+    if snapshot_steps:  # the end too: a figure's last panel shows the final belief
+        snapshots[len(result.steps)] = localizer.hypotheses(limit=SNAPSHOT_LIMIT)
     return EpisodeReport(settings=settings, truth=truth, result=result, height_map=surface.map,
                          score=score(result.estimate, truth, settings.step),
                          true_pose_eliminated=_truth_eliminated(localizer, truth, settings),

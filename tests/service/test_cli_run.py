@@ -133,6 +133,25 @@ def test_localizer_options_reach_the_localizer(tmp_path):
 
 
 def test_a_heading_just_below_zero_prints_as_zero():
-    from tools.run_cli import _pose_text
+    from tools.words import pose_text
 
-    assert "heading    0.0 deg" in _pose_text((0.1, 0.1, -1e-9))
+    assert "heading    0.0 deg" in pose_text((0.1, 0.1, -1e-9))
+
+
+def test_each_line_says_this_steps_height_change_and_how_sure(tmp_path, capsys):
+    out = tmp_path / "e.json"
+    assert main(["run", "--seed", "3", "--json", str(out)]) == 0
+    lines = [ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("step ")]
+    z = [0.0] + [s["measurement"][2] for s in json.loads(out.read_text())["steps"]]
+    printed = [float(ln.split("dz")[1].split("mm")[0]) for ln in lines]
+    assert printed == pytest.approx([1e3 * (b - a) for a, b in zip(z, z[1:])], abs=1e-3)
+    assert all("spread" in ln and "leading mode" in ln and "candidates" not in ln
+               for ln in lines)
+
+
+def test_a_run_that_does_not_converge_says_why(capsys):
+    assert run_cli("--seed", "3", "--max-steps", "3") == 0
+    out = capsys.readouterr().out
+    assert "not localized after 3 steps: out of steps (3 of at most 3); still ambiguous " \
+           "between x" in out
+    assert "from the truth" in out

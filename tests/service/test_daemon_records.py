@@ -56,6 +56,8 @@ def strip_timings(steps: list[dict]) -> list[dict]:
 def events_of_one_episode(node, timeout_s: float = 60.0) -> list[dict]:
     """Every event from starting an episode on `node` to its end."""
     events = []
+    with Subscriber(node.endpoints["pub"], ["state"]) as states:  # the finger is read
+        assert states.wait_for(lambda m: m["state"] == "inactive" and m["centre"], 10)
     with Subscriber(node.endpoints["pub"], ["event"]) as sub, \
             Client(node.endpoints["cmd"]) as c:
         c.call("activate")

@@ -27,3 +27,19 @@ def test_bench_paper_writes_summary_and_figure(tmp_path, capsys):
 def test_bench_rejects_zero_runs(capsys):
     assert main(["bench", "paper", "--runs", "0"]) == 2
     assert "--runs" in capsys.readouterr().err
+
+
+def test_first_step_figure_is_the_share_of_the_pose_table_the_first_move_rules_out(tmp_path):
+    out = tmp_path / "b1.json"
+    assert main(["bench", "paper", "--runs", "4", "--json", str(out), "--algorithm",
+                 "elimination", "--policy", "paper"]) == 0
+    data = json.loads(out.read_text())
+    own = [1 - r["steps"][0]["candidates"] / r["initial_candidates"] for r in data["runs"]]
+    # for Algorithm III the figure is its own first-step count, as in the paper
+    assert abs(data["summary"]["first_step_elimination_mean"] - sum(own) / len(own)) < 1e-12
+    assert main(["bench", "paper", "--runs", "4", "--json", str(out)]) == 0
+    data = json.loads(out.read_text())
+    pool_cap = 1 - data["runs"][0]["steps"][0]["candidates"] / data["runs"][0][
+        "initial_candidates"]
+    assert data["summary"]["first_step_elimination_mean"] != pool_cap  # not 20,000 -> 1,000
+    assert 0 < data["summary"]["first_step_elimination_mean"] < 0.9
