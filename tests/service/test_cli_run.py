@@ -144,7 +144,7 @@ def test_each_line_says_this_steps_height_change_and_how_sure(tmp_path, capsys):
     lines = [ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("step ")]
     z = [0.0] + [s["measurement"][2] for s in json.loads(out.read_text())["steps"]]
     printed = [float(ln.split("dz")[1].split("mm")[0]) for ln in lines]
-    assert printed == pytest.approx([1e3 * (b - a) for a, b in zip(z, z[1:])], abs=1e-3)
+    assert printed == pytest.approx(list(np.diff(z) * 1e3), abs=1e-3)
     assert all("spread" in ln and "leading mode" in ln and "candidates" not in ln
                for ln in lines)
 
