@@ -8,7 +8,6 @@ import time
 from typing import Any
 
 from service.errors import InputError
-from service.wire import envelope as wire
 from service.wire.client import CommandFailed, CommandTimeout
 from tools.stream_cli import add_endpoint_options, client_from, deadline, subscriber_from
 
@@ -62,14 +61,19 @@ def cmd_view(args: argparse.Namespace) -> int:
 
     view = ViewModel()
     if args.source:
-        from tools.record_cli import read_recording
+        from tools.recording import read_recording
 
         if not args.png:
             raise InputError("--from needs --png FILE (a recording has no live view)")
-        header, records = read_recording(args.source)
-        height_map = _map_for_view(args, header.get("config"))
+        config, records = read_recording(args.source)
+        if config is None:  # recorded without the daemon's config: the episodes name it
+            started = [r.message for r in records if r.message.get("event") ==
+                       "episode_started" and r.message.get("settings")]
+            if started:
+                config = {"scenario": started[-1]["settings"]}
+        height_map = _map_for_view(args, config)
         for r in records:
-            view.update(wire.decode(r["payload"], topic=r["topic"]))
+            view.update(r.message)
         save_png(args.png, height_map, view)
         print(f"# wrote {args.png}", file=sys.stderr)
         return 0

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import os
 import signal
 import socket
@@ -71,6 +72,7 @@ def run_block(script: str, cwd: Path, env: dict[str, str]) -> subprocess.Complet
 def test_the_daemon_section_works_as_written_three_times_on_a_busy_machine(tmp_path):
     script = readme_block("## The service: `hapticd`")
     assert ".venv/bin/haptic explore" in script and "kill %1" in script
+    assert "haptic record run.mcap" in script and "haptic export run.mcap" in script
     (tmp_path / ".venv").symlink_to(ROOT / ".venv")  # a fresh clone's folder, after make
     env = {**os.environ, "HAPTIC_PUB": f"tcp://127.0.0.1:{free_port()}",
            "HAPTIC_CMD": f"tcp://127.0.0.1:{free_port()}", "MPLBACKEND": "Agg"}
@@ -83,4 +85,7 @@ def test_the_daemon_section_works_as_written_three_times_on_a_busy_machine(tmp_p
             assert '"state": "inactive"' in done.stdout  # ctl status, after explore
             assert (tmp_path / "view.png").read_bytes()[:4] == b"\x89PNG"
             assert '"event": "shutdown"' in log
-            (tmp_path / "view.png").unlink()
+            (episode,) = json.loads((tmp_path / "episodes.json").read_text())
+            assert episode["converged"] and episode["success"] and episode["steps"]
+            for made in ("view.png", "run.mcap", "episodes.json", "hapticd.log"):
+                (tmp_path / made).unlink()

@@ -95,7 +95,7 @@ def test_explore_a_run_that_runs_out_of_steps_says_why(capsys) -> None:
 
 
 def test_record_replay_and_view(node: Node, tmp_path: Path, capsys) -> None:
-    rec = tmp_path / "run.hrec"
+    rec = tmp_path / "run.mcap"
     recorder = threading.Thread(target=main, args=([
         "record", str(rec), *endpoints(node), "--topics", "estimate,cloud,event",
         "--duration", "30"],))

@@ -1,0 +1,122 @@
+"""`haptic record` writes MCAP that the mcap library reads; `haptic export` gives back the
+episode `haptic run --json` writes; `haptic replay` still reads old `.hrec` files."""
+
+from __future__ import annotations
+
+import csv
+import json
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+import msgpack
+from mcap.reader import make_reader
+
+from service.daemon.harness import loopback_config, running_node
+from service.wire import envelope as wire
+from tools.cli import main
+
+ROOT = Path(__file__).resolve().parents[2]
+TIMINGS = ("compute_ms", "policy_ms")
+
+
+def without_timings(episode: dict) -> dict:
+    return {**episode, "steps": [{k: v for k, v in s.items() if k not in TIMINGS}
+                                 for s in episode["steps"]]}
+
+
+def run_flags(settings: dict) -> list[str]:
+    """`haptic run` options giving these settings (noise-free, no start pose)."""
+    return ["--map", settings["map"], "--radius", str(settings["radius"]), "--step",
+            str(settings["step"]), "--algorithm", settings["algorithm"], "--policy",
+            settings["policy"], "--max-steps", str(settings["max_steps"]), "--headings",
+            str(settings["headings"]), "--seed", str(settings["seed"])]
+
+
+def test_record_export_round_trip_equals_haptic_run(tmp_path: Path, capsys) -> None:
+    rec, exported, ran = tmp_path / "run.mcap", tmp_path / "e.json", tmp_path / "r.json"
+    config = loopback_config({"backend": {"step_duration_s": 0.0}, "scenario": {"seed": 4}})
+    with running_node(config) as node:
+        ep = ["--pub", node.endpoints["pub"], "--cmd", node.endpoints["cmd"]]
+        recorder = subprocess.Popen([sys.executable, "-m", "tools.cli", "record", str(rec),
+                                     *ep, "--state-hz", "5"], cwd=ROOT, text=True,
+                                    stderr=subprocess.PIPE)
+        try:
+            assert recorder.stderr.readline().startswith("# recording")  # subscribed
+            assert main(["explore", *ep, "--quiet"]) == 0
+        except BaseException:
+            recorder.kill()
+            raise
+    _, err = recorder.communicate(timeout=60)  # the daemon's shutdown event ends it
+    assert recorder.returncode == 0 and "Traceback" not in err
+    # the mcap library's own reader: one channel per topic, JSON with JSON schemas
+    with rec.open("rb") as f:
+        summary = make_reader(f).get_summary()
+    channels = {c.topic: c for c in summary.channels.values()}
+    assert set(channels) == {"state", "estimate", "cloud", "event"}
+    assert all(c.message_encoding == "json" for c in channels.values())
+    assert {s.encoding for s in summary.schemas.values()} == {"jsonschema"}
+    counts = summary.statistics.channel_message_counts
+    assert all(counts.get(c.id, 0) > 0 for c in channels.values()), counts
+    # the episode, exported, is the one `haptic run` runs with the same settings
+    assert main(["export", str(rec), "--json", str(exported), "--episode", "1"]) == 0
+    episode = json.loads(exported.read_text())
+    assert main(["run", "--quiet", "--json", str(ran), *run_flags(episode["settings"])]) == 0
+    assert without_timings(episode) == without_timings(json.loads(ran.read_text()))
+    assert episode["success"] is True
+    # CSV: a row per step
+    out = tmp_path / "steps.csv"
+    assert main(["export", str(rec), "--csv", str(out)]) == 0
+    rows = list(csv.DictReader(out.open()))
+    assert len(rows) == len(episode["steps"]) and rows[0]["dz_m"]
+    capsys.readouterr()
+    assert main(["replay", str(rec)]) == 0
+    assert "CONVERGED" in capsys.readouterr().out
+
+
+def test_replay_and_export_still_read_an_old_hrec(tmp_path: Path, capsys) -> None:
+    old = tmp_path / "old.hrec"
+    events = [("episode_started", {"episode": 3, "candidates": 20000, "settings": None,
+                                   "truth": None}),
+              ("step", {"episode": 3, "index": 1, "move": 0, "command": [0.01, 0.0],
+                        "measurement": [0.01, 0.0, 0.002], "blocked": False,
+                        "candidates": 900, "compute_ms": 1.0, "policy_ms": 1.0,
+                        "estimate": [0.1, 0.1, 0.0]})]
+    with old.open("wb") as f:
+        f.write(msgpack.packb({"format": "haptic-record", "v": 1, "config": None}))
+        for seq, (name, fields) in enumerate(events, 1):
+            payload = wire.encode("event", seq, {"event": name, **fields})
+            f.write(msgpack.packb({"topic": "event", "t_ns": seq, "payload": payload}))
+    assert main(["replay", str(old)]) == 0
+    assert "episode_started" in capsys.readouterr().out
+    assert main(["export", str(old), "--json", "-"]) == 0
+    captured = capsys.readouterr()
+    (episode,) = json.loads(captured.out)
+    assert episode["initial_candidates"] == 20000 and len(episode["steps"]) == 1
+    assert episode["converged"] is False and "still running" in captured.err
+
+
+def test_export_refuses_what_it_cannot_read(tmp_path: Path, capsys) -> None:
+    bad = tmp_path / "x.mcap"
+    bad.write_bytes(b"\x89MCAP0\r\n" + b"\x00" * 40)
+    assert main(["export", str(bad), "--json", "-"]) == 2
+    assert "not a readable MCAP recording" in capsys.readouterr().err
+    assert main(["export", str(tmp_path / "none.mcap"), "--csv", "-"]) == 2
+    assert "does not exist" in capsys.readouterr().err
+
+
+def test_a_recording_stopped_by_a_signal_is_a_complete_file(tmp_path: Path) -> None:
+    rec = tmp_path / "cut.mcap"
+    with running_node(loopback_config()) as node:
+        recorder = subprocess.Popen([sys.executable, "-m", "tools.cli", "record", str(rec),
+                                     "--pub", node.endpoints["pub"], "--cmd",
+                                     node.endpoints["cmd"]], cwd=ROOT, text=True,
+                                    stderr=subprocess.PIPE)
+        assert recorder.stderr.readline().startswith("# recording")
+        recorder.send_signal(signal.SIGTERM)
+        _, err = recorder.communicate(timeout=30)
+    assert recorder.returncode == 0 and "Traceback" not in err
+    with rec.open("rb") as f:
+        summary = make_reader(f).get_summary()  # written only by a finished file
+    assert summary is not None and summary.statistics.message_count > 0
