@@ -122,8 +122,13 @@ def cmd_replay(args: argparse.Namespace) -> int:
 
     _, records = read_recording(args.file)
     if args.publish is None:
-        for r in records:
-            print(format_message(r.message))
+        for index, r in enumerate(records, 1):
+            try:
+                line = format_message(r.message)
+            except (KeyError, TypeError, ValueError, IndexError) as exc:
+                raise InputError(f"'{args.file}': message {index} is not a valid "
+                                 f"{r.topic!r} message ({type(exc).__name__}: {exc})") from None
+            print(line)
         return 0
     import zmq
 
