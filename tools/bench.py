@@ -21,6 +21,7 @@ SCENARIOS: dict[str, tuple[str, str]] = {
     "service": ("tools.bench_service", "B4: the real-time loop under load"),
     "bus": ("tools.bench_bus", "bus cycle time on the servo-bus emulator"),
     "anytime": ("tools.bench_anytime", "longest localizer work slice under a time budget"),
+    "grasp": ("tools.bench_grasp", "B6: a hand localizes a held object without dropping it"),
 }
 
 

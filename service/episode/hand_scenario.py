@@ -49,7 +49,7 @@ class HandSettings:
     mu: float = 0.5
     mass_kg: float = 0.05
     margin_n: float = 0.2
-    threshold_n: float = 0.4
+    threshold_n: float = 1.0
     gate: bool = True
     single_finger: bool = False
     """Only the hand's first finger, the object clamped in place (the comparison B6 asks)."""

@@ -53,7 +53,7 @@ class GraspSpec:
     margin_n: float = 0.2
     """Disturbance (wrench norm) the grasp must resist beyond the weight; below it the
     object slips out."""
-    threshold_n: float = 0.4
+    threshold_n: float = 1.0
     """Quality a move must keep, predicted over every plausible pose (at least the margin)."""
 
     def __post_init__(self) -> None:

@@ -43,9 +43,7 @@ def gauss_newton(field: ContactField, poses: np.ndarray, points: np.ndarray, rad
     """A few damped Gauss-Newton steps for every pose at once; steps capped at `max_move`
     metres (and max_move / lever radians) so a pose never jumps to another basin."""
     weights = np.ones(len(points)) if weights is None else weights
-    centre = np.mean(poses[:, :2], axis=0) if len(poses) else np.zeros(2)
-    lever = max(float(np.max(np.hypot(*(points - centre).T))) if len(points) else 0.0,
-                max_move or 0.0, 1e-3)
+    lever = max(field.contour.max_radius + 0.01, max_move or 0.0)  # centroid to a tip centre
     return kernels.gauss_newton(*field.args, _rows(poses), _rows(points), _rows(radii),
                                 _rows(weights), iterations, damping, max_move or 0.0, lever)
 

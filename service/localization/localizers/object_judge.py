@@ -49,7 +49,7 @@ class ObjectTracks:
     """Up to `limit` polished mode centres, each with the evidence it carries (`prior`) and
     its score on the readings since the last manipulation (`ll`)."""
 
-    def __init__(self, limit: int = 64, drop: float = 30.0) -> None:
+    def __init__(self, limit: int = 32, drop: float = 30.0) -> None:
         self.limit, self.drop = limit, drop
         self.centres = np.empty((0, 3))
         self.prior = np.empty(0)

@@ -57,8 +57,9 @@ class ObjectParticles:
 
     name: ClassVar[str] = "particles"
 
-    def __init__(self, ctx: ObjectContext, *, initial: int = 20000, capacity: int = 3000,
-                 work: int = 2000, min_capacity: int = 200, children: int = 100,
+    def __init__(self, ctx: ObjectContext, *, initial: int = 20000, capacity: int = 1500,
+                 work: int = 1000, min_capacity: int = 150, children: int = 100,
+                 polish: int = 150,
                  fresh: int = 200, scanned: int = 2000, drop: float = 40.0,
                  contraction: float = 0.6, rivals: int = 32, kept_modes: int = 128,
                  rule: ConvergenceRule | None = None) -> None:
@@ -67,7 +68,7 @@ class ObjectParticles:
         self.initial, self.capacity, self.min_capacity = initial, capacity, min_capacity
         self.work_items, self.children, self.fresh = work, children, fresh
         self.scanned, self.drop, self.contraction = scanned, drop, contraction
-        self.rivals, self.kept_modes = rivals, kept_modes
+        self.rivals, self.kept_modes, self.polish = rivals, kept_modes, polish
         self.rule = rule or ConvergenceRule()
         scale = ctx.scale
         self.sigma = ctx.sigma
@@ -94,6 +95,7 @@ class ObjectParticles:
         self.mode_mass, self.runner_up, self.runner_up_mass = 0.0, None, 0.0
         self._job: AnytimeJob | None = None
         self._judge_ns = 0
+        self._sd_cache: tuple[tuple, np.ndarray] = ((), np.empty(0))
 
     # -- updates ---------------------------------------------------------------------------
     def start(self, first: HandMeasurement) -> None:
@@ -182,10 +184,17 @@ class ObjectParticles:
 
     # -- the steps of one update -----------------------------------------------------------
     def _sd(self) -> np.ndarray:
-        """Residual sd per reading for members that stand for a range of poses (Eq. 4)."""
-        centre = self.poses[:, :2].mean(axis=0) if len(self.poses) else np.zeros(2)
-        lever = np.hypot(*(self.points - centre).T)
-        return np.sqrt(self.sigma**2 + (self.pos_range + lever * self.head_range) ** 2)
+        """Residual sd per reading for members that stand for a range of poses (Eq. 4);
+        the lever of a heading error is the reading's distance from the object's centroid,
+        taken from the hand's grasp (where the readings are). Computed once per (readings,
+        ranges)."""
+        key = (len(self.points), self.epoch, self.pos_range, self.head_range)
+        if self._sd_cache[0] != key:
+            centre = self.points.mean(axis=0) if len(self.points) else np.zeros(2)
+            lever = np.hypot(*(self.points - centre).T)
+            self._sd_cache = (key, np.sqrt(self.sigma**2 + (
+                self.pos_range + lever * self.head_range) ** 2))
+        return self._sd_cache[1]
 
     def _loglik(self, resid: np.ndarray, sd: np.ndarray | None = None) -> np.ndarray:
         return log_likelihood(resid, np.ones(resid.shape, dtype=bool),
@@ -216,14 +225,15 @@ class ObjectParticles:
             self._keep(np.flatnonzero(total >= total.max() - self.drop))
 
     def _polish(self, job: AnytimeJob) -> Iterator[int]:
-        """Gauss-Newton on every member, kept where it fits better (never further than the
-        range the member stands for)."""
+        """Gauss-Newton on the `polish` best members, kept where it fits better (never
+        further than the range the member stands for)."""
         if len(self.poses) == 0 or len(self.points) == 0:
             return
         weights = 1.0 / self._sd() ** 2
         max_move = max(2 * self.pos_range, 0.05 * self.ctx.scale)
         cursor = 0
-        order = np.arange(len(self.poses))
+        k = min(self.polish, len(self.poses))
+        order = np.sort(np.argpartition(-self._total(), k - 1)[:k])
         while cursor < len(order):
             part = order[cursor:cursor + job.take(max(1, CHUNK // len(self.points)))]
             moved = gauss_newton(self.ctx.field, self.poses[part], self.points, self.radii,

@@ -33,12 +33,16 @@ class Contour:
     """(N, 2) vertices in metres, the last not repeating the first."""
     name: str = "object"
     polygon: Polygon = field(init=False, repr=False)
+    max_radius: float = field(init=False)
+    """Largest distance from the centroid to the contour: the object's lever arm."""
 
     def __post_init__(self) -> None:
         points = np.ascontiguousarray(self.points, dtype=np.float64)
         points.setflags(write=False)
         object.__setattr__(self, "points", points)
         object.__setattr__(self, "polygon", Polygon(points))
+        object.__setattr__(self, "max_radius",
+                           float(np.max(np.hypot(points[:, 0], points[:, 1]))))
 
     @property
     def area(self) -> float:
@@ -47,11 +51,6 @@ class Contour:
     @property
     def perimeter(self) -> float:
         return float(self.polygon.exterior.length)
-
-    @property
-    def max_radius(self) -> float:
-        """Largest distance from the centroid to the contour: the object's lever arm."""
-        return float(np.max(np.hypot(self.points[:, 0], self.points[:, 1])))
 
     @property
     def extent(self) -> float:

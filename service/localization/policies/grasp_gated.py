@@ -49,9 +49,9 @@ NOVELTY = 0.05
 """Nats credited to a move whose fingertip lands on contour not felt yet."""
 FELT = 0.0015
 """Metres: contour within this of a felt point counts as felt."""
-RISK = 0.02
+RISK = 0.05
 """Most posterior weight of plausible poses a move may take below the threshold."""
-DROP_RISK = 0.002
+DROP_RISK = 0.005
 """Most posterior weight a move may take within `BUFFER` of the margin, where it slips."""
 LIKELY = 0.05
 """Poses holding at least this share of the posterior are likely: the gate holds for each.
@@ -59,7 +59,7 @@ LIKELY = 0.05
 RECOVERY = 0.5
 """Nats per threshold's worth of quality a move wins back under the leading pose, while
 the grasp there is below twice the threshold: a weak grasp is strengthened first."""
-BUFFER = 0.5
+BUFFER = 0.25
 """Share of the gap from the margin to the threshold counted as near the margin."""
 STEP_PARTS = (1.0, 0.5, 0.25)
 """Shares of the step length tried: while the pose is uncertain, only a short roll may be
@@ -105,7 +105,7 @@ class HandDecision:
 class GraspGatedPolicy:
     name: ClassVar[str] = "grasp-gated"
 
-    def __init__(self, gate: bool = True, plausible: int = 160, min_gain: float = 0.02,
+    def __init__(self, gate: bool = True, plausible: int = 96, min_gain: float = 0.02,
                  turns: Sequence[float] = (0.2, -0.2, 0.4, -0.4, 0.7, -0.7),
                  substeps: int = 8) -> None:
         self.gate, self.plausible, self.min_gain = gate, plausible, min_gain
@@ -195,9 +195,9 @@ class GraspGatedPolicy:
         quality = np.full((len(options), len(poses)), np.inf)
         if not view.fixed:
             quality = self._option_quality(view, poses, options, checks, reach)
-        safe = np.array([self._safe(view, q, weights) for q in quality])
-        allowed = [k for k in range(len(options)) if reach[k][0]
-                   and (not self.gate or view.fixed or safe[k])]
+        gated = self.gate and not view.fixed
+        safe = [not gated or self._safe(view, q, weights) for q in quality]
+        allowed = [k for k in range(len(options)) if reach[k][0] and safe[k]]
         if not allowed:
             return None
         s = max(view.sigma, 1e-4)
@@ -205,7 +205,7 @@ class GraspGatedPolicy:
         novel = np.array([self._novel(readings[k][:1], poses[0]) for k in allowed])
         larger = np.array([options[k][2] for k in allowed])
         score = gain + NOVELTY * novel + 1e-3 * larger  # ties: the longer step
-        if not view.fixed and self._now[0] < 2 * view.grasp.threshold_n:
+        if self.gate and not view.fixed and self._now[0] < 2 * view.grasp.threshold_n:
             lead_after = np.array([quality[k, 0] for k in allowed])
             score = score + RECOVERY * (lead_after - self._now[0]) / view.grasp.threshold_n
         best = int(np.argmax(score))

@@ -1,0 +1,219 @@
+"""B6 `grasp`: a hand holds, localizes and explores an object without dropping it
+(BENCHMARKS.md B6, paper §6).
+
+For each hand (two and three fingers) and object family, `--runs` seeded runs at B2-level
+noise; run i holds family member NAME:i (held-out shapes, not one preset) with seed i. Each
+run is repeated with the hand's first finger alone on the same contour, the object clamped
+(the steps a single finger needs), and without the grasp gate (the ablation: its drops are
+what the gate prevents). `--workers` runs episodes in parallel processes.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+from collections.abc import Sequence
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from tqdm import tqdm
+
+from service.errors import ConfigError
+from tools.bench_common import fmt, percentile, write_json
+
+OBJECTS = ("ellipse", "rounded", "blob", "keyed")
+HANDS = ("two-finger", "three-finger")
+TARGETS = {"drops": "0", "wrong_declarations": "0",
+           "successes": ">= 95 % on rounded, blob, keyed",
+           "compute_ms_after_first_p99": "<= 5 ms"}
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--runs", type=int, default=100, help="runs per hand and object "
+                   "(default: %(default)s)")
+    p.add_argument("--first-seed", type=int, default=0, help="seed (and family member) of the "
+                   "first run")
+    p.add_argument("--objects", default=",".join(OBJECTS),
+                   help="object families, comma-separated (default: %(default)s)")
+    p.add_argument("--hands", default=",".join(HANDS),
+                   help="hands, comma-separated (default: %(default)s)")
+    p.add_argument("--max-steps", type=int, default=60, help="(default: %(default)s)")
+    p.add_argument("--no-ablation", action="store_true", help="skip the runs without the gate")
+    p.add_argument("--no-single", action="store_true", help="skip the single-finger runs")
+    p.add_argument("--workers", type=int, default=1, help="parallel processes "
+                   "(default: %(default)s)")
+    p.add_argument("--json", type=Path, metavar="FILE", help="write results as JSON")
+    p.add_argument("--plot", type=Path, metavar="FILE.png", help="write a figure")
+
+
+def _check(args: argparse.Namespace) -> None:
+    if args.runs < 1 or args.workers < 1 or args.max_steps < 1:
+        raise ConfigError("--runs, --workers and --max-steps must be at least 1")
+    for path in (args.json, args.plot):
+        if path is not None and not path.resolve().parent.is_dir():
+            raise ConfigError(f"cannot write {path}: folder {path.parent} does not exist")
+    for name in args.objects.split(","):
+        if name not in OBJECTS:
+            raise ConfigError(f"--objects: unknown family '{name}'; families: "
+                              f"{', '.join(OBJECTS)}")
+
+
+_PARTS: dict[tuple, Any] = {}
+
+
+def episode(settings) -> dict[str, Any]:
+    """One episode's outcome, small enough to send between processes."""
+    from service.episode.hand_episode import simulate_hand
+    from service.episode.hand_scenario import load_parts
+
+    key = (settings.object, settings.hand, settings.single_finger)
+    if key not in _PARTS:
+        if len(_PARTS) > 64:
+            _PARTS.clear()
+        _PARTS[key] = load_parts(settings)
+    report = simulate_hand(settings, _PARTS[key])
+    steps = report.result.steps
+    return {"object": settings.object, "seed": settings.seed,
+            "success": report.score.success, "wrong": report.score.wrong_declaration,
+            "dropped": report.result.dropped, "stuck": report.result.stuck,
+            "converged": report.result.converged, "steps": len(steps),
+            "manipulations": sum(s.kind == "manipulate" for s in steps),
+            "min_quality": report.min_quality,
+            "compute_ms_after_first": [s.compute_ms for s in steps[1:] if s.compute_ms > 0],
+            "policy_ms": [s.policy_ms for s in steps]}
+
+
+def _summary(outcomes: Sequence[dict[str, Any]]) -> dict[str, Any]:
+    later = [ms for o in outcomes for ms in o["compute_ms_after_first"]]
+    quality = [o["min_quality"] for o in outcomes if math.isfinite(o["min_quality"])]
+    return {
+        "runs": len(outcomes),
+        "successes": int(sum(o["success"] for o in outcomes)),
+        "wrong_declarations": int(sum(o["wrong"] for o in outcomes)),
+        "drops": int(sum(o["dropped"] for o in outcomes)),
+        "stuck": int(sum(o["stuck"] for o in outcomes)),
+        "steps_median": float(np.median([o["steps"] for o in outcomes])),
+        "manipulations_mean": float(np.mean([o["manipulations"] for o in outcomes])),
+        "quality_min": min(quality) if quality else None,
+        "compute_ms_after_first_median": percentile(later, 50),
+        "compute_ms_after_first_p99": percentile(later, 99),
+        "policy_ms_p99": percentile([ms for o in outcomes for ms in o["policy_ms"]], 99),
+    }
+
+
+def run(args: argparse.Namespace) -> int:
+    from service.episode.hand_scenario import HandSettings
+
+    _check(args)
+    families = args.objects.split(",")
+    hands = args.hands.split(",")
+    seeds = range(args.first_seed, args.first_seed + args.runs)
+    kinds = ["gated"] + ([] if args.no_ablation else ["ablation"]) + (
+        [] if args.no_single else ["single"])
+    jobs = []
+    for hand in hands:
+        for family in families:
+            for kind in kinds:
+                for seed in seeds:
+                    jobs.append(((hand, family, kind), HandSettings(
+                        object=f"{family}:{seed}", hand=hand, seed=seed, noise=True,
+                        max_steps=args.max_steps, gate=kind != "ablation",
+                        single_finger=kind == "single")))
+    HandSettings(hand=hands[0])  # a bad hand name fails here, not in a worker
+    results: dict[tuple, list[dict[str, Any]]] = {}
+    with ProcessPoolExecutor(args.workers) if args.workers > 1 else _Serial() as pool:
+        outcomes = pool.map(episode, [s for _, s in jobs], chunksize=4)
+        for (key, _), outcome in tqdm(zip(jobs, outcomes, strict=True), total=len(jobs),
+                                      desc="B6 grasp", unit="run", leave=False,
+                                      disable=None):
+            results.setdefault(key, []).append(outcome)
+    table = {f"{hand}/{family}/{kind}": _summary(results[(hand, family, kind)])
+             for hand in hands for family in families for kind in kinds}
+    gated = [o for (h, f, k), v in results.items() if k == "gated" for o in v]
+    summary = _summary(gated)
+    if "ablation" in kinds:
+        summary["ablation_drops"] = int(sum(o["dropped"] for (_, _, k), v in results.items()
+                                            if k == "ablation" for o in v))
+    _print(table, summary, hands, families, kinds)
+    write_json(args.json, {"scenario": "grasp", "targets": TARGETS, "summary": summary,
+                           "table": table,
+                           "runs": {"/".join(k): v for k, v in results.items()}})
+    if args.plot:
+        grasp_figure(table, hands, families, kinds, args.plot)
+        print(f"figure written to {args.plot}")
+    return 0
+
+
+class _Serial:
+    """`ProcessPoolExecutor`'s map, in this process (one worker)."""
+
+    def __enter__(self) -> _Serial:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        return None
+
+    def map(self, fn, items, chunksize: int = 1):
+        return map(fn, items)
+
+
+def _print(table: dict, summary: dict, hands, families, kinds) -> None:
+    print("B6 grasp: hand, object family, runs; success, wrong, drops, stuck, steps median "
+          "(single finger), least quality, compute after the first step median/p99")
+    for hand in hands:
+        for family in families:
+            g = table[f"{hand}/{family}/gated"]
+            single = table.get(f"{hand}/{family}/single")
+            ablation = table.get(f"{hand}/{family}/ablation")
+            print(f"  {hand:<13} {family:<8} {g['runs']:4d}  ok {g['successes']:4d}  "
+                  f"wrong {g['wrong_declarations']}  drops {g['drops']}  stuck {g['stuck']}  "
+                  f"steps {fmt(g['steps_median'], '.0f')}"
+                  f" ({fmt(single and single['steps_median'], '.0f')})  "
+                  f"quality >= {fmt(g['quality_min'])} N  "
+                  f"{fmt(g['compute_ms_after_first_median'])}/"
+                  f"{fmt(g['compute_ms_after_first_p99'])} ms"
+                  + (f"  | no gate: drops {ablation['drops']}" if ablation else ""))
+    print(f"all gated runs: {summary['runs']} runs, {summary['successes']} successes, "
+          f"{summary['wrong_declarations']} wrong, {summary['drops']} drops; compute after "
+          f"the first step p99 {fmt(summary['compute_ms_after_first_p99'])} ms"
+          + (f"; without the gate {summary['ablation_drops']} drops"
+             if "ablation_drops" in summary else ""))
+
+
+def grasp_figure(table: dict, hands, families, kinds, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(12, 4.5))
+    labels = [f"{h.split('-')[0]}\n{f}" for h in hands for f in families]
+    x = np.arange(len(labels))
+    rows = [table[f"{h}/{f}/gated"] for h in hands for f in families]
+    runs = np.array([r["runs"] for r in rows], dtype=float)
+    width = 0.2
+    for i, (key, colour) in enumerate((("successes", "tab:green"), ("drops", "tab:red"),
+                                       ("wrong_declarations", "black"))):
+        axes[0].bar(x + (i - 1) * width, [r[key] for r in rows] / runs * 100, width,
+                    color=colour, label=key.replace("_", " "))
+    if "ablation" in kinds:
+        ablation = [table[f"{h}/{f}/ablation"]["drops"] for h in hands for f in families]
+        axes[0].bar(x + 2 * width, np.array(ablation) / runs * 100, width, color="tab:red",
+                    alpha=0.35, label="drops without the gate")
+    axes[0].set_xticks(x, labels, fontsize=8)
+    axes[0].set(ylabel="% of runs", title="B6: success, drops and wrong declarations")
+    axes[0].legend(fontsize=7)
+    steps = [r["steps_median"] for r in rows]
+    axes[1].bar(x - 0.15, steps, 0.3, label="hand (gated)")
+    if "single" in kinds:
+        single = [table[f"{h}/{f}/single"]["steps_median"] for h in hands for f in families]
+        axes[1].bar(x + 0.15, single, 0.3, label="one finger, object clamped")
+    axes[1].set_xticks(x, labels, fontsize=8)
+    axes[1].set(ylabel="median steps", title="steps to a declaration (or the step limit)")
+    axes[1].legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
