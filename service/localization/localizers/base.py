@@ -89,6 +89,9 @@ class Estimate:
     """Probability mass of the leading mode."""
     runner_up: tuple[float, float, float] | None = None
     runner_up_mass: float = 0.0
+    information: np.ndarray | None = field(default=None, repr=False, compare=False)
+    """(3, 3) what the readings tell about (x0, y0, heading) at `pose`, where the
+    localizer has fitted it (`refine.Fit.information`): which way the pose is still loose."""
 
 
 @dataclass(frozen=True)

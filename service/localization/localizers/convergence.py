@@ -20,6 +20,7 @@ import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.stats import norm
 
 from service.localization import kernels
 from service.localization.localizers.base import wrap_angle
@@ -107,7 +108,10 @@ class ConvergenceRule:
     the truth's refined fits stay under 1.1 (median 0.5); a wrong mode that merely fits
     "within noise" sits around 1.5-2."""
     max_abs_noisy: float = 3.0
-    """Largest acceptable single residual with noise (the truth's: under 2.5 on B2)."""
+    """Largest acceptable single residual with noise, in sensor sigmas, over eight
+    readings (the truth's: under 2.5 on B2). More readings have a larger largest one by
+    chance alone: the bar rises to keep the chance of failing the truth as it is at eight
+    (`max_abs_for`), so a plate read 27 times is not refused for one 3.07-sigma edge."""
     max_abs: float = 6.0
     """Largest acceptable single residual, in sensor sigmas (noise-free)."""
     max_position_sd: float = 0.06
@@ -136,6 +140,13 @@ class ConvergenceRule:
                                3 * self.max_rms, float("inf"), float("inf"),
                                3 * self.max_position_sd, 3 * self.max_heading_sd)
 
+    def max_abs_for(self, readings: int) -> float:
+        """`max_abs_noisy` for this many readings: the same chance that the largest of them
+        exceeds it by noise alone as for eight (Gaussian residuals)."""
+        tail = 2 * norm.sf(self.max_abs_noisy)  # one reading's chance to exceed it
+        per_reading = 1 - (1 - tail) ** (8 / max(readings, 8))
+        return float(norm.isf(per_reading / 2))
+
     def holds(self, *, readings: int, noisy: bool, mode_mass: float, fit: Fit | None,
               step_length: float) -> bool:
         """Whether the evidence supports declaring `fit`."""
@@ -144,7 +155,8 @@ class ConvergenceRule:
         needed = self.min_readings_noisy if noisy else self.min_readings
         if readings < needed or not mode_mass >= self.mode_mass:
             return False
-        fits = (fit.rms <= self.max_rms and fit.max_abs <= self.max_abs_noisy if noisy
+        fits = (fit.rms <= self.max_rms and fit.max_abs <= self.max_abs_for(fit.readings)
+                if noisy
                 else fit.max_abs <= self.max_abs)
         tight = (fit.position_sd <= self.max_position_sd * step_length
                  and fit.heading_sd <= self.max_heading_sd)
@@ -197,8 +209,13 @@ def judge(surface: ContactSurface, history: np.ndarray, modes: Modes, *, sigma: 
         max_move=tol_pos)
     ll = fit_log_likelihood(surface, centres, history, sd, margin, outlier_probability,
                             outlier_range)
-    if motions is not None and len(motions):  # a periodic surface: the best one's images
-        mirrored = images(surface, centres[int(np.argmax(ll))], motions)  # fit as well
+    if motions is not None and len(motions):  # a (near) symmetric surface: the best
+        # one's images fit as well, once polished onto the readings (a near symmetry maps
+        # the surface onto itself only to a millimetre or two)
+        mirrored = gauss_newton(surface, images(surface, centres[int(np.argmax(ll))],
+                                                motions),
+                                history, np.ones(len(history)), iterations=3,
+                                max_move=tol_pos)
         more = fit_log_likelihood(surface, mirrored, history, sd, margin,
                                   outlier_probability, outlier_range)
         centres = np.vstack([centres, mirrored])
@@ -231,7 +248,13 @@ def judge(surface: ContactSurface, history: np.ndarray, modes: Modes, *, sigma: 
                                     share[1:1 + refined_rivals], strict=False) if w > 1e-6]
         fits = [fit] + [refine(surface, history, centres[i], sds, max_outliers=outliers)
                         for i in rivals]
-        poses = np.array([f.pose for f in fits])
+        # and so must every local fit near it: on fine terrain a better fit a few
+        # millimetres away is a mode of its own that sampling may have merged with this
+        # one (terrain:20:0, seed 7: declared 3.8 mm and 4.3 degrees off the truth, whose
+        # fit was far better)
+        poses = np.vstack([[f.pose for f in fits],
+                           _neighbours(surface, history, np.asarray(fit.pose), sds,
+                                       tol_pos, tol_head)])
         ll_fit = fit_log_likelihood(surface, poses, history, max(sigma, 0.002 * step_length),
                                     margin, outlier_probability, outlier_range)
         rest = share[1 + len(rivals):].sum() if len(share) > 1 + len(rivals) else 0.0
@@ -250,6 +273,28 @@ def judge(surface: ContactSurface, history: np.ndarray, modes: Modes, *, sigma: 
             SETTLED * rule.max_position_sd * step_length, SETTLED * rule.max_heading_sd)[0])
     return Verdict(fit, centres[order], mass, runner,
                    float(share[1]) if len(order) > 1 else 0.0, converged)
+
+
+def _neighbours(surface: ContactSurface, history: np.ndarray, pose: np.ndarray,
+                sds: np.ndarray, position_tol: float, heading_tol: float) -> np.ndarray:
+    """Local fits polished from a grid of starts within twice the tolerance of `pose`
+    (positions on a 5 x 5 grid, 5 headings; along the profile only, on one) that end
+    beyond the tolerance: distinct nearby modes, one per neighbourhood."""
+    span = np.linspace(-2.0, 2.0, 5)
+    if surface.map.is_profile:
+        starts = pose + np.column_stack([span * position_tol, np.zeros(5), np.zeros(5)])
+    else:
+        dx, dy, dh = np.meshgrid(span * position_tol, span * position_tol,
+                                 span * heading_tol, indexing="ij")
+        starts = pose + np.column_stack([dx.ravel(), dy.ravel(), dh.ravel()])
+    ends = gauss_newton(surface, starts, history, 1.0 / sds**2, iterations=5,
+                        max_move=position_tol)
+    away = ~_near(ends, pose, position_tol, heading_tol)
+    ends = ends[away]
+    if len(ends) == 0:
+        return np.empty((0, 3))
+    ll = fit_log_likelihood(surface, ends, history, float(np.median(sds)), 0.0, 0.0, 1.0)
+    return ends[distinct(ends, ll, position_tol, heading_tol)][:4]
 
 
 def distinct_places(history: np.ndarray, cell: float) -> int:

@@ -193,7 +193,7 @@ class Elimination:
             return Estimate(pose=v.fit.pose, candidates=int(idx.size), converged=v.converged,
                             position_sd=v.fit.position_sd, heading_sd=v.fit.heading_sd,
                             mode_mass=v.mode_mass, runner_up=v.runner_up,
-                            runner_up_mass=v.runner_up_mass)
+                            runner_up_mass=v.runner_up_mass, information=v.fit.information)
         order = idx[np.argsort(self.sse[idx], kind="stable")]
         best = tuple(float(v) for v in self.poses[order[0]])
         runner = tuple(float(v) for v in self.poses[order[1]]) if idx.size > 1 else None

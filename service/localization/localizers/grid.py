@@ -237,7 +237,8 @@ class Grid:
         return Estimate(pose=pose, candidates=int(np.count_nonzero(self.prob > 1e-9)),
                         converged=v.converged, position_sd=pos_sd, heading_sd=head_sd,
                         mode_mass=v.mode_mass if v.fit is not None else float(w[0] / w.sum()),
-                        runner_up=v.runner_up, runner_up_mass=v.runner_up_mass)
+                        runner_up=v.runner_up, runner_up_mass=v.runner_up_mass,
+                        information=None if v.fit is None else v.fit.information)
 
     def hypotheses(self, limit: int | None = None) -> Hypotheses:
         limit = limit or self.keep

@@ -412,7 +412,8 @@ class Particles:
             pos_sd, head_sd = pose_spread(self.poses, w)
         return Estimate(pose=pose, candidates=len(self.poses), converged=self.converged,
                         position_sd=pos_sd, heading_sd=head_sd, mode_mass=self.mode_mass,
-                        runner_up=self.runner_up, runner_up_mass=self.runner_up_mass)
+                        runner_up=self.runner_up, runner_up_mass=self.runner_up_mass,
+                        information=None if self.fit is None else self.fit.information)
 
     def retains(self, pose: tuple[float, float, float], position_tol: float,
                 heading_tol: float) -> bool | None:

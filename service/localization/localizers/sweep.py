@@ -48,6 +48,8 @@ class SweepSettings:
     cells_per_update: int = 8192
     start_readings: int = 2
     """Readings (after first contact) before a sweep begins: fewer pass too many cells."""
+    readings: int = 12
+    """Most readings a cell is screened on."""
     keep: int = 32
     """Cells an update hands over: the best it screened. The truth's cell ranks among the
     first few dozen of a whole sweep even on a few readings (peaks, B2)."""
@@ -98,8 +100,13 @@ class Sweep:
             return
         if self.begun_at is None:
             self.begun_at, self.cursor = k, 0
-        sd = np.concatenate([[self.sensor_sigma],
-                             sigmas(self.sensor_sigma, self.slope, history[1:], *self.reach)])
+        sd = sigmas(self.sensor_sigma, self.slope, history[1:], *self.reach)
+        # the sharpest readings first (least widened: nearest the start), and no more than
+        # `readings` of them: a cell is judged at a bounded cost however long the walk
+        use = np.argsort(sd, kind="stable")[:self.settings.readings]
+        history = np.vstack([history[:1], history[1:][use]])
+        sd = np.concatenate([[self.sensor_sigma], sd[use]])
+        k = len(use)
         limit = k + 3.0 * np.sqrt(2.0 * k) + CAP
         left = self.settings.cells_per_update
         poses, misfit = np.empty((0, 3)), np.empty(0)

@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import numpy as np
 
-from service.localization.localizers.base import wrap_angle
 from service.localization.localizers.convergence import distinct
 from service.localization.localizers.fitting import fit_log_likelihood, gauss_newton
 from service.localization.surface import ContactSurface
@@ -31,12 +30,11 @@ class ModeTracks:
     def update(self, surface: ContactSurface, history: np.ndarray, candidates: np.ndarray,
                *, sd: float, position_tol: float, heading_tol: float, margin: float,
                outlier_probability: float, outlier_range: float) -> None:
-        """Add `candidates` (best first) far from every track, polish all, drop the losers."""
+        """Add `candidates` (best first), polish all, keep the best of each neighbourhood
+        and drop the losers. A candidate near a track joins too: if it fits better it is
+        the mode there (on fine terrain two modes lie a few millimetres apart)."""
         if len(candidates):
-            fresh = ~np.any(_near_pairs(candidates, self.centres, 2 * position_tol,
-                                        2 * heading_tol), axis=1)
-            room = max(self.limit - len(self.centres), 0)
-            self.centres = np.vstack([self.centres, candidates[fresh][:room]])
+            self.centres = np.vstack([self.centres, candidates[:self.limit]])
         if len(self.centres) == 0:
             self.ll = np.empty(0)
             return
@@ -45,7 +43,7 @@ class ModeTracks:
         ll = fit_log_likelihood(surface, self.centres, history, sd, margin,
                                 outlier_probability, outlier_range)
         keep = distinct(self.centres, ll, position_tol, heading_tol)
-        keep = keep[ll[keep] >= ll[keep[0]] - self.drop]
+        keep = keep[ll[keep] >= ll[keep[0]] - self.drop][:self.limit]
         self.centres, self.ll = self.centres[keep], ll[keep]
 
     def shares(self) -> np.ndarray:
@@ -54,11 +52,3 @@ class ModeTracks:
             return self.ll
         w = np.exp(self.ll - self.ll[0])
         return w / w.sum()
-
-
-def _near_pairs(a: np.ndarray, b: np.ndarray, position_tol: float, heading_tol: float
-                ) -> np.ndarray:
-    """(len(a), len(b)) mask of pose pairs within tolerance of each other."""
-    d_pos = np.hypot(a[:, None, 0] - b[None, :, 0], a[:, None, 1] - b[None, :, 1])
-    d_head = np.abs(wrap_angle(a[:, None, 2] - b[None, :, 2]))
-    return (d_pos <= position_tol) & (d_head <= heading_tol)

@@ -52,6 +52,8 @@ differ by less are one mode, and chasing their differences makes a policy dither
 BLOCKED = 1.0
 """The predicted "reading" of a blocked step, metres: far from any height, so it stands
 apart from every real reading."""
+PRIOR_HEADING = np.deg2rad(30.0)
+"""How loose a heading no reading has constrained is taken to be, for `_precision`."""
 KEEP_TARGET = 1.5
 """A new target must promise this many times the rate of the current one to replace it."""
 
@@ -147,18 +149,22 @@ class InfoGainPolicy:
 def _precision(view: PolicyInput, offsets: np.ndarray, s: float) -> np.ndarray:
     """Expected information (nats) of a reading at each place about where exactly the
     leading pose lies: 0.5 log(1 + j C j' / s^2), j the reading's sensitivity to the pose
-    at the leader and C the localizer's spread of it, weighted by the leading mode's
-    probability. Once one mode holds the belief its spread is what a declaration waits
-    for, and telling modes apart no longer shrinks it."""
+    at the leader and C what the readings so far leave of its uncertainty (their
+    information plus a prior of a step and `PRIOR_HEADING`), weighted by the leading mode's
+    probability. Once one mode holds the belief, its spread is what a declaration waits
+    for; along a direction no reading has seen yet (a straight rib, a plain) the prior
+    alone bounds it, and the readings that would see it are worth the most."""
     est = view.estimate
-    if est is None or est.pose is None or not (np.isfinite(est.position_sd)
-                                                and np.isfinite(est.heading_sd)):
+    if est is None or est.pose is None or est.information is None:
         return np.zeros(len(offsets))
     mass = float(est.mode_mass) if np.isfinite(est.mode_mass) else 0.0
     x0, y0, heading = est.pose
-    cov = np.diag([est.position_sd**2 / 2, est.position_sd**2 / 2, est.heading_sd**2])
+    step = view.step_length
+    prior = np.diag([1 / step**2, 1 / step**2, 1 / PRIOR_HEADING**2])
+    information = np.where(np.isfinite(est.information), est.information, 0.0)
+    cov = np.linalg.inv(information + prior)
     targets = np.asarray(view.displacement, dtype=np.float64)[np.newaxis, :2] \
-        + offsets * view.step_length
+        + offsets * step
     c, si = np.cos(heading), np.sin(heading)
     tx, ty = targets[:, 0], targets[:, 1]
     x, y = x0 + c * tx - si * ty, y0 + si * tx + c * ty
