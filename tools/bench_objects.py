@@ -11,7 +11,7 @@ from __future__ import annotations
 import argparse
 
 from service.localization.presets import FAMILIES
-from tools.bench_surfaces import add_surface_options, families_from, run_surfaces, seeds_from
+from tools.bench_surfaces import add_surface_options, run_families
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -19,7 +19,5 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    families = families_from(args.families, FAMILIES)
-    seeds = seeds_from(args.map_seeds)
-    surfaces = {f: [f"{f}:{args.size:g}:{seed}" for seed in seeds] for f in families}
-    return run_surfaces(args, scenario="objects", label="objects", surfaces=surfaces)
+    return run_families(args, scenario="objects", label="objects", allowed=FAMILIES,
+                        spec="{family}:{size}:{seed}")

@@ -11,7 +11,7 @@ from __future__ import annotations
 import argparse
 
 from service.localization.presets import FAMILIES
-from tools.bench_surfaces import add_surface_options, families_from, run_surfaces, seeds_from
+from tools.bench_surfaces import add_surface_options, run_families
 
 KINDS = ("smooth", *FAMILIES)
 
@@ -21,7 +21,5 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    kinds = families_from(args.families, KINDS)
-    seeds = seeds_from(args.map_seeds)
-    surfaces = {k: [f"profile:{k}:{args.size:g}:{seed}" for seed in seeds] for k in kinds}
-    return run_surfaces(args, scenario="profile", label="B5 profile", surfaces=surfaces)
+    return run_families(args, scenario="profile", label="B5 profile", allowed=KINDS,
+                        spec="profile:{family}:{size}:{seed}")

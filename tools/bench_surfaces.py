@@ -119,6 +119,17 @@ def print_row(r: dict[str, Any]) -> None:
           f"{r['verdict']}{mark}", flush=True)
 
 
+def run_families(args: argparse.Namespace, *, scenario: str, label: str,
+                 allowed: Sequence[str], spec: str) -> int:
+    """`run_surfaces` over --families x --map-seeds, each map named by `spec`, a format
+    with {family}, {size} and {seed}."""
+    families = families_from(args.families, allowed)
+    seeds = seeds_from(args.map_seeds)
+    surfaces = {f: [spec.format(family=f, size=f"{args.size:g}", seed=seed) for seed in seeds]
+                for f in families}
+    return run_surfaces(args, scenario=scenario, label=label, surfaces=surfaces)
+
+
 def run_surfaces(args: argparse.Namespace, *, scenario: str, label: str,
                  surfaces: dict[str, list[str]]) -> int:
     """Run `args.runs` seeded episodes on every surface ({family: [map specs]}), print a row
