@@ -20,6 +20,7 @@ from firmware_if.registers import (
     OPERATING_MODES,
     ticks_to_rad,
 )
+from tools.cli import signals_held
 
 MODEL_NAMES = {number: name for name, (number, _) in MODELS.items()}
 
@@ -76,7 +77,8 @@ def cmd_read(args: argparse.Namespace) -> int:
         n = 0
         next_t = time.monotonic()
         while args.count <= 0 or n < args.count:
-            readings = bus.cycle()
+            with signals_held():  # Ctrl-C between exchanges, never inside one
+                readings = bus.cycle()
             q = np.array([ticks_to_rad(readings[j.id].position, j.zero_ticks, j.direction)
                           for j in hand.joints])
             centre = kin.forward(hand, q)

@@ -146,6 +146,9 @@ class Interrupted(KeyboardInterrupt):
 
 
 def _on_signal(signum: int, frame: object) -> None:
+    if _hold["depth"]:
+        _hold["pending"] = signum  # raised when the held block ends
+        return
     raise Interrupted(signum)
 
 
@@ -177,6 +180,25 @@ def _one_blas_thread() -> Iterator[None]:
 
     with threadpool_limits(limits=1):
         yield
+
+
+_hold = {"depth": 0, "pending": None}
+"""While `signals_held` is open: the signal that arrived meanwhile, raised when it closes."""
+
+
+@contextmanager
+def signals_held() -> Iterator[None]:
+    """SIGINT and SIGTERM wait until the block is done (a packet exchange on a bus, a record
+    written whole), then end the command as usual."""
+    _hold["depth"] += 1
+    try:
+        yield
+    finally:
+        _hold["depth"] -= 1
+        signum = _hold["pending"]
+        if signum is not None and _hold["depth"] == 0:
+            _hold["pending"] = None
+            raise Interrupted(signum)
 
 
 def _quiet_broken_pipe() -> None:

@@ -12,9 +12,7 @@ import argparse
 import contextlib
 import csv
 import json
-import signal
 import sys
-import threading
 import time
 from pathlib import Path
 from typing import Any
@@ -22,6 +20,7 @@ from typing import Any
 from service.errors import InputError
 from service.wire import envelope as wire
 from service.wire.client import CommandFailed, CommandTimeout
+from tools.cli import signals_held
 from tools.stream_cli import (
     add_stream_options,
     client_from,
@@ -67,7 +66,7 @@ def cmd_record(args: argparse.Namespace) -> int:
                     if time.monotonic() < next_state:
                         continue
                     next_state = time.monotonic() + 1.0 / args.state_hz
-                with _signals_held():
+                with signals_held():
                     rec.write(msg.topic, msg)
                 if rec.count == 1:  # the daemon is up: ask for its config now
                     _store_config(args, rec)
@@ -88,20 +87,6 @@ def _store_config(args: argparse.Namespace, rec: Any) -> None:
             rec.add_config(c.call("get_config"))
     except (CommandFailed, CommandTimeout):
         pass  # a stream without its config still replays and exports
-
-
-@contextlib.contextmanager
-def _signals_held():
-    """SIGINT/SIGTERM wait until a message is written whole (then end the recording)."""
-    held = {signal.SIGINT, signal.SIGTERM}
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-    signal.pthread_sigmask(signal.SIG_BLOCK, held)
-    try:
-        yield
-    finally:
-        signal.pthread_sigmask(signal.SIG_UNBLOCK, held)
 
 
 # -- haptic replay -----------------------------------------------------------------------

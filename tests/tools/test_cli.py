@@ -142,3 +142,37 @@ def test_a_closed_pipe_ends_quietly(tmp_path: Path) -> None:
                           env={**os.environ, "PYTHONUNBUFFERED": "1"})
     assert proc.stdout.count("\n") == 2
     assert proc.stderr == ""
+
+
+def test_ctrl_c_during_a_bus_exchange_waits_for_it_and_ends_cleanly(monkeypatch, capsys):
+    """The interrupt lands mid-exchange; the exchange completes (no half packet on the bus,
+    no bogus bus error), then the command ends as interrupted."""
+    from types import SimpleNamespace
+
+    from firmware_if.hand import load_hand
+    from tools import bus_cli
+
+    hand = load_hand("spatial")
+    exchanges: list[str] = []
+
+    class Bus:
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *exc):
+            return None
+
+        def detect_fast_read(self):
+            return True
+
+        def cycle(self):
+            exchanges.append("sent")
+            os.kill(os.getpid(), signal.SIGINT)  # Ctrl-C while the reply is awaited
+            sum(range(10_000))  # bytecodes: where an unheld interrupt would strike
+            exchanges.append("answered")
+            return {j.id: SimpleNamespace(position=2048) for j in hand.joints}
+
+    monkeypatch.setattr(bus_cli, "_bus", lambda args, hand: Bus())
+    assert main(["bus", "read", "--port", "/dev/null", "--hand", "spatial"]) == 130
+    assert exchanges == ["sent", "answered"]
+    assert capsys.readouterr().err.strip() == "haptic bus: interrupted"
