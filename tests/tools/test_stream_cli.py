@@ -140,3 +140,40 @@ def test_view_without_a_display_says_use_png(node: Node, capsys, monkeypatch) ->
     monkeypatch.setenv("MPLBACKEND", "Agg")
     assert main(["view", *endpoints(node)]) == 2
     assert "--png" in capsys.readouterr().err
+
+
+def test_every_client_command_reaches_a_curve_daemon_with_keys(tmp_path: Path, capsys) -> None:
+    import dataclasses
+
+    from service.daemon.config import SecurityConfig
+
+    assert main(["keygen", str(tmp_path / "server"), "--name", "server"]) == 0
+    assert main(["keygen", str(tmp_path / "me"), "--name", "me"]) == 0
+    clients = tmp_path / "clients"
+    clients.mkdir()
+    (clients / "me.key").write_bytes((tmp_path / "me" / "me.key").read_bytes())
+    config = dataclasses.replace(
+        loopback_config({"backend": {"step_duration_s": 0.0}}),
+        security=SecurityConfig(curve=True, authorized_clients=str(clients),
+                                server_secret_key=str(tmp_path / "server" / "server.key_secret")))
+    keys = ["--curve-server-key", str(tmp_path / "server" / "server.key"),
+            "--curve-client-key", str(tmp_path / "me" / "me.key_secret")]
+    with running_node(config) as n:
+        ep = endpoints(n)
+        assert main(["ctl", "status", "--cmd", n.endpoints["cmd"], "--timeout", "0.5",
+                     "--retries", "0"]) == 3  # without keys: no answer
+        capsys.readouterr()
+        assert main(["ctl", "status", "--cmd", n.endpoints["cmd"], *keys]) == 0
+        assert json.loads(capsys.readouterr().out)["state"] == "inactive"
+        assert main(["explore", *ep, *keys, "--quiet"]) == 0
+        assert main(["watch", "--pub", n.endpoints["pub"], *keys, "--topics", "estimate",
+                     "--count", "1"]) == 0
+        assert "estimate" in capsys.readouterr().out
+        rec, png = tmp_path / "c.mcap", tmp_path / "c.png"
+        assert main(["record", str(rec), *ep, *keys, "--topics", "estimate", "--count",
+                     "2"]) == 0
+        assert main(["view", *ep, *keys, "--png", str(png)]) == 0
+        assert png.read_bytes()[:4] == b"\x89PNG"
+    assert main(["ctl", "status", "--curve-server-key", "nope.key", "--curve-client-key",
+                 "x"]) == 2
+    assert "does not exist" in capsys.readouterr().err
