@@ -53,6 +53,8 @@ LOCALIZERS = Registry("algorithm", {
 OBJECT_LOCALIZERS = Registry("algorithm", {
     "particles": Entry("service.localization.localizers.object_particles:ObjectParticles",
                        "Algorithm IV on the held object's pose"),
+    "elimination": Entry("service.localization.localizers.object_elimination:ObjectElimination",
+                         "Algorithm III: a table of object poses, each reading eliminating"),
 })
 """Localizers of an object held by a hand (`haptic run --object`)."""
 

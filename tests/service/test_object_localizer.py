@@ -30,13 +30,14 @@ def pose_error(a, b) -> tuple[float, float]:
     return float(np.hypot(a[0] - b[0], a[1] - b[1])), float(abs(wrap_angle(a[2] - b[2])))
 
 
-def test_three_fingers_localize_a_held_object_under_noise():
-    report = simulate_hand(THREE)
+@pytest.mark.parametrize("algorithm", ["particles", "elimination"])
+def test_three_fingers_localize_a_held_object_under_noise(algorithm):
+    report = simulate_hand(dataclasses.replace(THREE, algorithm=algorithm))
     assert report.result.converged and not report.result.dropped
     assert report.score.success and not report.score.wrong_declaration
     position, heading = pose_error(report.result.estimate.pose, report.truth)
     assert position < 1e-3 and heading < np.deg2rad(2)
-    again = simulate_hand(THREE)  # the same seed, the same episode
+    again = simulate_hand(dataclasses.replace(THREE, algorithm=algorithm))  # same seed
     assert [s.centres for s in again.result.steps] == [s.centres for s in report.result.steps]
 
 
@@ -94,5 +95,6 @@ def test_the_localizer_follows_a_carried_object():
 
 
 def test_unknown_algorithm_for_objects_is_a_clear_error():
-    with pytest.raises(Exception, match="unknown algorithm 'grid'"):
+    with pytest.raises(Exception, match="unknown algorithm 'grid'; choose one of: particles, "
+                                        "elimination"):
         HandSettings(algorithm="grid")

@@ -105,3 +105,18 @@ def distinct_places(points: np.ndarray, cell: float) -> int:
     """How many `cell`-sized squares the readings (K, 2) fall in."""
     ix, iz = np.round(points / cell).astype(np.int64).T
     return len(np.unique(ix * (1 << 32) + iz))
+
+
+def poses_through(field: ContactField, point: np.ndarray, radius: float,
+                  heading_step: float, arc_step: float) -> np.ndarray:
+    """Every pose (N, 3) under which a fingertip of `radius` centred at `point` (2,) touches
+    the object: headings every `heading_step`, and for each the outline points under the
+    fingertip every `arc_step` of arc."""
+    outline, normals = field.contour.resampled(arc_step)
+    local = outline + radius * normals  # the centre, object frame
+    headings = np.arange(-np.pi, np.pi, heading_step)
+    c, s = np.cos(headings)[:, None], np.sin(headings)[:, None]
+    x = point[0] - (c * local[None, :, 0] - s * local[None, :, 1])
+    z = point[1] - (s * local[None, :, 0] + c * local[None, :, 1])
+    heading = np.broadcast_to(headings[:, None], x.shape)
+    return np.column_stack([x.ravel(), z.ravel(), heading.ravel()])

@@ -338,7 +338,8 @@ class ObjectParticles:
     # -- helpers ---------------------------------------------------------------------------
     def _consistent(self, point: np.ndarray, radius: np.ndarray, count: int) -> np.ndarray:
         """`count` random poses under which a fingertip of `radius` at `point` (1, 2)
-        touches the object: a random heading and a random point of the outline there."""
+        touches the object: a random heading and a random point of the outline there
+        (the random counterpart of `contour_fit.poses_through`)."""
         rng = self.ctx.rng
         k = rng.integers(0, len(self.outline), count)
         heading = rng.uniform(-np.pi, np.pi, count)
