@@ -46,14 +46,21 @@ def near(a: np.ndarray, b: np.ndarray, position_tol: float, heading_tol: float) 
 
 
 class ObjectTracks:
-    """Up to `limit` polished mode centres, each with the evidence it carries (`prior`) and
-    its score on the readings since the last manipulation (`ll`)."""
+    """Up to `limit` polished mode centres, each with the evidence it carries (`prior`), its
+    score on the readings since the last manipulation (`ll`), and the readings from before
+    it (`felt`): a track that was carried knows where its own motion put its earlier
+    readings, so its fit may use them too, with the motion's noise added."""
 
     def __init__(self, limit: int = 32, drop: float = 30.0) -> None:
         self.limit, self.drop = limit, drop
         self.centres = np.empty((0, 3))
         self.prior = np.empty(0)
         self.ll = np.empty(0)
+        self.felt: list[np.ndarray] = []
+        """Per track (K, 4): earlier readings moved as the track's motions moved the object
+        (hand frame), their tip radius and the variance those motions added."""
+        self.carries = np.empty(0, dtype=np.int64)
+        """Per track, how many manipulations it was carried through."""
 
     @property
     def total(self) -> np.ndarray:
@@ -70,6 +77,8 @@ class ObjectTracks:
             take = np.flatnonzero(fresh)[:room]
             self.centres = np.vstack([self.centres, candidates[take]])
             self.prior = np.concatenate([self.prior, candidate_prior[take]])
+            self.felt += [np.empty((0, 4)) for _ in take]
+            self.carries = np.concatenate([self.carries, np.zeros(len(take), dtype=np.int64)])
         if len(self.centres) == 0:
             self.ll = np.empty(0)
             return
@@ -84,27 +93,64 @@ class ObjectTracks:
         keep = distinct(self.centres, total, position_tol, heading_tol)
         keep = keep[total[keep] >= total[keep[0]] - self.drop]
         self.centres, self.prior, self.ll = self.centres[keep], self.prior[keep], self.ll[keep]
+        self.felt = [self.felt[i] for i in keep]
+        self.carries = self.carries[keep]
 
     def carry(self, ctx: ObjectContext, centres: np.ndarray, moves: np.ndarray,
-              rolls: np.ndarray) -> None:
-        """Every track moved as the rolling model predicts; its evidence becomes its prior."""
+              rolls: np.ndarray, points: np.ndarray, radii: np.ndarray) -> None:
+        """Every track moved as the rolling model predicts; its evidence becomes its prior,
+        and the readings since the last carry (`points`, hand frame) join what it felt."""
         if len(self.centres) == 0:
             return
         total = self.total
         self.prior = total - total.max()
         self.ll = np.zeros(len(self.centres))
         tips = np.broadcast_to(centres, (len(self.centres), *centres.shape))
-        self.centres, _ = kernels.carry(
+        moved, _ = kernels.carry(
             *ctx.field.args, np.ascontiguousarray(self.centres), np.ascontiguousarray(tips),
             np.ascontiguousarray(ctx.radii, dtype=np.float64), np.ascontiguousarray(moves),
             np.ascontiguousarray(rolls), ctx.substeps,
             np.zeros((len(self.centres), ctx.substeps, 3)), 0.0, 0.0)
+        lever = ctx.field.contour.max_radius + float(np.max(ctx.radii))
+        latest = np.column_stack([points, radii, np.zeros(len(points))])
+        for i, (before, after) in enumerate(zip(self.centres, moved, strict=True)):
+            turn = abs(float(wrap_angle(after[2] - before[2])))
+            shift = float(np.hypot(*(after[:2] - before[:2])))
+            # the motion model's noise on this carry, seen at the reading's lever
+            spread = (ctx.motion.fraction * (turn * lever + shift)) ** 2 / ctx.substeps \
+                + (ctx.motion.direction_sigma * shift) ** 2
+            felt = np.vstack([self.felt[i], latest])
+            felt[:, :2] = from_object(to_object(felt[:, :2], before), after)
+            felt[:, 3] += spread
+            self.felt[i] = felt
+        self.centres = moved
+        self.carries = self.carries + 1
+
+    def history(self, i: int, points: np.ndarray, radii: np.ndarray, sigma: float
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Track i's readings: what it felt before (where its motions put them), then the
+        readings since; their radii and sd."""
+        felt = self.felt[i]
+        return (np.vstack([felt[:, :2], points]), np.concatenate([felt[:, 2], radii]),
+                np.sqrt(sigma**2 + np.concatenate([felt[:, 3], np.zeros(len(points))])))
 
     def shares(self) -> np.ndarray:
         if len(self.centres) == 0:
             return np.empty(0)
         w = np.exp(self.total - self.total.max())
         return w / w.sum()
+
+
+def to_object(points: np.ndarray, pose: np.ndarray) -> np.ndarray:
+    c, s = np.cos(pose[2]), np.sin(pose[2])
+    w = np.asarray(points) - pose[:2]
+    return np.column_stack([c * w[:, 0] + s * w[:, 1], -s * w[:, 0] + c * w[:, 1]])
+
+
+def from_object(points: np.ndarray, pose: np.ndarray) -> np.ndarray:
+    c, s = np.cos(pose[2]), np.sin(pose[2])
+    return np.column_stack([c * points[:, 0] - s * points[:, 1] + pose[0],
+                            s * points[:, 0] + c * points[:, 1] + pose[1]])
 
 
 @dataclass(frozen=True)
@@ -117,13 +163,16 @@ class ObjectVerdict:
 
 
 def judge(ctx: ObjectContext, points: np.ndarray, radii: np.ndarray, tracks: ObjectTracks, *,
-          rule: ConvergenceRule, noisy: bool, places_before: int,
+          rule: ConvergenceRule, noisy: bool, places_before: int, epoch: int,
           previous: tuple[float, float, float] | None, motions: np.ndarray) -> ObjectVerdict:
-    """Weigh the tracks (and the leader's near-symmetric images), refine the leader on the
-    readings since the last manipulation and ask `rule` whether to declare it.
+    """Weigh the tracks (and the leader's near-symmetric images), refine the leader on its
+    readings (those since the last manipulation, and those its motions carried) and ask
+    `rule` whether to declare it.
 
     `places_before` counts the distinct places felt before the last manipulation: their
-    evidence lives on in the priors, and counts towards enough readings."""
+    evidence lives on in the priors, and counts towards enough readings. After `epoch`
+    manipulations only a track carried through all of them may be declared: a pose found
+    since has never been asked to explain the readings from before."""
     if len(tracks.centres) == 0 or len(points) < 4:
         return ObjectVerdict(None, float(tracks.shares()[0]) if len(tracks.centres) else 0.0,
                              None, 0.0, False)
@@ -134,12 +183,19 @@ def judge(ctx: ObjectContext, points: np.ndarray, radii: np.ndarray, tracks: Obj
     total = tracks.total
     lead = int(np.argmax(total))
     mirrored = images(tracks.centres[lead], motions)
-    centres = np.vstack([tracks.centres, mirrored])
-    prior = np.concatenate([tracks.prior, np.full(len(mirrored), tracks.prior[lead])])
+    image_prior = np.full(len(mirrored), tracks.prior[lead])
     if len(mirrored):  # images are polished like tracks: they stand for their basin
         mirrored = gauss_newton(ctx.field, mirrored, points, radii, iterations=3,
                                 max_move=tol_pos)
-        centres[len(tracks.centres):] = mirrored
+        felt = tracks.felt[lead]
+        if len(felt):  # what the leader felt before tells its images apart (the one feature)
+            ll = fit_log_likelihood(ctx.field, np.vstack([tracks.centres[lead:lead + 1],
+                                                          mirrored]), felt[:, :2], felt[:, 2],
+                                    np.sqrt(max(sigma, 0.002 * scale) ** 2 + felt[:, 3]),
+                                    ctx.outlier_probability, ctx.outlier_range)
+            image_prior += ll[1:] - ll[0]
+    centres = np.vstack([tracks.centres, mirrored])
+    prior = np.concatenate([tracks.prior, image_prior])
     score = prior + fit_log_likelihood(ctx.field, centres, points, radii, sd,
                                        ctx.outlier_probability, ctx.outlier_range)
     order = distinct(centres, score, tol_pos, tol_head)
@@ -149,14 +205,19 @@ def judge(ctx: ObjectContext, points: np.ndarray, radii: np.ndarray, tracks: Obj
     runner_mass = float(share[1]) if len(order) > 1 else 0.0
     mass = float(share[0])
     best = centres[order[0]]
+    # the leader's fit uses every reading it has: what its motions carried, and the latest
+    lead_points, lead_radii, lead_sd = points, radii, np.full(len(points), sigma)
+    if order[0] < len(tracks.centres):
+        lead_points, lead_radii, lead_sd = tracks.history(int(order[0]), points, radii, sigma)
     places = places_before + distinct_places(points, 0.25 * scale)
-    fit = _floored(ctx, points, radii, assess(ctx.field, points, radii, best, sigma))
-    enough_here = distinct_places(points, 0.25 * scale) >= 4
+    fit = _floored(ctx, lead_points, lead_radii, assess(ctx.field, lead_points, lead_radii,
+                                                        best, lead_sd))
+    enough_here = distinct_places(points, 0.25 * scale) >= 2
     converged = False
     if enough_here and rule.loosened().holds(readings=places - 1, noisy=noisy, mode_mass=mass,
                                              fit=fit, step_length=scale):
         outliers = len(points) // 8 if noisy else 0
-        fit = refine(ctx.field, points, radii, best, sigma, max_outliers=outliers)
+        fit = refine(ctx.field, lead_points, lead_radii, best, lead_sd, max_outliers=outliers)
         rivals = [i for i, w in zip(order[1:1 + REFINED_RIVALS], share[1:1 + REFINED_RIVALS],
                                     strict=False) if w > 1e-6]
         fits = [fit] + [refine(ctx.field, points, radii, centres[i], sigma,
@@ -168,9 +229,11 @@ def judge(ctx: ObjectContext, points: np.ndarray, radii: np.ndarray, tracks: Obj
         rest = share[1 + len(rivals):].sum()
         w = np.exp(ll - ll.max())
         mass = float(w[0] / w.sum()) * (1.0 - rest) if ll[0] >= ll.max() else 0.0
-        fit = _floored(ctx, points, radii, fit)
+        fit = _floored(ctx, lead_points, lead_radii, fit)
         converged = rule.holds(readings=places - 1, noisy=noisy, mode_mass=mass, fit=fit,
                                step_length=scale)
+        converged &= bool(order[0] < len(tracks.centres)
+                          and tracks.carries[int(order[0])] >= epoch)
         converged &= not noisy or previous is not None and bool(near(
             np.asarray([fit.pose]), np.asarray([previous]), rule.max_position_sd * scale,
             rule.max_heading_sd)[0, 0])

@@ -171,7 +171,7 @@ class ObjectParticles:
             np.ascontiguousarray(rolls, dtype=np.float64), self.ctx.substeps, draws,
             self.ctx.motion.fraction, self.ctx.motion.direction_sigma)
         self.tracks.carry(self.ctx, self.last_centres, np.asarray(moves, dtype=np.float64),
-                          np.asarray(rolls, dtype=np.float64))
+                          np.asarray(rolls, dtype=np.float64), self.points, self.radii)
         self.prior = total - total.max()
         self.places_before += distinct_places(self.points, 0.25 * self.ctx.scale)
         self.points, self.radii = np.empty((0, 2)), np.empty(0)
@@ -326,7 +326,7 @@ class ObjectParticles:
                            self.prior[leaders], sd=max(self.sigma, 0.002 * scale),
                            position_tol=0.25 * scale, heading_tol=np.deg2rad(5.0))
         v = judge(self.ctx, self.points, self.radii, self.tracks, rule=self.rule,
-                  noisy=self.noisy, places_before=self.places_before,
+                  noisy=self.noisy, places_before=self.places_before, epoch=self.epoch,
                   previous=None if previous is None else previous.pose, motions=self.motions)
         self.fit, self.converged, self.mode_mass = v.fit, v.converged, v.mode_mass
         self.runner_up, self.runner_up_mass = v.runner_up, v.runner_up_mass

@@ -61,7 +61,7 @@ RECOVERY = 0.5
 the grasp there is below twice the threshold: a weak grasp is strengthened first."""
 BUFFER = 0.25
 """Share of the gap from the margin to the threshold counted as near the margin."""
-STEP_PARTS = (1.0, 0.5, 0.25)
+STEP_PARTS = (1.0, 0.5, 0.25, 0.1)
 """Shares of the step length tried: while the pose is uncertain, only a short roll may be
 safe under every plausible pose; as it narrows, longer ones become safe."""
 
