@@ -115,7 +115,7 @@ def plot_rows(rows: list[dict], path) -> None:
 
     from tools.plots import plain_log_ticks
 
-    fig = Figure(figsize=(13, 4.4))
+    fig = Figure(figsize=(13, 5.0))
     ax, ok_ax = fig.subplots(1, 2, width_ratios=(1.25, 1))
     names = list(dict.fromkeys(r["algorithm"] for r in rows))
     colour = {name: f"C{i}" for i, name in enumerate(names)}
@@ -131,7 +131,7 @@ def plot_rows(rows: list[dict], path) -> None:
     ax.set(xlabel="map size (units of 10 mm)", ylabel="ms per step after the first",
            yscale="log", title="compute per step as the map grows")
     plain_log_ticks(ax.yaxis)
-    ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.0, 1.0))
+    ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.16), ncol=3)
     sizes = sorted({r["map_units"] for r in rows})
     width = 0.8 / len(names)
     for i, name in enumerate(names):
@@ -147,7 +147,7 @@ def plot_rows(rows: list[dict], path) -> None:
     ok_ax.set_xticks(np.arange(len(sizes)), [f"{u:g}" for u in sizes])
     ok_ax.set(xlabel="map size (units of 10 mm)", ylabel="% of runs", ylim=(0, 112),
               title="success (the rest: not yet localized)")
-    ok_ax.legend(fontsize=7, loc="lower left")
+    ok_ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.16), ncol=3)
     fig.suptitle(f"B3: bumps maps, {rows[0]['runs']} runs per size and algorithm")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
