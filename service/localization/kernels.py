@@ -360,6 +360,17 @@ def sweep_screen(grid: np.ndarray, spacing: float, extent: tuple[float, float],
     """
     n = shape[0] * shape[1] * shape[2]
     k = history.shape[0]
+    # each heading's rotation of each reading, once: a cell then costs additions
+    turned = np.empty((shape[2], k, 2))
+    for ih in range(shape[2]):
+        heading = origin[2] + (ih + 0.5) * pitch[2]
+        co, si = math.cos(heading), math.sin(heading)
+        for j in range(k):
+            turned[ih, j, 0] = co * history[j, 0] - si * history[j, 1]
+            turned[ih, j, 1] = si * history[j, 0] + co * history[j, 1]
+    walled = np.zeros(k, dtype=np.bool_)
+    for j in range(k):
+        walled[j] = history.shape[1] >= 5 and (history[j, 3] != 0.0 or history[j, 4] != 0.0)
     poses = np.empty((keep, 3))
     misfit = np.empty(keep)
     held, worst = 0, 0
@@ -371,15 +382,14 @@ def sweep_screen(grid: np.ndarray, spacing: float, extent: tuple[float, float],
         ix = cell // (shape[2] * shape[1])
         px = origin[0] + (ix + 0.5) * pitch[0]
         py = origin[1] + (iy + 0.5) * pitch[1]
-        heading = origin[2] + (ih + 0.5) * pitch[2]
-        co, si = math.cos(heading), math.sin(heading)
         z0 = _bilinear(grid, spacing, px, py)[0]
         total = 0.0
         for j in range(1, k):
-            x = px + co * history[j, 0] - si * history[j, 1]
-            y = py + si * history[j, 0] + co * history[j, 1]
-            if not (_inside(x, y, extent, profile, margin)
-                    and _edge_explains(px, py, co, si, history[j], extent, profile, margin)):
+            x, y = px + turned[ih, j, 0], py + turned[ih, j, 1]
+            heading = origin[2] + (ih + 0.5) * pitch[2]
+            if not _inside(x, y, extent, profile, margin) or (walled[j] and not _edge_explains(
+                    px, py, math.cos(heading), math.sin(heading), history[j], extent,
+                    profile, margin)):
                 total += cap
             else:
                 z = (_bilinear(grid, spacing, x, y)[0] - z0 - history[j, 2]) / sd[j]
@@ -389,7 +399,8 @@ def sweep_screen(grid: np.ndarray, spacing: float, extent: tuple[float, float],
         if total > bound:
             continue
         slot = held if held < keep else worst
-        poses[slot, 0], poses[slot, 1], poses[slot, 2] = px, py, heading
+        poses[slot, 0], poses[slot, 1] = px, py
+        poses[slot, 2] = origin[2] + (ih + 0.5) * pitch[2]
         misfit[slot] = total
         if held < keep:
             held += 1

@@ -98,6 +98,9 @@ def test_modes_group_and_merge():
                       "unnoticed, its image untested"),
     ("pattern:20:1", 4, "a quarter turn of four holes, before any reading touched the "
                         "feature that breaks the pattern"),
+    ("profile:plate:20:2", 0, "3.1 mm off: one plate edge in a flat valley of misfit"),
+    ("profile:shell:20:1", 2, "3.6 mm off: a valley 5 mm wide, its curvature claimed 0.46"),
+    ("profile:terrain:20:2", 1, "3.0 mm off: errors of the map that correlate over a step"),
 ])
 def test_no_wrong_declaration_where_one_was_found(surface, seed, why):
     from service.localization.maps import load_map

@@ -45,7 +45,7 @@ class SweepSettings:
     cell: float = 0.6
     """Cell width: a pose in the cell is at most 0.42 steps from its centre."""
     heading_cell_deg: float = 15.0
-    cells_per_update: int = 8192
+    cells_per_update: int = 16_384
     start_readings: int = 2
     """Readings (after first contact) before a sweep begins: fewer pass too many cells."""
     readings: int = 12
@@ -82,6 +82,8 @@ class Sweep:
         self.cursor = 0
         self.begun_at: int | None = None
         """Readings when the current sweep began (None: not begun)."""
+        self.bar = np.inf
+        """The worst misfit the last update handed over (infinite if it found too few)."""
         self.checked_at: int | None = None
         """Readings when the last sound sweep began: every pose that explains the
         readings since was in a cell it handed over."""
@@ -107,7 +109,9 @@ class Sweep:
         history = np.vstack([history[:1], history[1:][use]])
         sd = np.concatenate([[self.sensor_sigma], sd[use]])
         k = len(use)
-        limit = k + 3.0 * np.sqrt(2.0 * k) + CAP
+        # a cell must also beat (nearly) the worst handed over last time: most cells then
+        # fail on their first reading or two
+        limit = min(k + 3.0 * np.sqrt(2.0 * k) + CAP, 1.2 * self.bar)
         left = self.settings.cells_per_update
         poses, misfit = np.empty((0, 3)), np.empty(0)
         while left > 0 and self.cursor < self.cells:
@@ -124,6 +128,7 @@ class Sweep:
                 self.checked_at, self.begun_at = self.begun_at, None
             yield count, np.empty((0, 3))
         best = np.argsort(misfit, kind="stable")[:self.settings.keep]
+        self.bar = float(misfit[best[-1]]) if len(best) == self.settings.keep else np.inf
         yield 0, poses[best]
 
 

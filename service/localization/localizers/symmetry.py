@@ -20,7 +20,8 @@ from scipy import ndimage, signal
 
 from service.localization.surface import ContactSurface
 
-_CACHE: weakref.WeakKeyDictionary[ContactSurface, np.ndarray] = weakref.WeakKeyDictionary()
+_CACHE: weakref.WeakKeyDictionary[ContactSurface, dict[tuple, np.ndarray]] = (
+    weakref.WeakKeyDictionary())
 
 
 def symmetries(surface: ContactSurface, threshold: float = 0.85, min_overlap: float = 0.3,
@@ -31,11 +32,11 @@ def symmetries(surface: ContactSurface, threshold: float = 0.85, min_overlap: fl
     those images until a reading has touched the feature. A false symmetry costs only a
     few image poses that fit worse; a missed one declared quarter turns
     (pattern:20:1, seed 4)."""
-    cached = _CACHE.get(surface)
-    if cached is None:
-        cached = _find(surface, threshold, min_overlap, limit)
-        _CACHE[surface] = cached
-    return cached
+    per_surface = _CACHE.setdefault(surface, {})
+    key = (threshold, min_overlap, limit)
+    if key not in per_surface:
+        per_surface[key] = _find(surface, threshold, min_overlap, limit)
+    return per_surface[key]
 
 
 def _find(surface: ContactSurface, threshold: float, min_overlap: float, limit: int
