@@ -342,19 +342,22 @@ def information(readings: np.ndarray, weights: np.ndarray, sigma: float) -> np.n
 
 
 @numba.njit(**_JIT)
-def sweep_screen(grid: np.ndarray, spacing: float, extent: tuple[float, float],
-                 profile: bool, first: int, count: int, stride: int, shape: np.ndarray,
-                 origin: np.ndarray, pitch: np.ndarray, history: np.ndarray,
-                 sd: np.ndarray, margin: float, cap: float, limit: float, keep: int
-                 ) -> tuple[np.ndarray, np.ndarray]:
+def sweep_screen(grid: np.ndarray, slopes: np.ndarray, spacing: float,
+                 extent: tuple[float, float], profile: bool, first: int, count: int,
+                 stride: int, shape: np.ndarray, origin: np.ndarray, pitch: np.ndarray,
+                 history: np.ndarray, sigma: float, spread: np.ndarray, margin: float,
+                 cap: float, limit: float, keep: int) -> tuple[np.ndarray, np.ndarray]:
     """The `keep` best of cells `first` .. `first + count` of a sweep over a grid of start
     poses, best first.
 
     Cell i of the sweep is grid cell (i * stride) mod n, n = prod(`shape`) (x, y, heading
     counts), so any stretch of the sweep is spread over the whole map. Its pose is
     `origin` + (index + 0.5) * `pitch`. A cell's misfit is the sum over readings of
-    min(z^2, cap), z its relative height residual over the reading's sd `sd` (K,); a
-    reading off the map, or a blocked step's target on it, costs `cap`. Only cells within
+    min(z^2, cap), z its relative height residual over the sd a pose in the cell could
+    explain: `sigma` widened by how far such a pose can move the reading (`spread` (K,),
+    metres; entry 0 for the first contact) times the steepest slope near where it lands
+    (`slopes`, a grid like `grid`). A reading off the map, or a blocked step's target on
+    it, costs `cap`. Only cells within
     `limit` count, and once `keep` are held a cell must beat the worst of them: the sum is
     abandoned as soon as it cannot, so most cells cost a reading or two.
     """
@@ -383,6 +386,7 @@ def sweep_screen(grid: np.ndarray, spacing: float, extent: tuple[float, float],
         px = origin[0] + (ix + 0.5) * pitch[0]
         py = origin[1] + (iy + 0.5) * pitch[1]
         z0 = _bilinear(grid, spacing, px, py)[0]
+        var0 = sigma * sigma + (_bilinear(slopes, spacing, px, py)[0] * spread[0]) ** 2
         total = 0.0
         for j in range(1, k):
             x, y = px + turned[ih, j, 0], py + turned[ih, j, 1]
@@ -392,8 +396,9 @@ def sweep_screen(grid: np.ndarray, spacing: float, extent: tuple[float, float],
                     profile, margin)):
                 total += cap
             else:
-                z = (_bilinear(grid, spacing, x, y)[0] - z0 - history[j, 2]) / sd[j]
-                total += min(z * z, cap)
+                r = _bilinear(grid, spacing, x, y)[0] - z0 - history[j, 2]
+                g = _bilinear(slopes, spacing, x, y)[0] * spread[j]
+                total += min(r * r / (var0 + g * g), cap)
             if total > bound:
                 break
         if total > bound:
@@ -435,8 +440,8 @@ def warm_up() -> None:
         log_likelihood(r, ok, np.ones(2), 0.0, 1.0)
         gauss_newton(g, 1.0, poses, history, np.ones(2), 1, 1e-4, 0.0, 1.0, is_profile)
         heights_and_jacobian(g, 1.0, np.zeros(3), history)
-        sweep_screen(g, 1.0, (1.0, 1.0), is_profile, 0, 1, 1, np.ones(3, dtype=np.int64),
-                     np.zeros(3), np.ones(3), history, np.ones(2), 0.0, 9.0, 10.0, 4)
+        sweep_screen(g, g, 1.0, (1.0, 1.0), is_profile, 0, 1, 1, np.ones(3, dtype=np.int64),
+                     np.zeros(3), np.ones(3), history, 1.0, np.ones(2), 0.0, 9.0, 10.0, 4)
     first_of_each_mode(poses, 1.0, 1.0)
     best_per_key(np.zeros(1, dtype=np.int64), np.zeros(1))
     information(np.zeros((1, 2, 1)), np.ones(2), 1.0)

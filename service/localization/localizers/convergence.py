@@ -167,6 +167,10 @@ class ConvergenceRule:
         return bool(fits and tight)
 
 
+FLOOR = 0.002
+"""Smallest reading sd (in steps) a spread or a comparison of fits assumes: what a map
+sampled at a millimetre or so knows of heights between its samples."""
+
 SETTLED = 2.0
 """How far (in the rule's largest spreads) a declared pose may have moved since the previous
 update: consecutive fits of a settled pose differ by about their spread, not more."""
@@ -272,8 +276,8 @@ def judge(surface: ContactSurface, history: np.ndarray, modes: Modes, *, sigma: 
                                fit=fit, step_length=step_length)
         # the spread is the fit's curvature; where the misfit is not a bowl (a flat valley
         # with a wall) it can claim half a millimetre while the readings allow three
-        converged = converged and _valley_within(surface, history, fit, sds, tol_pos,
-                                                 tol_head)
+        converged = converged and _valley_within(
+            surface, history, fit, np.maximum(sds, FLOOR * step_length), tol_pos, tol_head)
         # with noise it must also agree with where the previous update put it: a pose that
         # still jumps between updates is not settled, however tight its covariance looks
         converged &= not noisy or previous is not None and bool(_near(
@@ -343,13 +347,15 @@ def distinct_places(history: np.ndarray, cell: float) -> int:
 
 def _with_floored_spread(surface: ContactSurface, history: np.ndarray, fit: Fit, sigma: float,
                          position_sigma: float, step_length: float) -> Fit:
-    """`fit` with its spread recomputed at a reading sd of at least 0.05 % of a step.
+    """`fit` with its spread recomputed at a reading sd of at least `FLOOR` steps.
 
     Noise-free the sensor sd is 0.1 um, and even a nearly flat patch of map (where every
     pose reads the same heights to within that) would look pinned; the floor makes the
-    spread say how well the *shape* of the readings fixes the pose.
+    spread say how well the *shape* of the readings fixes the pose, to about what a
+    sampled map can say (a round boss meshed at 1 mm is round only to some 10 um, and at
+    0.5 um its poses round the boss looked pinned).
     """
-    floor = max(sigma, 0.0005 * step_length)
+    floor = max(sigma, FLOOR * step_length)
     if floor <= sigma:
         return _with_model_error(fit, history, step_length)
     spread = assess(surface, history, np.asarray(fit.pose),

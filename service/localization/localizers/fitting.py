@@ -14,12 +14,12 @@ from __future__ import annotations
 import weakref
 
 import numpy as np
+from scipy import ndimage
 
 from service.localization import kernels
 from service.localization.surface import ContactSurface
 
-_SLOPES: weakref.WeakKeyDictionary[ContactSurface, tuple[float, float]] = (
-    weakref.WeakKeyDictionary())
+_SLOPES: weakref.WeakKeyDictionary[ContactSurface, float] = weakref.WeakKeyDictionary()
 
 
 def sample(surface: ContactSurface, x: np.ndarray, y: np.ndarray
@@ -34,25 +34,36 @@ def sample(surface: ContactSurface, x: np.ndarray, y: np.ndarray
 
 def typical_slope(surface: ContactSurface) -> float:
     """RMS gradient of the contact surface: converts a pose range into a height range."""
-    return _slopes(surface)[0]
-
-
-def steep_slope(surface: ContactSurface) -> float:
-    """The gradient 90 % of the contact surface stays under: a pose range turned into a
-    height range with it covers the truth's error on all but the steepest tenth."""
-    return _slopes(surface)[1]
-
-
-def _slopes(surface: ContactSurface) -> tuple[float, float]:
     cached = _SLOPES.get(surface)
     if cached is None:
         grid, spacing = surface.centre_heights, surface.map.spacing
         gx = np.gradient(grid, spacing, axis=1)
         gy = 0.0 if surface.map.is_profile else np.gradient(grid, spacing, axis=0)
-        g2 = gx**2 + gy**2
-        _SLOPES[surface] = cached = (max(float(np.sqrt(np.mean(g2))), 1e-3),
-                                     max(float(np.sqrt(np.percentile(g2, 90))), 1e-3))
+        _SLOPES[surface] = cached = max(float(np.sqrt(np.mean(gx**2 + gy**2))), 1e-3)
     return cached
+
+
+_STEEPEST: weakref.WeakKeyDictionary[ContactSurface, dict[float, np.ndarray]] = (
+    weakref.WeakKeyDictionary())
+
+
+def steepest_near(surface: ContactSurface, radius: float) -> np.ndarray:
+    """A grid like the surface's: the steepest gradient within `radius` metres of each
+    sample. A pose that may lie `radius` from where a hypothesis puts it reads a height
+    off by at most this times the distance: the local bound the global sweep widens its
+    cells by (a global slope is wrong both on plains and on a boss's flank)."""
+    per_surface = _STEEPEST.setdefault(surface, {})
+    if radius not in per_surface:
+        grid, spacing = surface.centre_heights, surface.map.spacing
+        gx = np.gradient(grid, spacing, axis=1)
+        gy = 0.0 if surface.map.is_profile else np.gradient(grid, spacing, axis=0)
+        k = max(1, int(np.ceil(radius / spacing)))
+        size = (1, 2 * k + 1) if surface.map.is_profile else (2 * k + 1, 2 * k + 1)
+        steep = ndimage.maximum_filter(np.hypot(gx, gy), size=size, mode="nearest")
+        steep = np.ascontiguousarray(steep)
+        steep.setflags(write=False)
+        per_surface[radius] = steep
+    return per_surface[radius]
 
 
 def residuals(surface: ContactSurface, poses: np.ndarray, readings: np.ndarray,

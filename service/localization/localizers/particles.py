@@ -54,7 +54,6 @@ from service.localization.localizers.fitting import (
     on_pose_space,
     residuals,
     sigmas,
-    steep_slope,
     typical_slope,
 )
 from service.localization.localizers.pool import (
@@ -122,8 +121,7 @@ class Particles:
         self.converged = False
         self.tracks = ModeTracks()
         self.motions = symmetries(ctx.surface)
-        self.sweep = Sweep(ctx.surface, step, self.sigma, steep_slope(ctx.surface),
-                           self.margin, sweep or SweepSettings())
+        self.sweep = Sweep(ctx.surface, step, self.sigma, self.margin, sweep or SweepSettings())
         self._job: AnytimeJob | None = None
         self._judge_ns = 0
         """How long the last judgement took: a hint for slicing, never for results."""

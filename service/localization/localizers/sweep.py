@@ -31,7 +31,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from service.localization import kernels
-from service.localization.localizers.fitting import sigmas
+from service.localization.localizers.fitting import steepest_near
 from service.localization.surface import ContactSurface
 
 CAP = 9.0
@@ -59,10 +59,10 @@ class Sweep:
     """Sweeps over every cell of the pose space, a bounded share per update."""
 
     def __init__(self, surface: ContactSurface, step_length: float, sensor_sigma: float,
-                 slope: float, margin: float, settings: SweepSettings | None = None) -> None:
+                 margin: float, settings: SweepSettings | None = None) -> None:
         self.surface = surface
         self.settings = s = settings or SweepSettings()
-        self.sensor_sigma, self.slope, self.margin = sensor_sigma, slope, margin
+        self.sensor_sigma, self.margin = sensor_sigma, margin
         profile = surface.map.is_profile
         x_max, y_max = surface.map.extent
         width = s.cell * step_length
@@ -76,6 +76,7 @@ class Sweep:
         self.stride = _coprime_stride(self.cells)
         self.reach = (float(np.hypot(*self.pitch[:2])) / 2, float(self.pitch[2]) / 2)
         """How far a pose in a cell can lie from its centre (metres, radians)."""
+        self.slopes = steepest_near(surface, 2 * self.reach[0])
         self.reset()
 
     def reset(self) -> None:
@@ -102,12 +103,12 @@ class Sweep:
             return
         if self.begun_at is None:
             self.begun_at, self.cursor = k, 0
-        sd = sigmas(self.sensor_sigma, self.slope, history[1:], *self.reach)
+        spread = self.reach[0] + np.hypot(history[1:, 0], history[1:, 1]) * self.reach[1]
         # the sharpest readings first (least widened: nearest the start), and no more than
         # `readings` of them: a cell is judged at a bounded cost however long the walk
-        use = np.argsort(sd, kind="stable")[:self.settings.readings]
+        use = np.argsort(spread, kind="stable")[:self.settings.readings]
         history = np.vstack([history[:1], history[1:][use]])
-        sd = np.concatenate([[self.sensor_sigma], sd[use]])
+        spread = np.concatenate([[self.reach[0]], spread[use]])
         k = len(use)
         # a cell must also beat (nearly) the worst handed over last time: most cells then
         # fail on their first reading or two
@@ -117,10 +118,10 @@ class Sweep:
         while left > 0 and self.cursor < self.cells:
             count = min(left, take or left, self.cells - self.cursor)
             p, m = kernels.sweep_screen(
-                self.surface.centre_heights, self.surface.map.spacing, self.surface.map.extent,
-                self.surface.map.is_profile, self.cursor, count, self.stride, self.shape,
-                self.origin, self.pitch, history, sd, self.margin, CAP, limit,
-                self.settings.keep)
+                self.surface.centre_heights, self.slopes, self.surface.map.spacing,
+                self.surface.map.extent, self.surface.map.is_profile, self.cursor, count,
+                self.stride, self.shape, self.origin, self.pitch, history, self.sensor_sigma,
+                spread, self.margin, CAP, limit, self.settings.keep)
             poses, misfit = np.vstack([poses, p]), np.concatenate([misfit, m])
             self.cursor += count
             left -= count
