@@ -28,7 +28,8 @@ from service.errors import InputError, ServiceError
 
 COMMANDS: dict[str, tuple[str, str]] = {
     "run": ("tools.run_cli", "localize a simulated (or real) finger once, step by step"),
-    "bench": ("tools.bench", "run a benchmark scenario of BENCHMARKS.md (B1-B4, bus, anytime)"),
+    "bench": ("tools.bench", "run a seeded benchmark scenario of BENCHMARKS.md (B1-B6 and more; "
+                             "`haptic bench --help` lists them)"),
     "explore": ("tools.ctl_cli:register_explore",
                 "localize with a running hapticd: take control, activate, explore until "
                 "converged (exit 0), release"),
