@@ -120,3 +120,21 @@ def test_a_recording_stopped_by_a_signal_is_a_complete_file(tmp_path: Path) -> N
     with rec.open("rb") as f:
         summary = make_reader(f).get_summary()  # written only by a finished file
     assert summary is not None and summary.statistics.message_count > 0
+
+
+def test_a_cloud_survives_json_exactly_in_fewer_bytes() -> None:
+    import numpy as np
+
+    from tools.recording import SCHEMAS, message_from_json, message_json
+
+    rng = np.random.default_rng(0)
+    poses = rng.uniform(-4, 4, (500, 3)).astype(np.float32)
+    weights = rng.dirichlet(np.ones(500)).astype(np.float32)
+    msg = wire.decode(wire.encode("cloud", 7, {"episode": 1, "step": 3, "total": 900,
+                                               "poses": poses, "weights": weights}),
+                      topic="cloud")
+    text = json.dumps(message_json(msg))
+    back = message_from_json(json.loads(text), SCHEMAS["cloud"], "cloud")
+    assert back.body["poses"].dtype == np.float32 and np.array_equal(back["poses"], poses)
+    assert np.array_equal(back["weights"], weights) and back.seq == 7
+    assert len(text) < 1500 * 12  # shortest float32 digits, not float64's 17-19
