@@ -99,6 +99,9 @@ def register_replay(p: argparse.ArgumentParser) -> None:
                    help="re-publish on this loopback PUB endpoint, e.g. tcp://127.0.0.1:5570")
     p.add_argument("--speed", type=float, default=1.0,
                    help="time scale when publishing (default: %(default)s)")
+    p.add_argument("--delay", type=float, default=1.0, metavar="S",
+                   help="when publishing, wait S seconds after binding so that subscribers "
+                        "connect before the first message (default: %(default)s)")
     p.set_defaults(handler=cmd_replay)
 
 
@@ -133,6 +136,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
             raise InputError(f"cannot bind {args.publish}: {exc}") from None
         print(f"# publishing {len(records)} messages on "
               f"{sock.getsockopt_string(zmq.LAST_ENDPOINT)}", file=sys.stderr)
+        time.sleep(max(0.0, args.delay))  # ZeroMQ's slow joiner: let subscribers connect
         start, t0 = time.monotonic_ns(), records[0].t_ns if records else 0
         for r in records:
             due = start + int((r.t_ns - t0) / args.speed)

@@ -139,3 +139,37 @@ def test_a_cloud_survives_json_exactly_in_fewer_bytes() -> None:
     assert np.array_equal(back["weights"], weights) and back.seq == 7
     as_doubles = json.dumps({"poses": poses.tolist(), "weights": weights.tolist()})
     assert len(text) < 0.7 * len(as_doubles)  # float32's shortest digits, not float64's
+
+
+def test_replay_republishes_the_messages_as_the_daemon_sent_them(tmp_path: Path) -> None:
+    import socket
+    import threading
+
+    import numpy as np
+
+    from service.wire.client import Subscriber
+    from tools.recording import McapRecorder
+
+    poses = np.arange(9, dtype=np.float32).reshape(3, 3) / 7
+    sent = [wire.decode(wire.encode("cloud", 5, {"episode": 2, "step": 1, "total": 9,
+                                                 "poses": poses,
+                                                 "weights": np.full(3, 1 / 3, np.float32)}),
+                        topic="cloud"),
+            wire.decode(wire.encode("event", 8, {"event": "episode_done", "episode": 2}),
+                        topic="event")]
+    rec = tmp_path / "r.mcap"
+    with McapRecorder(rec) as recorder:
+        for i, msg in enumerate(sent):
+            recorder.write(msg.topic, msg, received_ns=1_000_000_000 + i * 100_000_000)
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        endpoint = f"tcp://127.0.0.1:{s.getsockname()[1]}"
+    with Subscriber(endpoint) as sub:  # connects as soon as the replay binds
+        player = threading.Thread(target=main, args=(
+            ["replay", str(rec), "--publish", endpoint, "--delay", "1"],))
+        player.start()
+        got = [sub.recv(10.0), sub.recv(10.0)]
+        player.join(30)
+    assert [(m.topic, m.seq, m.t_wall_ns) for m in got] == \
+        [(m.topic, m.seq, m.t_wall_ns) for m in sent]
+    assert np.array_equal(got[0]["poses"], poses) and got[0]["poses"].dtype == np.float32
