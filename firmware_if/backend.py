@@ -1,8 +1,12 @@
-"""The Backend contract: the one thing the service knows about a finger, real or simulated.
+"""The Backend contract: the one thing the service knows about a hand, real or simulated.
 
-A backend reports the fingertip centre in the hand's own frame (metres) and executes
-compliant steps given in that frame. Stepping is asynchronous so that a real-time loop
-never waits on motion: `command_step` starts a step, `read_state` says when it is done.
+A hand is one or more fingers on one bus; a single finger is a hand of one. A backend
+reports every fingertip centre in the hand's own frame (metres) in one read (`read_hand`)
+and executes compliant steps given in that frame: one finger moving while the others hold
+(exploring), or all of them together (manipulating), `command_hand`. A single finger's
+`read_state` and `command_step` are the same for a hand of one, kept as its shorthand.
+Stepping is asynchronous so that a real-time loop never waits on motion: a command starts
+a step, a later read says when it is done.
 """
 
 from __future__ import annotations
@@ -46,12 +50,15 @@ class StepCommand:
 
 @dataclass(frozen=True)
 class FingerMove:
-    """Move one fingertip centre by (dx, dz) metres in the hand plane and turn its rolling
-    tip by `roll` radians (counter-clockwise seen with x right and z up). Exploring, a tip
-    rolls along the object by itself (roll 0); manipulating, turning it rolls the object."""
+    """Move one fingertip centre by (dx, dy, dz) metres in the hand frame, staying in
+    contact (along the contact's normal the object has the last word), and turn its rolling
+    tip by `roll` radians (counter-clockwise seen with x right and z up). A finger on a
+    surface moves in x-y; a finger of a planar hand in x-z. Exploring, a tip rolls along the
+    object by itself (roll 0); manipulating, turning it rolls the object."""
 
-    dx: float
-    dz: float
+    dx: float = 0.0
+    dy: float = 0.0
+    dz: float = 0.0
     roll: float = 0.0
 
 
@@ -84,7 +91,8 @@ class HandState:
 
 @runtime_checkable
 class Backend(Protocol):
-    """A finger the service can read and move. Implementations: simulated, Dynamixel."""
+    """A hand the service can read and move (a single finger is a hand of one).
+    Implementations: the simulated finger and hand, Dynamixel."""
 
     def open(self) -> None:
         """Acquire the hardware (or simulation). No I/O happens before this."""
@@ -95,11 +103,20 @@ class Backend(Protocol):
     def set_torque(self, on: bool) -> None:
         """Enable or disable the actuators (lifecycle: inactive <-> active)."""
 
+    def read_hand(self) -> HandState:
+        """Read every finger now, in one bus read."""
+
+    def command_hand(self, command: HandCommand) -> None:
+        """Start a step of the fingers that move (the others hold); completion shows as
+        `moving=False` in a later state. Refused with a clear error while faulted, with
+        torque off, during a step, or for a move the hand cannot make (a finger on a
+        surface cannot turn its tip into the object: `roll` is for planar hands)."""
+
     def read_state(self) -> FingerState:
-        """Read the finger now."""
+        """A single finger's shorthand: its state (the first finger's, for a hand)."""
 
     def command_step(self, step: StepCommand) -> None:
-        """Start a compliant step; completion shows as `moving=False` in a later state."""
+        """A single finger's shorthand: `command_hand` with one move (dx, dy)."""
 
     def clear_fault(self) -> None:
         """Reset a latched fault (torque stays off)."""
@@ -113,3 +130,23 @@ def check_can_step(*, fault: str | None, torque_on: bool, busy: bool) -> None:
         raise NotReadyError("torque is off: activate the finger before stepping")
     if busy:
         raise NotReadyError("a step is still under way")
+
+
+class HandOfOne:
+    """`read_hand` and `command_hand` for a backend of one finger, in terms of its
+    `read_state` and `command_step`: a single finger is a hand of one."""
+
+    def read_hand(self) -> HandState:
+        state = self.read_state()  # type: ignore[attr-defined]
+        return HandState(t_ns=state.t_ns, fingers=(state,))
+
+    def command_hand(self, command: HandCommand) -> None:
+        if len(command.moves) != 1:
+            raise ValueError(f"a hand of one finger takes one move, got {len(command.moves)}")
+        move = command.moves[0]
+        if move is None:
+            raise ValueError("a command moves at least one finger")
+        if move.roll or move.dz:
+            raise ValueError("a finger on a surface steps in x-y: its height is the "
+                             "surface's, and its tip rolls by itself (dz and roll must be 0)")
+        self.command_step(StepCommand(move.dx, move.dy))  # type: ignore[attr-defined]

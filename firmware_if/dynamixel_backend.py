@@ -20,7 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from firmware_if import kinematics as kin
-from firmware_if.backend import FingerState, StepCommand, check_can_step
+from firmware_if.backend import FingerState, HandOfOne, StepCommand, check_can_step
 from firmware_if.dxl_bus import DxlBus, ServoReading
 from firmware_if.errors import (
     CommunicationError,
@@ -66,7 +66,7 @@ class StepSettings:
             raise HandConfigError("failure_tolerance must be at least 1")
 
 
-class DynamixelBackend:
+class DynamixelBackend(HandOfOne):
     """A finger of Dynamixel servos on one bus, implementing `firmware_if.backend.Backend`."""
 
     def __init__(self, hand: Hand, port: str, settings: StepSettings | None = None) -> None:

@@ -13,7 +13,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from firmware_if.backend import FingerState, StepCommand, check_can_step
+from firmware_if.backend import FingerState, HandOfOne, StepCommand, check_can_step
 from firmware_if.errors import HardwareFault, NotReadyError
 from service.errors import ConfigError
 from service.localization.models import NoiseSpec, rotate
@@ -44,7 +44,7 @@ class SimConfig:
             raise ConfigError("step_duration_s must be >= 0")
 
 
-class SimulatedFinger:
+class SimulatedFinger(HandOfOne):
     """Drop-in simulated finger implementing `firmware_if.backend.Backend`."""
 
     def __init__(self, world: HeightMap, config: SimConfig, rng: np.random.Generator,

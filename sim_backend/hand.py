@@ -25,7 +25,13 @@ import numpy as np
 from scipy import ndimage
 
 from firmware_if import kinematics as kin
-from firmware_if.backend import FingerState, HandCommand, HandState, check_can_step
+from firmware_if.backend import (
+    FingerState,
+    HandCommand,
+    HandState,
+    StepCommand,
+    check_can_step,
+)
 from firmware_if.errors import HardwareFault, NotReadyError
 from firmware_if.hand import Finger, Hand
 from service.errors import ConfigError
@@ -107,8 +113,7 @@ class _Dropped(Exception):
 
 
 class SimulatedHand:
-    """A simulated hand and object; the hand half of the Backend contract (`read_hand`,
-    `command_hand`)."""
+    """A simulated hand and object, implementing `firmware_if.backend.Backend`."""
 
     def __init__(self, hand: Hand, contour: Contour, config: HandSimConfig,
                  rng: np.random.Generator, clock: Clock | None = None) -> None:
@@ -193,6 +198,14 @@ class SimulatedHand:
             for r, q, roll in zip(self._readings, self._q, self._rolls, strict=True))
         return HandState(t_ns=self._clock.now_ns(), fingers=fingers, dropped=self._dropped)
 
+    def read_state(self) -> FingerState:
+        """The first finger's state (the contract's single-finger shorthand)."""
+        return self.read_hand().fingers[0]
+
+    def command_step(self, step: StepCommand) -> None:
+        raise ValueError(f"hand '{self.hand.name}' moves in its x-z plane: step it with "
+                         "command_hand (a FingerMove per finger)")
+
     def command_hand(self, command: HandCommand) -> None:
         self._require_open()
         check_can_step(fault=self._fault, torque_on=self._torque,
@@ -204,10 +217,14 @@ class SimulatedHand:
                              f"{len(self.fingers)} moves (None for a finger that holds), "
                              f"got {len(command.moves)}")
         moving = command.moving
+        if not moving:
+            raise ValueError("a command moves at least one finger")
+        if any(m is not None and m.dy for m in command.moves):
+            raise ValueError(f"hand '{self.hand.name}' moves in its x-z plane: dy must be 0")
         moves = np.array([[0.0, 0.0] if m is None else [m.dx, m.dz] for m in command.moves])
         rolls = np.array([0.0 if m is None else m.roll for m in command.moves])
         self._blocked = not self._reachable(self._centres + moves)
-        if not self._blocked and moving:
+        if not self._blocked:
             try:
                 if len(moving) == 1 and rolls[moving[0]] == 0.0:
                     self._explore(moving[0], moves[moving[0]])

@@ -15,7 +15,14 @@ from dataclasses import dataclass, replace
 import numpy as np
 import pytest
 
-from firmware_if.backend import Backend, FingerState, StepCommand
+from firmware_if.backend import (
+    Backend,
+    FingerMove,
+    FingerState,
+    HandCommand,
+    HandState,
+    StepCommand,
+)
 from firmware_if.dynamixel_backend import DynamixelBackend
 from firmware_if.errors import HardwareFault, NotReadyError
 from firmware_if.hand import load_hand
@@ -23,10 +30,12 @@ from service.episode.runner import execute_step
 from service.episode.scenario import RunSettings, draw_truth
 from service.episode.simulate import simulate
 from service.localization.maps import load_map
+from service.localization.objects.presets import preset_object
 from service.localization.surface import contact_surface
 from sim_backend.emulator import ServoBus
 from sim_backend.emulator.plant import FingerPlant, hand_bus_servos
 from sim_backend.finger import SimConfig, SimulatedFinger
+from sim_backend.hand import HandSimConfig, SimulatedHand
 
 MAP = load_map("peaks")
 SURFACE = contact_surface(MAP, 0.008)
@@ -167,6 +176,93 @@ def test_same_start_same_readings(make_rig):
                      for dx, dy in ((STEP, 0.0), (0.0, STEP))])
         rig.backend.close()
     assert np.array_equal(runs[0], runs[1])
+
+
+# -- the hand contract, over every implementation (a single finger is a hand of one) ------
+@dataclass
+class HandRig:
+    backend: Backend
+    command: HandCommand
+    """A step this hand can make from its start."""
+    inject_fault: Callable[[], None]
+
+
+def _hand_of_one(kind: str) -> Callable[[], Iterator[HandRig]]:
+    def make() -> Iterator[HandRig]:
+        for rig in KINDS[kind]((0.1, 0.1, 0.7)):
+            yield HandRig(rig.backend, HandCommand((FingerMove(dx=STEP),)), rig.inject_fault)
+    return make
+
+
+def _sim_hand() -> Iterator[HandRig]:
+    hand = SimulatedHand(load_hand("two-finger"), preset_object("blob:2"),
+                         HandSimConfig(pose=(0.001, -0.001, 0.7)), np.random.default_rng(0))
+    yield HandRig(hand, HandCommand((FingerMove(dz=0.002), None)),
+                  lambda: hand.inject_fault("fault drill"))
+    hand.close()
+
+
+HAND_KINDS = {"sim": _hand_of_one("sim"), "dynamixel": _hand_of_one("dynamixel"),
+              "sim-hand": _sim_hand}
+
+
+@pytest.fixture(params=sorted(HAND_KINDS))
+def hand_rig(request) -> Iterator[HandRig]:
+    gen = HAND_KINDS[request.param]()
+    yield next(gen)
+    next(gen, None)
+
+
+def _execute(backend: Backend, command: HandCommand) -> HandState:
+    before = backend.read_hand().fingers[0].steps_done
+    backend.command_hand(command)
+    for _ in range(20000):
+        state = backend.read_hand()
+        if not state.moving and state.fingers[0].steps_done > before:
+            return state
+    raise AssertionError("the hand step never finished")
+
+
+def test_a_hand_reads_every_finger_and_steps(hand_rig):
+    backend = hand_rig.backend
+    assert isinstance(backend, Backend)
+    with pytest.raises(NotReadyError):
+        backend.read_hand()
+    backend.open()
+    first = backend.read_hand()
+    assert len(first.fingers) == len(hand_rig.command.moves)
+    assert not first.dropped and not first.moving
+    with pytest.raises(NotReadyError):  # torque off
+        backend.command_hand(hand_rig.command)
+    backend.set_torque(True)
+    state = _execute(backend, hand_rig.command)
+    assert all(f.steps_done == 1 and f.torque_on for f in state.fingers)
+    moved = [not np.allclose(a.centre, b.centre)
+             for a, b in zip(first.fingers, state.fingers, strict=True)]
+    assert moved == [m is not None for m in hand_rig.command.moves]  # the others held
+    shorthand = backend.read_state()  # a single finger's: the first finger, read again
+    assert shorthand.centre == state.fingers[0].centre
+    assert shorthand.steps_done == state.fingers[0].steps_done
+    with pytest.raises(ValueError, match="at least one finger"):
+        backend.command_hand(HandCommand((None,) * len(state.fingers)))
+
+
+def test_a_hand_fault_latches_and_clears(hand_rig):
+    backend = hand_rig.backend
+    backend.open()
+    backend.set_torque(True)
+    hand_rig.inject_fault()
+    state = backend.read_hand()
+    assert any(f.fault for f in state.fingers) and not any(f.torque_on for f in state.fingers)
+    with pytest.raises(HardwareFault):
+        backend.command_hand(hand_rig.command)
+    backend.clear_fault()
+    backend.set_torque(True)
+    assert _execute(backend, hand_rig.command).fingers[0].steps_done == 1
+    backend.close()
+    backend.close()
+    with pytest.raises(NotReadyError):
+        backend.read_hand()
 
 
 # -- end to end: the same estimate as the simulated finger -----------------------------------

@@ -78,13 +78,14 @@ def test_the_localizer_follows_a_carried_object():
         f = step % 3
         _, normals = rolling.contacts(parts.field, np.array([sim.pose]), centres()[None], radii)
         move = [None, None, None]
-        move[f] = FingerMove(*(0.002 * np.array([-normals[0, f, 1], normals[0, f, 0]])))
+        dx, dz = 0.002 * np.array([-normals[0, f, 1], normals[0, f, 0]])
+        move[f] = FingerMove(dx=dx, dz=dz)
         sim.command_hand(HandCommand(tuple(move)))
         update(localizer, HandMeasurement(step, centres(), (f,)))
     before = localizer.estimate().pose
     assert pose_error(before, sim.pose)[0] < 5e-4
     moves, rolls = rolling.plan_turn(parts.field, np.array(before), centres(), radii, 0.3)
-    sim.command_hand(HandCommand(tuple(FingerMove(m[0], m[1], r)
+    sim.command_hand(HandCommand(tuple(FingerMove(dx=m[0], dz=m[1], roll=r)
                                        for m, r in zip(moves, rolls, strict=True))))
     assert not sim.read_hand().dropped
     update(localizer, HandMeasurement(7, centres(), (0, 1, 2), carried=(moves, rolls)))

@@ -53,7 +53,7 @@ def test_fingers_close_on_the_object_and_hold_it():
 def test_an_exploring_step_rolls_one_finger_along_the_object():
     sim = opened()
     before = centres(sim)
-    sim.command_hand(HandCommand((FingerMove(0.0, 0.003), None)))
+    sim.command_hand(HandCommand((FingerMove(dz=0.003), None)))
     after = centres(sim)
     assert after[0, 1] - before[0, 1] == pytest.approx(0.003, abs=5e-4)
     np.testing.assert_array_equal(after[1], before[1])  # the other finger held
@@ -65,7 +65,7 @@ def test_an_exploring_step_rolls_one_finger_along_the_object():
 def test_out_of_reach_is_blocked_and_nothing_moves():
     sim = opened()
     before = centres(sim)
-    sim.command_hand(HandCommand((FingerMove(0.0, 0.2), None)))
+    sim.command_hand(HandCommand((FingerMove(dz=0.2), None)))
     state = sim.read_hand()
     assert state.fingers[0].blocked and not state.dropped
     np.testing.assert_array_equal(centres(sim), before)
@@ -74,22 +74,22 @@ def test_out_of_reach_is_blocked_and_nothing_moves():
 def test_rolling_too_far_drops_the_object():
     sim = opened()
     for _ in range(30):
-        sim.command_hand(HandCommand((FingerMove(0.0, 0.003), None)))
+        sim.command_hand(HandCommand((FingerMove(dz=0.003), None)))
         if sim.read_hand().dropped:
             break
     assert sim.read_hand().dropped
     assert sim.min_quality < sim.config.grasp.margin_n
     with pytest.raises(NotReadyError, match="dropped"):
-        sim.command_hand(HandCommand((FingerMove(0.0, 0.003), None)))
+        sim.command_hand(HandCommand((FingerMove(dz=0.003), None)))
 
 
 def test_a_clamped_object_is_never_dropped_nor_manipulated():
     sim = opened(fixed=True)
     for _ in range(10):
-        sim.command_hand(HandCommand((FingerMove(0.0, 0.003), None)))
+        sim.command_hand(HandCommand((FingerMove(dz=0.003), None)))
     assert not sim.read_hand().dropped
     with pytest.raises(NotReadyError, match="clamped"):
-        sim.command_hand(HandCommand((FingerMove(0, 0, 0.1), FingerMove(0, 0, 0.1))))
+        sim.command_hand(HandCommand((FingerMove(roll=0.1), FingerMove(roll=0.1))))
 
 
 def test_manipulation_turns_the_object_as_planned():
@@ -97,7 +97,7 @@ def test_manipulation_turns_the_object_as_planned():
     field = contact_field(BLOB)
     moves, rolls = rolling.plan_turn(field, np.array(POSE), centres(sim),
                                      np.array([0.008, 0.008]), 0.3)
-    sim.command_hand(HandCommand(tuple(FingerMove(m[0], m[1], r)
+    sim.command_hand(HandCommand(tuple(FingerMove(dx=m[0], dz=m[1], roll=r)
                                        for m, r in zip(moves, rolls, strict=True))))
     assert not sim.read_hand().dropped
     assert sim.pose[2] - POSE[2] == pytest.approx(0.3, abs=0.01)
@@ -125,7 +125,7 @@ def test_same_seed_same_readings_and_noise_at_b2_level():
     noise = NoiseSpec.realistic(0.01)
     a, b = opened(noise=noise, seed=4), opened(noise=noise, seed=4)
     for sim in (a, b):
-        sim.command_hand(HandCommand((None, FingerMove(0.0, -0.002))))
+        sim.command_hand(HandCommand((None, FingerMove(dz=-0.002))))
     np.testing.assert_array_equal(centres(a), centres(b))
     errors = gaps(a.pose, centres(a))
     assert 1e-6 < np.max(np.abs(errors)) < 1e-3

@@ -213,7 +213,7 @@ class GraspGatedPolicy:
         f, d, _ = options[k]
         moves: list[FingerMove | None] = [None] * n
         delta = targets[k] - view.centres[f]
-        moves[f] = FingerMove(float(delta[0]), float(delta[1]))
+        moves[f] = FingerMove(dx=float(delta[0]), dz=float(delta[1]))
         return HandDecision(HandCommand(tuple(moves)), "explore", f, d,
                             float(quality[k].min()), float(gain[best]))
 
@@ -284,8 +284,9 @@ class GraspGatedPolicy:
                                    for f in range(n)]))
             score = gain + NOVELTY * novel + 1e-3 * abs(turn)  # ties: the larger turn
             if best is None or score > best[0]:
-                command = HandCommand(tuple(FingerMove(float(m[0]), float(m[1]), float(r))
-                                            for m, r in zip(moves, rolls, strict=True)))
+                command = HandCommand(tuple(
+                    FingerMove(dx=float(m[0]), dz=float(m[1]), roll=float(r))
+                    for m, r in zip(moves, rolls, strict=True)))
                 best = (score, HandDecision(command, "manipulate", None, int(np.sign(turn)),
                                             quality, gain))
         return None if best is None else best[1]
