@@ -14,11 +14,12 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from firmware_if.backend import FingerState, HandOfOne, StepCommand, check_can_step
-from firmware_if.errors import HardwareFault, NotReadyError
+from firmware_if.errors import NotReadyError
 from service.errors import ConfigError
 from service.localization.models import NoiseSpec, rotate
 from service.localization.surface import ContactSurface, HeightMap, contact_surface
 from sim_backend.clock import Clock, MonotonicClock
+from sim_backend.latch import FaultLatch
 from sim_backend.world import perturbed
 
 
@@ -44,7 +45,7 @@ class SimConfig:
             raise ConfigError("step_duration_s must be >= 0")
 
 
-class SimulatedFinger(HandOfOne):
+class SimulatedFinger(FaultLatch, HandOfOne):
     """Drop-in simulated finger implementing `firmware_if.backend.Backend`."""
 
     def __init__(self, world: HeightMap, config: SimConfig, rng: np.random.Generator,
@@ -78,20 +79,6 @@ class SimulatedFinger(HandOfOne):
     def close(self) -> None:
         self._torque = False
         self._surface = None
-
-    def set_torque(self, on: bool) -> None:
-        self._require_open()
-        if on and self._fault:
-            raise HardwareFault(f"cannot enable torque while faulted: {self._fault}; reset first")
-        self._torque = on
-
-    def clear_fault(self) -> None:
-        self._fault = None
-
-    def inject_fault(self, reason: str) -> None:
-        """Latch a fault (tests and fault drills): torque drops, like a real servo."""
-        self._fault = reason
-        self._torque = False
 
     # -- I/O -------------------------------------------------------------------------------
     def read_state(self) -> FingerState:

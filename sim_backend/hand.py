@@ -32,7 +32,7 @@ from firmware_if.backend import (
     StepCommand,
     check_can_step,
 )
-from firmware_if.errors import HardwareFault, NotReadyError
+from firmware_if.errors import NotReadyError
 from firmware_if.hand import Finger, Hand
 from service.errors import ConfigError
 from service.localization.grasp import GraspSpec, hand_quality, joint_torque
@@ -41,6 +41,7 @@ from service.localization.objects import kernels, rolling
 from service.localization.objects.contour import Contour
 from service.localization.objects.field import ContactField, contact_field
 from sim_backend.clock import Clock, MonotonicClock
+from sim_backend.latch import FaultLatch
 
 
 @dataclass(frozen=True)
@@ -112,7 +113,7 @@ class _Dropped(Exception):
     """The grasp lost its margin part-way through a move."""
 
 
-class SimulatedHand:
+class SimulatedHand(FaultLatch):
     """A simulated hand and object, implementing `firmware_if.backend.Backend`."""
 
     def __init__(self, hand: Hand, contour: Contour, config: HandSimConfig,
@@ -164,20 +165,6 @@ class SimulatedHand:
     def close(self) -> None:
         self._torque = False
         self._field = None
-
-    def set_torque(self, on: bool) -> None:
-        self._require_open()
-        if on and self._fault:
-            raise HardwareFault(f"cannot enable torque while faulted: {self._fault}; reset first")
-        self._torque = on
-
-    def clear_fault(self) -> None:
-        self._fault = None
-
-    def inject_fault(self, reason: str) -> None:
-        """Latch a fault (tests and fault drills): torque drops, like a real servo."""
-        self._fault = reason
-        self._torque = False
 
     @property
     def pose(self) -> tuple[float, float, float]:

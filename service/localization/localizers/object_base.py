@@ -17,7 +17,7 @@ import numpy as np
 
 from service.localization.models import SensorModel
 from service.localization.objects.field import ContactField
-from service.localization.objects.rolling import EXACT, TwistNoise
+from service.localization.objects.rolling import EXACT, TwistNoise, carry
 
 
 @dataclass(frozen=True)
@@ -65,3 +65,13 @@ class ObjectContext:
     @property
     def outlier_range(self) -> float:
         return float(getattr(self.sensor, "outlier_range_m", 1.0))
+
+
+def carry_poses(ctx: ObjectContext, poses: np.ndarray, centres: np.ndarray, moves: np.ndarray,
+                rolls: np.ndarray, noisy: bool = True) -> np.ndarray:
+    """Object poses (N, 3) after the fingers, their tips at `centres` (n, 2), moved by
+    `moves` and `rolls`: the motion model, each pose on its own noise draw (or none)."""
+    tips = np.broadcast_to(centres, (len(poses), *np.shape(centres)))
+    moved, _ = carry(ctx.field, poses, tips, ctx.radii, moves, rolls, ctx.substeps,
+                     noise=ctx.motion if noisy else EXACT, rng=ctx.rng)
+    return moved

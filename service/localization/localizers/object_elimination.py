@@ -26,7 +26,11 @@ from service.localization.localizers.contour_fit import (
     residuals,
 )
 from service.localization.localizers.convergence import ConvergenceRule
-from service.localization.localizers.object_base import HandMeasurement, ObjectContext
+from service.localization.localizers.object_base import (
+    HandMeasurement,
+    ObjectContext,
+    carry_poses,
+)
 from service.localization.localizers.object_judge import ObjectTracks, judge
 from service.localization.localizers.pool import niche
 from service.localization.localizers.refine import Fit
@@ -106,14 +110,7 @@ class ObjectElimination:
         self._judge()
 
     def _carry(self, moves: np.ndarray, rolls: np.ndarray) -> None:
-        tips = np.broadcast_to(self.last_centres, (len(self.poses), *self.last_centres.shape))
-        draws = self.ctx.rng.standard_normal((len(self.poses), self.ctx.substeps, 3))
-        self.poses, _ = kernels.carry(
-            *self.ctx.field.args, np.ascontiguousarray(self.poses), np.ascontiguousarray(tips),
-            np.ascontiguousarray(self.ctx.radii, dtype=np.float64),
-            np.ascontiguousarray(moves, dtype=np.float64),
-            np.ascontiguousarray(rolls, dtype=np.float64), self.ctx.substeps, draws,
-            self.ctx.motion.fraction, self.ctx.motion.direction_sigma)
+        self.poses = carry_poses(self.ctx, self.poses, self.last_centres, moves, rolls)
         self.tracks.carry(self.ctx, self.last_centres, np.asarray(moves, dtype=np.float64),
                           np.asarray(rolls, dtype=np.float64), self.points, self.radii)
         self.places_before += distinct_places(self.points, 0.25 * self.ctx.scale)

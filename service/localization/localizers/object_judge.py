@@ -30,9 +30,8 @@ from service.localization.localizers.contour_fit import (
     refine,
 )
 from service.localization.localizers.convergence import ConvergenceRule, distinct
-from service.localization.localizers.object_base import ObjectContext
+from service.localization.localizers.object_base import ObjectContext, carry_poses
 from service.localization.localizers.refine import Fit
-from service.localization.objects import kernels
 from service.localization.objects.symmetry import images
 
 REFINED_RIVALS = 2
@@ -105,12 +104,7 @@ class ObjectTracks:
         total = self.total
         self.prior = total - total.max()
         self.ll = np.zeros(len(self.centres))
-        tips = np.broadcast_to(centres, (len(self.centres), *centres.shape))
-        moved, _ = kernels.carry(
-            *ctx.field.args, np.ascontiguousarray(self.centres), np.ascontiguousarray(tips),
-            np.ascontiguousarray(ctx.radii, dtype=np.float64), np.ascontiguousarray(moves),
-            np.ascontiguousarray(rolls), ctx.substeps,
-            np.zeros((len(self.centres), ctx.substeps, 3)), 0.0, 0.0)
+        moved = carry_poses(ctx, self.centres, centres, moves, rolls, noisy=False)
         lever = ctx.field.contour.max_radius + float(np.max(ctx.radii))
         latest = np.column_stack([points, radii, np.zeros(len(points))])
         for i, (before, after) in enumerate(zip(self.centres, moved, strict=True)):

@@ -34,7 +34,11 @@ from service.localization.localizers.contour_fit import (
 )
 from service.localization.localizers.convergence import ConvergenceRule
 from service.localization.localizers.fitting import log_likelihood
-from service.localization.localizers.object_base import HandMeasurement, ObjectContext
+from service.localization.localizers.object_base import (
+    HandMeasurement,
+    ObjectContext,
+    carry_poses,
+)
 from service.localization.localizers.object_judge import ObjectTracks, judge
 from service.localization.localizers.pool import (
     AnytimeJob,
@@ -162,14 +166,7 @@ class ObjectParticles:
         total = self.prior + self.ll
         keep = np.flatnonzero(total >= total.max() - self.drop)
         self.poses, total = self.poses[keep], total[keep]
-        tips = np.broadcast_to(self.last_centres, (len(self.poses), *self.last_centres.shape))
-        draws = self.ctx.rng.standard_normal((len(self.poses), self.ctx.substeps, 3))
-        self.poses, _ = kernels.carry(
-            *self.ctx.field.args, np.ascontiguousarray(self.poses), np.ascontiguousarray(tips),
-            np.ascontiguousarray(self.ctx.radii, dtype=np.float64),
-            np.ascontiguousarray(moves, dtype=np.float64),
-            np.ascontiguousarray(rolls, dtype=np.float64), self.ctx.substeps, draws,
-            self.ctx.motion.fraction, self.ctx.motion.direction_sigma)
+        self.poses = carry_poses(self.ctx, self.poses, self.last_centres, moves, rolls)
         self.tracks.carry(self.ctx, self.last_centres, np.asarray(moves, dtype=np.float64),
                           np.asarray(rolls, dtype=np.float64), self.points, self.radii)
         self.prior = total - total.max()
