@@ -341,8 +341,31 @@ def information(readings: np.ndarray, weights: np.ndarray, sigma: float) -> np.n
     return out
 
 
+TILE = 8
+"""Positions per side of a sweep tile (`sweep_screen`)."""
+
+
 @numba.njit(**_JIT)
-def sweep_screen(grid: np.ndarray, slopes: np.ndarray, spacing: float,
+def _block(grid: np.ndarray, block: float, x: float, y: float) -> float:
+    """The value of the block (`block` metres a side) holding (x, y), clamped at the edge."""
+    rows, cols = grid.shape
+    ix = min(max(int(x / block), 0), cols - 1)
+    iy = 0 if rows == 1 else min(max(int(y / block), 0), rows - 1)
+    return grid[iy, ix]
+
+
+def sweep_cells(shape: np.ndarray) -> int:
+    """How many cell slots a sweep over `shape` has (edge tiles counted whole)."""
+    tiles = -(-int(shape[0]) // TILE) * -(-int(shape[1]) // TILE)
+    return tiles * TILE * TILE * int(shape[2])
+
+
+def sweep_tiles(shape: np.ndarray) -> int:
+    return -(-int(shape[0]) // TILE) * -(-int(shape[1]) // TILE)
+
+
+@numba.njit(**_JIT)
+def sweep_screen(grid: np.ndarray, slopes: np.ndarray, block: float, spacing: float,
                  extent: tuple[float, float], profile: bool, first: int, count: int,
                  stride: int, shape: np.ndarray, origin: np.ndarray, pitch: np.ndarray,
                  history: np.ndarray, sigma: float, spread: np.ndarray, margin: float,
@@ -350,18 +373,24 @@ def sweep_screen(grid: np.ndarray, slopes: np.ndarray, spacing: float,
     """The `keep` best of cells `first` .. `first + count` of a sweep over a grid of start
     poses, best first.
 
-    Cell i of the sweep is grid cell (i * stride) mod n, n = prod(`shape`) (x, y, heading
-    counts), so any stretch of the sweep is spread over the whole map. Its pose is
-    `origin` + (index + 0.5) * `pitch`. A cell's misfit is the sum over readings of
+    The grid (`shape`: x, y and heading counts) is cut into tiles of `TILE` x `TILE`
+    positions; the sweep visits tile (i * stride) mod tiles i-th, so any stretch of it is
+    spread over the whole map, and within a tile each heading in turn over its positions,
+    so neighbouring cells read neighbouring samples (on an 80-unit map a cell order with
+    no locality missed the cache on most lookups: 1 us a cell instead of 0.15). A cell's
+    pose is `origin` + (index + 0.5) * `pitch`. A cell's misfit is the sum over readings of
     min(z^2, cap), z its relative height residual over the sd a pose in the cell could
     explain: `sigma` widened by how far such a pose can move the reading (`spread` (K,),
     metres; entry 0 for the first contact) times the steepest slope near where it lands
-    (`slopes`, a grid like `grid`). A reading off the map, or a blocked step's target on
-    it, costs `cap`. Only cells within
-    `limit` count, and once `keep` are held a cell must beat the worst of them: the sum is
-    abandoned as soon as it cannot, so most cells cost a reading or two.
+    (`slopes`, a coarse grid of blocks `block` metres a side). A reading off the map, or
+    a blocked step's target on it, costs `cap`. Only cells within `limit` count, and once
+    `keep` are held a cell must beat the worst of them: the sum is abandoned as soon as it
+    cannot, so most cells cost a reading or two.
     """
-    n = shape[0] * shape[1] * shape[2]
+    side = TILE
+    tiles_x = (shape[0] + side - 1) // side
+    tiles = tiles_x * ((shape[1] + side - 1) // side)
+    per_tile = side * side * shape[2]
     k = history.shape[0]
     # each heading's rotation of each reading, once: a cell then costs additions
     turned = np.empty((shape[2], k, 2))
@@ -379,14 +408,17 @@ def sweep_screen(grid: np.ndarray, slopes: np.ndarray, spacing: float,
     held, worst = 0, 0
     bound = limit
     for c in range(first, first + count):
-        cell = (c * stride) % n
-        ih = cell % shape[2]
-        iy = (cell // shape[2]) % shape[1]
-        ix = cell // (shape[2] * shape[1])
+        tile = ((c // per_tile) * stride) % tiles
+        within = c % per_tile
+        ih = within // (side * side)
+        ix = (tile % tiles_x) * side + within % side
+        iy = (tile // tiles_x) * side + (within // side) % side
+        if ix >= shape[0] or iy >= shape[1]:
+            continue  # past the map's edge in an edge tile
         px = origin[0] + (ix + 0.5) * pitch[0]
         py = origin[1] + (iy + 0.5) * pitch[1]
         z0 = _bilinear(grid, spacing, px, py)[0]
-        var0 = sigma * sigma + (_bilinear(slopes, spacing, px, py)[0] * spread[0]) ** 2
+        var0 = sigma * sigma + (_block(slopes, block, px, py) * spread[0]) ** 2
         total = 0.0
         for j in range(1, k):
             x, y = px + turned[ih, j, 0], py + turned[ih, j, 1]
@@ -397,7 +429,7 @@ def sweep_screen(grid: np.ndarray, slopes: np.ndarray, spacing: float,
                 total += cap
             else:
                 r = _bilinear(grid, spacing, x, y)[0] - z0 - history[j, 2]
-                g = _bilinear(slopes, spacing, x, y)[0] * spread[j]
+                g = _block(slopes, block, x, y) * spread[j]
                 total += min(r * r / (var0 + g * g), cap)
             if total > bound:
                 break
@@ -440,8 +472,9 @@ def warm_up() -> None:
         log_likelihood(r, ok, np.ones(2), 0.0, 1.0)
         gauss_newton(g, 1.0, poses, history, np.ones(2), 1, 1e-4, 0.0, 1.0, is_profile)
         heights_and_jacobian(g, 1.0, np.zeros(3), history)
-        sweep_screen(g, g, 1.0, (1.0, 1.0), is_profile, 0, 1, 1, np.ones(3, dtype=np.int64),
-                     np.zeros(3), np.ones(3), history, 1.0, np.ones(2), 0.0, 9.0, 10.0, 4)
+        sweep_screen(g, g, 1.0, 1.0, (1.0, 1.0), is_profile, 0, 1, 1,
+                     np.ones(3, dtype=np.int64), np.zeros(3), np.ones(3), history, 1.0,
+                     np.ones(2), 0.0, 9.0, 10.0, 4)
     first_of_each_mode(poses, 1.0, 1.0)
     best_per_key(np.zeros(1, dtype=np.int64), np.zeros(1))
     information(np.zeros((1, 2, 1)), np.ones(2), 1.0)

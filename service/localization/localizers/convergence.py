@@ -17,10 +17,11 @@ answer stays "not yet".
 from __future__ import annotations
 
 import dataclasses
+import functools
 from dataclasses import dataclass
+from statistics import NormalDist
 
 import numpy as np
-from scipy.stats import norm
 
 from service.localization import kernels
 from service.localization.localizers.base import wrap_angle
@@ -147,9 +148,7 @@ class ConvergenceRule:
     def max_abs_for(self, readings: int) -> float:
         """`max_abs_noisy` for this many readings: the same chance that the largest of them
         exceeds it by noise alone as for eight (Gaussian residuals)."""
-        tail = 2 * norm.sf(self.max_abs_noisy)  # one reading's chance to exceed it
-        per_reading = 1 - (1 - tail) ** (8 / max(readings, 8))
-        return float(norm.isf(per_reading / 2))
+        return _max_abs_for(self.max_abs_noisy, max(readings, 8))
 
     def holds(self, *, readings: int, noisy: bool, mode_mass: float, fit: Fit | None,
               step_length: float) -> bool:
@@ -174,6 +173,16 @@ sampled at a millimetre or so knows of heights between its samples."""
 SETTLED = 2.0
 """How far (in the rule's largest spreads) a declared pose may have moved since the previous
 update: consecutive fits of a settled pose differ by about their spread, not more."""
+
+@functools.lru_cache(maxsize=256)
+def _max_abs_for(at_eight: float, readings: int) -> float:
+    if not np.isfinite(at_eight):
+        return at_eight
+    normal = NormalDist()
+    tail = 2 * (1 - normal.cdf(at_eight))  # one reading's chance to exceed it
+    per_reading = 1 - (1 - tail) ** (8 / readings)
+    return float(normal.inv_cdf(1 - per_reading / 2))
+
 
 REFINED_RIVALS = 2
 """Rivals refined by least squares beside the leader before a declaration."""
@@ -277,7 +286,8 @@ def judge(surface: ContactSurface, history: np.ndarray, modes: Modes, *, sigma: 
         # the spread is the fit's curvature; where the misfit is not a bowl (a flat valley
         # with a wall) it can claim half a millimetre while the readings allow three
         converged = converged and _valley_within(
-            surface, history, fit, np.maximum(sds, FLOOR * step_length), tol_pos, tol_head)
+            surface, history, fit, np.maximum(sds, FLOOR * step_length), tol_pos, tol_head,
+            margin)
         # with noise it must also agree with where the previous update put it: a pose that
         # still jumps between updates is not settled, however tight its covariance looks
         converged &= not noisy or previous is not None and bool(_near(
@@ -288,13 +298,14 @@ def judge(surface: ContactSurface, history: np.ndarray, modes: Modes, *, sigma: 
 
 
 def _valley_within(surface: ContactSurface, history: np.ndarray, fit: Fit, sds: np.ndarray,
-                   position_tol: float, heading_tol: float) -> bool:
+                   position_tol: float, heading_tol: float, margin: float) -> bool:
     """Whether every pose the readings still allow lies within the tolerance of `fit`.
 
     The misfit is scanned along each principal direction of the fit's uncertainty (in units
     of the tolerance) out to twice the tolerance; a pose at or beyond the tolerance whose
     misfit is within 9 (three sigmas), times the fit's reduced chi-square when it is worse
-    than the noise, of the fit's own is one the readings do not rule out. On gently
+    than the noise, of the fit's own is one the readings do not rule out (a reading off
+    the map, beyond the localizer's `margin`, rules a pose out). On gently
     curved profiles the curvature at the fit claimed 0.46 mm where the readings allowed
     a valley 5 mm wide, and poses 3 mm off were declared (profile:shell:20:1, seed 2)."""
     pose = np.asarray(fit.pose)
@@ -310,7 +321,7 @@ def _valley_within(surface: ContactSurface, history: np.ndarray, fit: Fit, sds: 
         step[free] = axis
         points.append(pose + np.outer(t, step * scale))
     poses = np.vstack(points)
-    r, ok = offset_residuals(surface, poses, history, 0.0)
+    r, ok = offset_residuals(surface, poses, history, margin)
     chi2 = np.sum(np.where(ok, (r / sds) ** 2, 1e6), axis=1)
     allowed = chi2 <= chi2[0] + 9.0 * max(1.0, fit.rms**2)
     beyond = np.tile(np.abs(t) >= 1.0, len(free))
@@ -319,17 +330,17 @@ def _valley_within(surface: ContactSurface, history: np.ndarray, fit: Fit, sds: 
 
 def _neighbours(surface: ContactSurface, history: np.ndarray, pose: np.ndarray,
                 sds: np.ndarray, position_tol: float, heading_tol: float) -> np.ndarray:
-    """Local fits polished from a grid of starts within twice the tolerance of `pose`
-    (positions on a 5 x 5 grid, 5 headings; along the profile only, on one) that end
-    beyond the tolerance: distinct nearby modes, one per neighbourhood."""
-    span = np.linspace(-2.0, 2.0, 5)
+    """Local fits polished from starts 1.5 tolerances around `pose` (the 26 neighbours of
+    a 3 x 3 x 3 grid; along the profile only, on one) that end beyond the tolerance:
+    distinct nearby modes, one per neighbourhood."""
+    span = np.array([-1.5, 0.0, 1.5])
     if surface.map.is_profile:
-        starts = pose + np.column_stack([span * position_tol, np.zeros(5), np.zeros(5)])
+        starts = pose + np.column_stack([span * position_tol, np.zeros(3), np.zeros(3)])
     else:
         dx, dy, dh = np.meshgrid(span * position_tol, span * position_tol,
                                  span * heading_tol, indexing="ij")
         starts = pose + np.column_stack([dx.ravel(), dy.ravel(), dh.ravel()])
-    ends = gauss_newton(surface, starts, history, 1.0 / sds**2, iterations=5,
+    ends = gauss_newton(surface, starts, history, 1.0 / sds**2, iterations=4,
                         max_move=position_tol)
     away = ~_near(ends, pose, position_tol, heading_tol)
     ends = ends[away]

@@ -263,8 +263,9 @@ class Particles:
         return max(1, CHUNK // max(1, len(self.history)))
 
     def _inject(self) -> None:
-        """Fresh random members, and wider ranges again, once every member fits poorly:
-        the pool has lost the truth (or never held it) and must search again."""
+        """Wider ranges again once every member fits poorly, and fresh random members
+        until the global sweep (`_swept`) has begun: the pool has lost the truth (or never
+        held it) and must search again."""
         if len(self.poses) and len(self.history) > 1:
             z = self.resid / self._sd()
             best = float(np.min(np.sqrt(np.mean(np.where(self.on_map, z * z, 1e6), axis=1))))
@@ -272,6 +273,8 @@ class Particles:
                 return
             self.pos_range = max(self.pos_range, 0.25 * self.ctx.step_length)
             self.head_range = max(self.head_range, np.deg2rad(5.0))
+            if self.sweep.begun_at is not None or self.sweep.checked:
+                return  # the global sweep searches the whole map, systematically
         self._add(self._screened(self._random(self.scanned)))
 
     def _swept(self, job: AnytimeJob) -> Iterator[int]:
@@ -355,12 +358,12 @@ class Particles:
         track = dict(sd=max(self.sigma, 0.002 * step), position_tol=0.25 * step,
                      heading_tol=np.deg2rad(5.0), margin=self.margin,
                      outlier_probability=self.outlier_p, outlier_range=self.outlier_range)
+        leaders = self.poses[self._leaders(self.rivals)]
+        lead = self.tracks.centres[0] if len(self.tracks.centres) else leaders[0]
+        # a (near) symmetric surface: the leader's images join as candidates too
         self.tracks.update(self.ctx.surface, self.history,
-                           self.poses[self._leaders(self.rivals)], **track)
-        if len(self.motions) and len(self.tracks.centres):  # a periodic surface's images
-            self.tracks.update(self.ctx.surface, self.history,
-                               images(self.ctx.surface, self.tracks.centres[0], self.motions),
-                               **track)
+                           np.vstack([leaders, images(self.ctx.surface, lead, self.motions)]),
+                           **track)
         shares = self.tracks.shares()
         modes = Modes(centres=self.tracks.centres, masses=shares,
                       labels=np.full(len(self.poses), -1))

@@ -31,7 +31,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from service.localization import kernels
-from service.localization.localizers.fitting import steepest_near
+from service.localization.localizers.fitting import STEEP_BLOCK, steepest_near
 from service.localization.surface import ContactSurface
 
 CAP = 9.0
@@ -48,7 +48,7 @@ class SweepSettings:
     cells_per_update: int = 16_384
     start_readings: int = 2
     """Readings (after first contact) before a sweep begins: fewer pass too many cells."""
-    readings: int = 12
+    readings: int = 8
     """Most readings a cell is screened on."""
     keep: int = 32
     """Cells an update hands over: the best it screened. The truth's cell ranks among the
@@ -72,8 +72,8 @@ class Sweep:
         self.shape = np.array([nx, ny, nh], dtype=np.int64)
         self.pitch = np.array([x_max / nx, 0.0 if profile else y_max / ny, 2 * np.pi / nh])
         self.origin = np.array([0.0, 0.0, -0.5 * self.pitch[2] if profile else -np.pi])
-        self.cells = int(self.shape.prod())
-        self.stride = _coprime_stride(self.cells)
+        self.cells = kernels.sweep_cells(self.shape)
+        self.stride = _coprime_stride(kernels.sweep_tiles(self.shape))
         self.reach = (float(np.hypot(*self.pitch[:2])) / 2, float(self.pitch[2]) / 2)
         """How far a pose in a cell can lie from its centre (metres, radians)."""
         self.slopes = steepest_near(surface, 2 * self.reach[0])
@@ -118,7 +118,8 @@ class Sweep:
         while left > 0 and self.cursor < self.cells:
             count = min(left, take or left, self.cells - self.cursor)
             p, m = kernels.sweep_screen(
-                self.surface.centre_heights, self.slopes, self.surface.map.spacing,
+                self.surface.centre_heights, self.slopes,
+                STEEP_BLOCK * self.surface.map.spacing, self.surface.map.spacing,
                 self.surface.map.extent, self.surface.map.is_profile, self.cursor, count,
                 self.stride, self.shape, self.origin, self.pitch, history, self.sensor_sigma,
                 spread, self.margin, CAP, limit, self.settings.keep)
@@ -135,7 +136,7 @@ class Sweep:
 
 def _coprime_stride(n: int) -> int:
     """A stride near n / golden ratio sharing no factor with n: stepping by it visits every
-    cell once, and consecutive cells lie far apart."""
+    tile once, and consecutive tiles lie far apart."""
     stride = max(1, int(n / 1.6180339887))
     while np.gcd(stride, n) != 1:
         stride += 1

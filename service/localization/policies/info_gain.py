@@ -113,11 +113,10 @@ class InfoGainPolicy:
         p, w = poses[keep], weights[keep] / weights[keep].sum()
         z, inside = _readings(view, p, offsets)
         info = information(z[:, :, np.newaxis], w, s) if len(p) > 1 else np.zeros(len(z))
-        info = info + _precision(view, offsets, s)
         here = _place(view.displacement, view.step_length)
         novel = np.array([(here[0] + int(i), here[1] + int(j)) not in self._visited
                           for i, j in offsets])
-        return _credit(info, novel * (inside @ w))
+        return _credit(info, _precision(view, offsets, s), novel * (inside @ w))
 
     def _toward(self, view: PolicyInput, here: tuple[int, int], target: tuple[int, int],
                 moves: list[int], poses: np.ndarray, weights: np.ndarray, s: float) -> int:
@@ -131,13 +130,13 @@ class InfoGainPolicy:
         k = min(self.samples, len(poses))
         top = np.argsort(-weights, kind="stable")[:k]
         w = weights[top] / weights[top].sum()
-        z, inside = _readings(view, poses[top], MOVES[options].astype(np.int64))
         steps = MOVES[options].astype(np.int64)
+        z, inside = _readings(view, poses[top], steps)
         gain = (information(z[:, :, np.newaxis], w, s) if k > 1 else np.zeros(len(options)))
-        gain = gain + _precision(view, steps, s)
         novel = np.array([(here[0] + int(MOVES[m][0]), here[1] + int(MOVES[m][1]))
                           not in self._visited for m in options])
-        return options[int(np.argmax(_credit(gain, novel * (inside @ w))))]
+        value = _credit(gain, _precision(view, steps, s), novel * (inside @ w))
+        return options[int(np.argmax(value))]
 
     def _moves(self, view: PolicyInput, here: tuple[int, int]) -> list[int]:
         """Allowed moves minus those found blocked from here."""
@@ -176,11 +175,15 @@ def _precision(view: PolicyInput, offsets: np.ndarray, s: float) -> np.ndarray:
     return np.where(on_map, 0.5 * np.log1p(np.maximum(var, 0.0) / s**2) * mass, 0.0)
 
 
-def _credit(info: np.ndarray, novel: np.ndarray) -> np.ndarray:
-    """What a reading is worth: its information (none if trivial, a share if the place
-    was read before), plus `NOVELTY` times the chance that it is a new place on the map."""
+def _credit(info: np.ndarray, precision: np.ndarray, novel: np.ndarray) -> np.ndarray:
+    """What a reading is worth. At a new place: what it tells the modes apart by, what it
+    pins the leading pose by, and `NOVELTY` times the chance that the place is on the map.
+    At a place read before: a share of the first only. The map errs there as it did the
+    first time, so a second reading cannot pin the pose any better (the localizer counts
+    it as the same place); crediting that drew a planar finger on hardware into reading
+    the same two places for fifty steps."""
     info = np.where(info < TRIVIAL, 0.0, info)
-    return np.where(novel > 0, info + NOVELTY * novel, REREAD * info)
+    return np.where(novel > 0, info + precision + NOVELTY * novel, REREAD * info)
 
 
 def _place(displacement: np.ndarray, step: float) -> tuple[int, int]:
