@@ -172,7 +172,7 @@ def score(estimate: Estimate | None, truth: tuple[float, float, float], dropped:
     x, z, heading = estimate.pose
     pos_err = float(np.hypot(x - truth[0], z - truth[1]))
     head_err = float(abs(wrap_angle(heading - truth[2])))
-    close = pos_err <= 0.25 * UNIT and head_err <= np.deg2rad(5.0)
+    close = bool(pos_err <= 0.25 * UNIT and head_err <= np.deg2rad(5.0))
     converged = bool(estimate.converged)
     return HandScore(pos_err, head_err, converged and close and not dropped,
                      converged and not close)

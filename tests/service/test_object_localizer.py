@@ -4,6 +4,7 @@ yet" on a symmetric object, and follows the object when the fingers carry it."""
 from __future__ import annotations
 
 import dataclasses
+import json
 
 import numpy as np
 import pytest
@@ -15,9 +16,10 @@ from service.episode.hand_scenario import (
     build_localizer,
     draw_truth,
     load_parts,
+    score,
     streams,
 )
-from service.localization.localizers.base import update, wrap_angle
+from service.localization.localizers.base import Estimate, update, wrap_angle
 from service.localization.localizers.contour_fit import refine
 from service.localization.localizers.object_base import HandMeasurement
 from service.localization.objects import rolling
@@ -39,6 +41,18 @@ def test_three_fingers_localize_a_held_object_under_noise(algorithm):
     assert position < 1e-3 and heading < np.deg2rad(2)
     again = simulate_hand(dataclasses.replace(THREE, algorithm=algorithm))  # same seed
     assert [s.centres for s in again.result.steps] == [s.centres for s in report.result.steps]
+
+
+@pytest.mark.parametrize(("heading_deg", "success", "wrong"), [(2.0, True, False),
+                                                               (8.0, False, True)])
+def test_a_score_is_plain_json(heading_deg, success, wrong):
+    """A wrong declaration's score was numpy's bool, which bench grasp --json and haptic
+    run --json could not write."""
+    declared = Estimate(pose=(0.001, 0.0, np.deg2rad(heading_deg)), candidates=1,
+                        converged=True)
+    s = score(declared, (0.0, 0.0, 0.0), dropped=False)
+    assert (s.success, s.wrong_declaration) == (success, wrong)
+    assert json.loads(json.dumps(dataclasses.asdict(s)))["success"] is success
 
 
 def test_a_symmetric_object_stays_not_yet():
