@@ -112,7 +112,8 @@ def run_hand_episode(hand: Any, localizer: Any, policy: GraspGatedPolicy, parts:
                         joints=tuple(np.asarray(f.joints) for f in state.fingers),
                         field=parts.field, fingers=parts.hand.fingers, torque=parts.torque,
                         grasp=settings.grasp, step_length=settings.step, sigma=sigma,
-                        fixed=settings.single_finger, blocked=frozenset(blocked))
+                        fixed=settings.single_finger, blocked=frozenset(blocked),
+                        spread=(float(estimate.position_sd), float(estimate.heading_sd)))
         decision = policy.decide(view)
         policy_ms = (time.perf_counter() - t0) * 1e3
         if decision.command is None:

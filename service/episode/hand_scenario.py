@@ -147,7 +147,8 @@ def build_localizer(settings: HandSettings, parts: HandParts, rng: np.random.Gen
                         radii=np.array([f.radius for f in parts.hand.fingers]),
                         sensor=sensor,
                         motion=TwistNoise(noise.step_length_fraction, noise.step_direction_sigma),
-                        scale=UNIT, rng=rng)
+                        scale=UNIT, rng=rng,
+                        mismatch_length=noise.surface_correlation if noise.surface_sigma else 0.0)
     return OBJECT_LOCALIZERS.load(settings.algorithm)(ctx)
 
 

@@ -30,6 +30,7 @@ from service.localization.localizers.object_base import (
     HandMeasurement,
     ObjectContext,
     carry_poses,
+    object_rule,
 )
 from service.localization.localizers.object_judge import ObjectTracks, judge
 from service.localization.localizers.pool import niche
@@ -53,7 +54,7 @@ class ObjectElimination:
         kernels.warm_up()
         self.ctx = ctx
         self.heading_step, self.arc_step, self.gate = heading_step, arc_step, gate
-        self.rule = rule or ConvergenceRule()
+        self.rule = rule or object_rule()
         self.sigma = ctx.sigma
         self.noisy = float(ctx.sensor.sigma) > 1e-6
         self.motions = near_symmetries(ctx.field)

@@ -179,7 +179,7 @@ def judge(ctx: ObjectContext, points: np.ndarray, radii: np.ndarray, tracks: Obj
     mirrored = images(tracks.centres[lead], motions)
     image_prior = np.full(len(mirrored), tracks.prior[lead])
     if len(mirrored):  # images are polished like tracks: they stand for their basin
-        mirrored = gauss_newton(ctx.field, mirrored, points, radii, iterations=3,
+        mirrored = gauss_newton(ctx.field, mirrored, points, radii, iterations=10,
                                 max_move=tol_pos)
         felt = tracks.felt[lead]
         if len(felt):  # what the leader felt before tells its images apart (the one feature)
@@ -190,8 +190,9 @@ def judge(ctx: ObjectContext, points: np.ndarray, radii: np.ndarray, tracks: Obj
             image_prior += ll[1:] - ll[0]
     centres = np.vstack([tracks.centres, mirrored])
     prior = np.concatenate([tracks.prior, image_prior])
-    score = prior + fit_log_likelihood(ctx.field, centres, points, radii, sd,
-                                       ctx.outlier_probability, ctx.outlier_range)
+    temper = _temper(ctx, points)
+    score = temper * (prior + fit_log_likelihood(ctx.field, centres, points, radii, sd,
+                                                 ctx.outlier_probability, ctx.outlier_range))
     order = distinct(centres, score, tol_pos, tol_head)
     share = np.exp(score[order] - score[order[0]])
     share /= share.sum()
@@ -217,13 +218,14 @@ def judge(ctx: ObjectContext, points: np.ndarray, radii: np.ndarray, tracks: Obj
         fits = [fit] + [refine(ctx.field, points, radii, centres[i], sigma,
                                max_outliers=outliers) for i in rivals]
         refined = np.array([f.pose for f in fits])
-        ll = prior[[order[0]] + rivals] + fit_log_likelihood(
+        ll = temper * (prior[[order[0]] + rivals] + fit_log_likelihood(
             ctx.field, refined, points, radii, max(sigma, 0.002 * scale),
-            ctx.outlier_probability, ctx.outlier_range)
+            ctx.outlier_probability, ctx.outlier_range))
         rest = share[1 + len(rivals):].sum()
         w = np.exp(ll - ll.max())
         mass = float(w[0] / w.sum()) * (1.0 - rest) if ll[0] >= ll.max() else 0.0
-        fit = _floored(ctx, lead_points, lead_radii, fit)
+        fit = _widened(_floored(ctx, lead_points, lead_radii, fit),
+                       _temper(ctx, lead_points))
         converged = rule.holds(readings=places - 1, noisy=noisy, mode_mass=mass, fit=fit,
                                step_length=scale)
         converged &= bool(order[0] < len(tracks.centres)
@@ -232,6 +234,27 @@ def judge(ctx: ObjectContext, points: np.ndarray, radii: np.ndarray, tracks: Obj
             np.asarray([fit.pose]), np.asarray([previous]), rule.max_position_sd * scale,
             rule.max_heading_sd)[0, 0])
     return ObjectVerdict(fit, mass, runner, runner_mass, bool(converged))
+
+
+def _temper(ctx: ObjectContext, points: np.ndarray) -> float:
+    """How much of the readings' log likelihood is independent evidence: the world's outline
+    differs from the model coherently over `mismatch_length`, so readings within one such
+    patch share their error (a wrong pose 136 degrees off out-fitted the truth by 7 nats on
+    11 readings from three small arcs: rounded:14, seed 14). Counted as the distinct
+    patches felt per reading."""
+    if ctx.mismatch_length <= 0 or len(points) == 0:
+        return 1.0
+    return min(1.0, distinct_places(points, ctx.mismatch_length) / len(points))
+
+
+def _widened(fit: Fit, temper: float) -> Fit:
+    """`fit` with its spread widened for readings that share their error (`_temper`): the
+    covariance of K readings in K * temper independent patches. (rounded:8, seed 8: a
+    heading 5.5 degrees off was declared at a spread of 0.67 degrees from 10 readings on
+    three small arcs.)"""
+    scale = 1.0 / np.sqrt(max(temper, 1e-6))
+    return dataclasses.replace(fit, position_sd=fit.position_sd * scale,
+                               heading_sd=fit.heading_sd * scale)
 
 
 def _floored(ctx: ObjectContext, points: np.ndarray, radii: np.ndarray, fit: Fit) -> Fit:

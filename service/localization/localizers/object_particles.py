@@ -38,6 +38,7 @@ from service.localization.localizers.object_base import (
     HandMeasurement,
     ObjectContext,
     carry_poses,
+    object_rule,
 )
 from service.localization.localizers.object_judge import ObjectTracks, judge
 from service.localization.localizers.pool import (
@@ -73,7 +74,7 @@ class ObjectParticles:
         self.work_items, self.children, self.fresh = work, children, fresh
         self.scanned, self.drop, self.contraction = scanned, drop, contraction
         self.rivals, self.kept_modes, self.polish = rivals, kept_modes, polish
-        self.rule = rule or ConvergenceRule()
+        self.rule = rule or object_rule()
         scale = ctx.scale
         self.sigma = ctx.sigma
         self.noisy = float(ctx.sensor.sigma) > 1e-6
