@@ -285,7 +285,7 @@ class Particles:
         for screened, centres in self.sweep.run(self.history, take=job.take(CHUNK)):
             if len(centres):
                 self._add(gauss_newton(self.ctx.surface, centres, self.history, w,
-                                       iterations=3, max_move=self.sweep.reach[0]))
+                                       iterations=8, max_move=self.sweep.start_reach))
             yield screened
 
     def _screened(self, candidates: np.ndarray) -> np.ndarray:

@@ -32,7 +32,12 @@ import numpy as np
 
 from service.localization import kernels
 from service.localization.localizers.convergence import FLOOR
-from service.localization.localizers.fitting import STEEP_BLOCK, steepest_near
+from service.localization.localizers.fitting import (
+    STEEP_BLOCK,
+    on_pose_space,
+    steepest_near,
+    typical_slope,
+)
 from service.localization.surface import ContactSurface
 
 CAP = 9.0
@@ -82,6 +87,9 @@ class Sweep:
         self.reach = (float(np.hypot(*self.pitch[:2])) / 2, float(self.pitch[2]) / 2)
         """How far a pose in a cell can lie from its centre (metres, radians)."""
         self.slopes = steepest_near(surface, 2 * self.reach[0])
+        self.slope = typical_slope(surface)
+        self.start_reach = self.reach[0]
+        """How far (metres) a start handed over can lie from a pose its cell stands for."""
         self.reset()
 
     def reset(self) -> None:
@@ -108,12 +116,13 @@ class Sweep:
             return
         if self.begun_at is None:
             self.begun_at, self.cursor = k, 0
-        spread = self.reach[0] + np.hypot(history[1:, 0], history[1:, 1]) * self.reach[1]
-        # the sharpest readings first (least widened: nearest the start), and no more than
-        # `readings` of them: a cell is judged at a bounded cost however long the walk
-        use = np.argsort(spread, kind="stable")[:self.settings.readings]
-        history = np.vstack([history[:1], history[1:][use]])
-        spread = np.concatenate([[self.reach[0]], spread[use]])
+        anchor, use = self._anchor(history)
+        # the cells stand for the finger's pose at the anchor reading: the readings round
+        # it, relative to it, are the least widened (`spread`)
+        offset = history[anchor, :3].copy()
+        history = np.vstack([history[anchor], history[use]])
+        history[:, :3] -= offset
+        spread = self.reach[0] + np.hypot(history[:, 0], history[:, 1]) * self.reach[1]
         k = len(use)
         # a cell must also beat (nearly) the worst handed over last time: most cells then
         # fail on their first reading or two
@@ -136,7 +145,43 @@ class Sweep:
             yield count, np.empty((0, 3))
         best = np.argsort(misfit, kind="stable")[:self.settings.keep]
         self.bar = float(misfit[best[-1]]) if len(best) == self.settings.keep else np.inf
-        yield 0, poses[best]
+        yield 0, self._starts(poses[best], offset)
+
+    def _anchor(self, history: np.ndarray) -> tuple[int, np.ndarray]:
+        """The reading to judge cells from, and the `readings` others nearest it.
+
+        Readings far from the anchor are widened by the cell's heading range times their
+        distance, so only those round it tell cells apart; of all the readings, the anchor
+        is the one whose neighbours differ most in height for that widening. Anchored at
+        the start, a walk that began on a plain judged cells on flat readings alone, which
+        thousands of cells fit: on a plate the truth's cell never made the hand in 40
+        steps, and its half-turn image was declared."""
+        xy = history[:, :2]
+        distance = np.hypot(*(xy[:, np.newaxis, :] - xy[np.newaxis, :, :]).transpose(2, 0, 1))
+        np.fill_diagonal(distance, np.inf)
+        count = min(self.settings.readings, len(history) - 1)
+        near = np.argsort(distance, axis=1, kind="stable")[:, :count]
+        rise = history[near, 2] - history[:, 2:3]
+        spread = self.reach[0] + np.take_along_axis(distance, near, axis=1) * self.reach[1]
+        told = np.sum(rise**2 / (self.sensor_sigma**2 + (self.slope * spread) ** 2), axis=1)
+        anchor = int(np.argmax(told))
+        if told[anchor] < 2.0 * told[0]:
+            anchor = 0
+        return anchor, near[anchor]
+
+    def _starts(self, anchored: np.ndarray, offset: np.ndarray) -> np.ndarray:
+        """Start poses of cells anchored at a reading `offset` (x, y in the start's frame)
+        from the start, those on the map."""
+        self.start_reach = self.reach[0] + float(np.hypot(*offset[:2])) * self.reach[1]
+        c, s = np.cos(anchored[:, 2]), np.sin(anchored[:, 2])
+        starts = anchored.copy()
+        starts[:, 0] -= c * offset[0] - s * offset[1]
+        starts[:, 1] -= s * offset[0] + c * offset[1]
+        x_max, y_max = self.surface.map.extent
+        inside = (starts[:, 0] >= 0) & (starts[:, 0] <= x_max)
+        if not self.surface.map.is_profile:
+            inside &= (starts[:, 1] >= 0) & (starts[:, 1] <= y_max)
+        return on_pose_space(self.surface, starts[inside])
 
 
 def _coprime_stride(n: int) -> int:
