@@ -5,7 +5,8 @@ For each hand (two and three fingers) and object family, `--runs` seeded runs at
 noise; run i holds family member NAME:i (held-out shapes, not one preset) with seed i. Each
 run is repeated with the hand's first finger alone on the same contour, the object clamped
 (the steps a single finger needs), and without the grasp gate (the ablation: its drops are
-what the gate prevents). `--workers` runs episodes in parallel processes.
+what the gate prevents). `--workers` runs episodes in parallel processes. Each drop and wrong
+declaration of a gated run is listed, and either gives exit status 1.
 """
 
 from __future__ import annotations
@@ -81,6 +82,9 @@ def episode(settings) -> dict[str, Any]:
             "converged": report.result.converged, "steps": len(steps),
             "manipulations": sum(s.kind == "manipulate" for s in steps),
             "min_quality": report.min_quality,
+            "position_error": report.score.position_error,
+            "heading_error_deg": (None if report.score.heading_error is None
+                                  else math.degrees(report.score.heading_error)),
             "compute_ms_after_first": [s.compute_ms for s in steps[1:] if s.compute_ms > 0],
             "policy_ms": [s.policy_ms for s in steps]}
 
@@ -137,13 +141,34 @@ def run(args: argparse.Namespace) -> int:
         summary["ablation_drops"] = int(sum(o["dropped"] for (_, _, k), v in results.items()
                                             if k == "ablation" for o in v))
     _print(table, summary, hands, families, kinds)
+    failures = failed_runs(results)
+    for line in failures:
+        print(line)
     write_json(args.json, {"scenario": "grasp", "targets": TARGETS, "summary": summary,
                            "table": table,
                            "runs": {"/".join(k): v for k, v in results.items()}})
     if args.plot:
         grasp_figure(table, hands, families, kinds, args.plot)
         print(f"figure written to {args.plot}")
-    return 0
+    return 1 if failures else 0
+
+
+def failed_runs(results: dict[tuple, list[dict[str, Any]]]) -> list[str]:
+    """A line for each gated run that dropped the object or declared a wrong pose (the
+    ablation's drops are what it is for), as `haptic run --noise` options to re-run it."""
+    lines = []
+    for (hand, _, kind), outcomes in results.items():
+        if kind != "gated":
+            continue
+        for o in outcomes:
+            where = f"--hand {hand} --object {o['object']} --seed {o['seed']}"
+            if o["dropped"]:
+                lines.append(f"DROPPED: {where} at step {o['steps']} (least quality "
+                             f"{o['min_quality']:.2f} N)")
+            if o["wrong"]:
+                lines.append(f"WRONG: {where} ({o['position_error'] * 1e3:.1f} mm, "
+                             f"{o['heading_error_deg']:.1f} deg off)")
+    return lines
 
 
 class _Serial:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 
+from tools.bench_grasp import failed_runs
 from tools.cli import main
 
 
@@ -27,3 +28,16 @@ def test_bench_grasp_writes_its_summary_and_figure(tmp_path, capsys):
 def test_bench_grasp_refuses_an_unknown_family(capsys):
     assert main(["bench", "grasp", "--objects", "cube"]) == 2
     assert "unknown family 'cube'" in capsys.readouterr().err
+
+
+def test_bench_grasp_lists_each_gated_drop_and_wrong_declaration():
+    def run(seed, dropped=False, wrong=False):
+        return {"object": f"rounded:{seed}", "seed": seed, "dropped": dropped, "wrong": wrong,
+                "steps": 4, "min_quality": 0.1, "position_error": 0.0021,
+                "heading_error_deg": 136.0}
+    lines = failed_runs({("two-finger", "rounded", "gated"): [run(1), run(7, dropped=True),
+                                                               run(8, wrong=True)],
+                         ("two-finger", "rounded", "ablation"): [run(7, dropped=True)]})
+    assert lines == ["DROPPED: --hand two-finger --object rounded:7 --seed 7 at step 4 (least "
+                     "quality 0.10 N)",
+                     "WRONG: --hand two-finger --object rounded:8 --seed 8 (2.1 mm, 136.0 deg off)"]
