@@ -43,6 +43,43 @@ class CommandError(Exception):
         self.code = code
 
 
+class Deferred:
+    """A result that comes later: slow work (a configure, an episode's first belief) runs
+    off the loop, and the command server replies when the daemon calls `resolve` or `fail`.
+    Until then a retry of the same request waits for that reply too, and the lease holder
+    waiting for it does not lose the lease for being quiet."""
+
+    def __init__(self, done: Callable[[dict[str, Any] | None, Exception | None], None]
+                 | None = None) -> None:
+        self._done = done
+        """Called once with (result, None) or (None, error); the server sets it."""
+        self.settled = False
+        self._result: dict[str, Any] | None = None
+        self._error: Exception | None = None
+
+    def on_settle(self, done: Callable[[dict[str, Any] | None, Exception | None], None]
+                  ) -> Deferred:
+        """Call `done(result, error)` once settled (at once if it already is)."""
+        self._done = done
+        if self.settled:
+            done(self._result, self._error)
+        return self
+
+    def resolve(self, result: dict[str, Any]) -> None:
+        self._settle(result, None)
+
+    def fail(self, error: Exception) -> None:
+        self._settle(None, error)
+
+    def _settle(self, result: dict[str, Any] | None, error: Exception | None) -> None:
+        if self.settled:
+            return
+        self.settled = True
+        self._result, self._error = result, error
+        if self._done is not None:
+            self._done(result, error)
+
+
 class Controls(Protocol):
     """What the command table drives: the daemon's node."""
 
@@ -70,7 +107,7 @@ KINDS: dict[str, Callable[[Any], bool]] = {
 
 @dataclass(frozen=True)
 class Command:
-    run: Callable[[Controls, dict[str, Any]], dict[str, Any]]
+    run: Callable[[Controls, dict[str, Any]], dict[str, Any] | Deferred]
     lease: bool
     """Needs (and takes, if free) the controlling lease."""
     fields: dict[str, str]
@@ -162,6 +199,8 @@ class CommandServer:
         self.handled = 0
         self.errors = 0
         self._recent: OrderedDict[tuple[Any, Any], tuple[bytes, bytes]] = OrderedDict()
+        self._pending: dict[tuple[Any, Any], bytes] = {}
+        """Requests whose reply a Deferred will give: key -> payload."""
         self._poller = zmq.Poller()
         self._poller.register(self._sock, zmq.POLLIN)
 
@@ -204,10 +243,13 @@ class CommandServer:
             head, rest = [identity, b""], rest[1:]
         if len(rest) != 1:
             return head + [self._error(None, "malformed", "a request is exactly one frame")]
-        return head + [self.handle(rest[0].bytes, _peer(identity, rest[0]))]
+        reply = self.handle(rest[0].bytes, _peer(identity, rest[0]), head)
+        return None if reply is None else head + [reply]
 
-    def handle(self, payload: bytes, peer: Peer | None = None) -> bytes:
-        """One request payload to one reply payload; never raises."""
+    def handle(self, payload: bytes, peer: Peer | None = None,
+               head: list[bytes] | None = None) -> bytes | None:
+        """One request payload to one reply payload (None: a Deferred will reply later, to
+        the connection `head` names); never raises."""
         self.handled += 1
         peer = peer or Peer(b"")
         rid: Any = None
@@ -226,6 +268,8 @@ class CommandServer:
             cached = self._recent.get(key)
             if cached is not None and cached[0] == payload:
                 return cached[1]  # the same bytes again: a retry, answered from the cache
+            if self._pending.get(key) == payload:
+                return None  # a retry of a request still at work: its reply is coming
             before = self.lease.snapshot()
             if spec.lease:
                 try:
@@ -239,24 +283,43 @@ class CommandServer:
             except Exception:
                 self.lease.restore(before)  # a refusal changes nothing
                 raise
-            if cmd == "release":
-                self.lease.release()
-            self.controls.on_command(cmd, peer.name())
-            out = self._encode(rid, True, result=result)
-            self._recent[key] = (bytes(payload), out)
-            while len(self._recent) > 256:
-                self._recent.popitem(last=False)
-            return out
-        except CommandError as exc:
-            return self._error(rid, exc.code, str(exc))
-        except StateError as exc:
-            return self._error(rid, "bad_state", str(exc))
-        except (InputError, HandConfigError) as exc:  # a bad value, map, name or hand file
-            return self._error(rid, "bad_config", str(exc))
-        except FirmwareError as exc:
-            return self._error(rid, "hardware", str(exc))
-        except Exception as exc:  # a bug must not take the daemon down
-            return self._error(rid, "internal", f"{type(exc).__name__}: {exc}")
+            if isinstance(result, Deferred):
+                self._defer(result, cmd, peer, rid, key, bytes(payload), head)
+                return None
+            return self._accepted(cmd, peer, rid, key, bytes(payload), result)
+        except Exception as exc:
+            return self._error(rid, *error_code(exc))
+
+    def _accepted(self, cmd: str, peer: Peer, rid: Any, key: tuple[Any, ...], payload: bytes,
+                  result: dict[str, Any]) -> bytes:
+        if cmd == "release":
+            self.lease.release()
+        self.controls.on_command(cmd, peer.name())
+        out = self._encode(rid, True, result=result)
+        self._recent[key] = (payload, out)
+        while len(self._recent) > 256:
+            self._recent.popitem(last=False)
+        return out
+
+    def _defer(self, deferred: Deferred, cmd: str, peer: Peer, rid: Any,
+               key: tuple[Any, ...], payload: bytes, head: list[bytes] | None) -> None:
+        self._pending[key] = payload
+        holding = self.lease.holds(peer)
+        if holding:
+            self.lease.busy += 1
+
+        def done(result: dict[str, Any] | None, error: Exception | None) -> None:
+            self._pending.pop(key, None)
+            if holding:
+                self.lease.busy = max(0, self.lease.busy - 1)
+                self.lease.touch(peer)
+            out = (self._accepted(cmd, peer, rid, key, payload, result) if error is None
+                   else self._error(rid, *error_code(error)))
+            if head is not None:
+                with contextlib.suppress(zmq.ZMQError):  # the client went away
+                    self._sock.send_multipart(head + [out], flags=zmq.NOBLOCK)
+
+        deferred.on_settle(done)
 
     def _error(self, rid: Any, code: str, message: str) -> bytes:
         self.errors += 1
@@ -271,6 +334,22 @@ class CommandServer:
             self._sock.disable_monitor()
         self._monitor.close(linger=0)
         self._sock.close()
+
+
+def error_code(exc: Exception) -> tuple[str, str]:
+    """(code, message) of the protocol's error for an exception (docs/protocol.md)."""
+    if isinstance(exc, CommandError):
+        return exc.code, str(exc)
+    if isinstance(exc, StateError):
+        return "bad_state", str(exc)
+    if isinstance(exc, (InputError, HandConfigError)):  # a bad value, map, name or hand file
+        return "bad_config", str(exc)
+    if isinstance(exc, FirmwareError):
+        return "hardware", str(exc)
+    code = getattr(exc, "code", None)  # the compute process's own classification
+    if code in ("bad_config", "internal"):
+        return code, str(exc)
+    return "internal", f"{type(exc).__name__}: {exc}"  # a bug must not take the daemon down
 
 
 def _peer(identity: bytes, frame: zmq.Frame) -> Peer:

@@ -51,6 +51,8 @@ class Lease:
         self.expires_ns = 0
         self.gone = False
         """The holder's connection closed: the lease ends at the next check."""
+        self.busy = 0
+        """Requests of the holder still at work (a configure): it is waiting, not silent."""
         self._clock = clock
 
     @property
@@ -84,6 +86,7 @@ class Lease:
     def release(self) -> None:
         self.holder = None
         self.gone = False
+        self.busy = 0
 
     def disconnected(self, fd: int) -> None:
         """The monitor saw connection `fd` close: if it was the holder's, the lease ends."""
@@ -94,7 +97,8 @@ class Lease:
     def expire_due(self) -> tuple[str, str] | None:
         """(holder's name, why) for a lease that just ended, which is then free; else None.
         Why: 'disconnected' (its connection closed) or 'silent' (nothing for ttl_s)."""
-        if self.holder is not None and (self.gone or self._clock() >= self.expires_ns):
+        silent = self._clock() >= self.expires_ns and not self.busy
+        if self.holder is not None and (self.gone or silent):
             ended = (self.holder.name(), "disconnected" if self.gone else "silent")
             self.release()
             return ended

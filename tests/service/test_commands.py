@@ -16,7 +16,7 @@ from hypothesis import strategies as st
 from service.daemon.harness import loopback_config, running_node
 from service.daemon.node import Node
 from service.wire.client import Client, CommandFailed, Subscriber
-from service.wire.commands import TABLE, CommandServer, validate
+from service.wire.commands import TABLE, CommandServer, Deferred, validate
 from service.wire.lease import Lease, Peer
 
 
@@ -244,3 +244,47 @@ ERROR_CODES = {"malformed", "too_large", "bad_version", "unknown_command", "bad_
 def fuzz_server() -> CommandServer:
     """One server for all examples; `handle` alone is exercised, the socket is idle."""
     return CommandServer(zmq.Context.instance(), "inproc://fuzz-commands", Inert(), Lease(1.0))
+
+
+def test_a_deferred_reply_comes_once_when_settled_and_keeps_the_lease() -> None:
+    """Slow work answers later: a retry meanwhile waits for the same reply, and the holder
+    waiting for it is not silent (its lease does not run out)."""
+    now = [0]
+    deferred = Deferred()
+
+    class SlowControls:
+        def configure(self, changes: dict) -> Deferred:
+            return deferred
+
+        def on_command(self, cmd: str, client: str | None) -> None:
+            pass
+
+    ctx = zmq.Context()
+    lease = Lease(1.0, clock=lambda: now[0])
+    server = CommandServer(ctx, "tcp://127.0.0.1:*", SlowControls(), lease)
+    sock = ctx.socket(zmq.DEALER)
+    sock.setsockopt(zmq.LINGER, 0)
+    sock.connect(server.endpoint)
+    try:
+        payload = request(cmd="configure", args={"changes": {}})
+        for _ in range(2):  # the request, then its retry
+            sock.send(payload)
+            handled = server.handled
+            while server.handled == handled:
+                server.poll(100)
+            assert not sock.poll(50)  # no reply yet
+        assert lease.busy == 1
+        now[0] = int(5e9)  # far past ttl_s
+        assert lease.expire_due() is None
+        deferred.resolve({"state": "inactive"})
+        reply = msgpack.unpackb(sock.recv())
+        assert reply["ok"] and reply["result"] == {"state": "inactive"} and reply["id"] == 9
+        assert not sock.poll(50)  # exactly one reply for the two sends
+        assert lease.busy == 0 and lease.holder is not None  # renewed when answered
+        sock.send(payload)  # the same bytes again: the cached reply
+        server.poll(1000)
+        assert msgpack.unpackb(sock.recv())["seq"] == reply["seq"]
+    finally:
+        sock.close()
+        server.close()
+        ctx.term()
