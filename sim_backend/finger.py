@@ -49,9 +49,12 @@ class SimulatedFinger(FaultLatch, HandOfOne):
     """Drop-in simulated finger implementing `firmware_if.backend.Backend`."""
 
     def __init__(self, world: HeightMap, config: SimConfig, rng: np.random.Generator,
-                 clock: Clock | None = None) -> None:
+                 clock: Clock | None = None, *, surface: ContactSurface | None = None) -> None:
+        """`surface`: the world's contact surface built already (the daemon builds it, and
+        perturbs the map, in its compute process; `rng` then continues after that draw)."""
         self.config = config
         self._world_map = world
+        self._prebuilt = surface
         self._rng = rng
         self._clock = clock or MonotonicClock()
         self._surface: ContactSurface | None = None
@@ -67,9 +70,12 @@ class SimulatedFinger(FaultLatch, HandOfOne):
     # -- lifecycle -------------------------------------------------------------------------
     def open(self) -> None:
         noise = self.config.noise
-        world = perturbed(self._world_map, noise.surface_sigma, noise.surface_correlation,
-                          self._rng)
-        self._surface = contact_surface(world, self.config.radius)
+        if self._prebuilt is not None:
+            self._surface, world = self._prebuilt, self._prebuilt.map
+        else:
+            world = perturbed(self._world_map, noise.surface_sigma, noise.surface_correlation,
+                              self._rng)
+            self._surface = contact_surface(world, self.config.radius)
         x, y, _ = self.config.start
         if not world.inside(np.array(x), np.array(y)):
             raise ConfigError(f"sim start ({x:.4g}, {y:.4g}) m lies outside the map "

@@ -23,7 +23,7 @@ from typing import Any
 
 import zmq
 
-from service.daemon.config import LOCALIZER_MODES, LoopConfig, ScenarioConfig
+from service.daemon.config import ScenarioConfig
 from service.errors import ConfigError
 from service.registry import LOCALIZERS, POLICIES
 from service.wire.client import Client, Subscriber
@@ -41,7 +41,6 @@ max_steps = 60
 seed = {seed}
 [loop]
 rate_hz = {rate}
-localizer_mode = "{localizer_mode}"
 [endpoints]
 pub = "{pub}"
 cmd = "{cmd}"
@@ -64,10 +63,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="the daemon's localizer (default: %(default)s, its own default)")
     parser.add_argument("--policy", default=ScenarioConfig.policy, choices=POLICIES.names(),
                         help="the daemon's policy (default: %(default)s)")
-    parser.add_argument("--localizer-mode", default=LoopConfig.localizer_mode,
-                        choices=LOCALIZER_MODES,
-                        help="sliced in the loop's ticks, or on a worker thread "
-                             "(default: %(default)s)")
     parser.add_argument("--ping-hz", type=float, default=20.0,
                         help="command round trips timed per second")
     parser.add_argument("--json", type=Path, metavar="FILE", help="write the figures as JSON")
@@ -102,7 +97,6 @@ def measure(subscribers: int, args: argparse.Namespace) -> dict[str, Any]:
         cfg = Path(tmp) / "hapticd.toml"
         cfg.write_text(CONFIG.format(step_s=args.step_s, seed=args.seed, rate=args.rate,
                                      algorithm=args.algorithm, policy=args.policy,
-                                     localizer_mode=args.localizer_mode,
                                      pub=pub, cmd=cmd))
         proc = subprocess.Popen([sys.executable, "-m", "service.daemon.main", "--config", str(cfg),
                                  "--log-level", "warning"])

@@ -21,7 +21,9 @@ from service.registry import BACKENDS
 from service.wire.envelope import MAX_FRAME_BYTES
 
 OVERRUN_POLICIES = ("skip", "catch_up")
-LOCALIZER_MODES = ("sliced", "thread")
+REMOVED = {("loop", "work_fraction"): "the localizer no longer works inside ticks",
+           ("loop", "localizer_mode"): "the localizer always runs in a process of its own"}
+"""Keys of earlier versions, named in the error instead of 'unknown'."""
 RUNTIME_SECTIONS = ("backend", "scenario", "loop", "lease")
 """Sections `configure` may change while the daemon runs; endpoints and security need a restart."""
 BACKEND_BUILDER_ARGS = ("radius", "step")
@@ -91,11 +93,10 @@ class ScenarioConfig:
 
 @dataclass(frozen=True)
 class LoopConfig:
-    """The real-time loop: rate, per-tick localizer budget, overrun policy, stream rates."""
+    """The real-time loop: rate, overrun policy, stream rates. (The localizer and policy
+    run in the compute process, outside the loop's ticks.)"""
 
     rate_hz: float = setting(200.0, "float", lo=10.0, hi=2000.0, unit="Hz")
-    work_fraction: float = setting(0.5, "float", lo=0.05, hi=0.9)
-    """Share of a period the localizer may use in one tick."""
     overrun: str = setting("skip", "str", choices=OVERRUN_POLICIES)
     """'skip': after an overrun resume at the next period boundary; 'catch_up': run late ticks."""
     cloud_hz: float = setting(4.0, "float", lo=0.1, hi=50.0, unit="Hz")
@@ -104,9 +105,6 @@ class LoopConfig:
     cloud_points: int = setting(500, "int", lo=1, hi=20_000)
     stats_window: int = setting(1000, "int", lo=10, hi=65_536)
     """Ticks the `state` timing percentiles cover."""
-    localizer_mode: str = setting("sliced", "str", choices=LOCALIZER_MODES)
-    """'sliced': anytime `work` under each tick's budget; 'thread': whole updates on a
-    worker thread, for localizers whose slices are longer than a tick."""
 
     def __post_init__(self) -> None:
         check_fields(self, "loop.")
@@ -206,6 +204,9 @@ def _section(cls: type, name: str, values: Any, base: Any = None) -> Any:
     if not isinstance(values, dict):
         raise ConfigError(f"[{name}] must be a table")
     known = {f.name for f in dataclasses.fields(cls)}
+    for key in values:
+        if (name, key) in REMOVED:
+            raise ConfigError(f"{name}.{key} is gone: {REMOVED[(name, key)]}; delete it")
     unknown = sorted(str(k)[:64] for k in values if k not in known)
     if unknown:
         raise ConfigError(f"[{name}] has unknown key(s) {', '.join(unknown)}; known: "

@@ -26,8 +26,10 @@ def loopback_config(changes: dict[str, Any] | None = None, **endpoint: Any) -> D
 
 
 @contextmanager
-def running_node(config: DaemonConfig, timeout_s: float = 20.0) -> Iterator[Node]:
-    """A serving node; stopped and joined on exit."""
+def running_node(config: DaemonConfig, timeout_s: float = 60.0) -> Iterator[Node]:
+    """A serving node, configured (its compute process started); stopped and joined on exit.
+    `timeout_s` is generous: the compute process imports and warms up numba on a loaded
+    machine."""
     node = Node(config)
 
     def serve() -> None:

@@ -1,10 +1,13 @@
 """The daemon's core: one thread owns the backend, the loop, the explorer and both sockets.
 
-`Node.serve()` binds the sockets, opens the backend (when `auto_configure`), then runs the
-fixed-rate loop until `stop()`. Each tick reads the finger, advances exploration under the
-tick's budget and publishes; requests are answered while the loop waits for its next
-deadline. Because everything runs on the serving thread, no socket or backend is ever
-shared between threads, and `stop()` (any thread, or a signal handler) is just an event.
+`Node.serve()` binds the sockets, starts the compute process (`service.daemon.worker`,
+where maps, localizers and policies live) and configures (when `auto_configure`), then
+runs the fixed-rate loop until `stop()`. Each tick reads the finger, takes in the compute
+process's replies, advances exploration and publishes; requests are answered while the
+loop waits for its next deadline. Slow work never runs in a tick: it is in the compute
+process, or (opening a new backend) on a helper thread while the loop leaves the backend
+be. `stop()` (any thread, or a signal handler) is just an event. The command handlers are
+in `service.daemon.controls`.
 """
 
 from __future__ import annotations
@@ -13,7 +16,6 @@ import contextlib
 import gc
 import json
 import logging
-import sys
 import threading
 import time
 from typing import Any
@@ -23,59 +25,32 @@ import zmq
 from threadpoolctl import threadpool_limits
 
 from firmware_if.backend import Backend, FingerState
-from firmware_if.errors import FirmwareError, HardwareFault
+from firmware_if.errors import FirmwareError
 from service.daemon.config import DaemonConfig
+from service.daemon.controls import CommandHandlers
 from service.daemon.explorer import Explorer, TickOutput
 from service.daemon.lifecycle import Lifecycle, State
 from service.daemon.loop import RateLoop, Samples, Tick
-from service.episode.scenario import RunSettings, Truth, draw_truth, episode_streams, surface_for
-from service.errors import ConfigError, StateError
+from service.daemon.reconfigure import Reconfiguration, Stage
+from service.daemon.worker_link import WorkerDied, WorkerLink
+from service.episode.scenario import Truth
+from service.errors import StateError
 from service.localization.models import rotate
-from service.registry import BACKENDS
-from service.wire.commands import CommandServer
+from service.wire.commands import CommandServer, Deferred
+from service.wire.envelope import Message
 from service.wire.lease import Lease
 from service.wire.security import CurveServer, check_binds
 from service.wire.stream import Publisher
 
 log = logging.getLogger("hapticd")
-QUIET_COMMANDS = frozenset({"ping", "status", "get_config", "acquire"})
-"""Commands not echoed as `command` events (they change nothing)."""
 
 
-def make_backend(config: DaemonConfig, settings: RunSettings, surface: Any
-                 ) -> tuple[Backend, Truth | None, Any]:
-    """The configured backend (not yet opened), the sim's hidden truth, and the localizer's
-    and policy's rngs.
-
-    The seed is split by `scenario.episode_streams`, as `haptic run` splits it, so the
-    first episode after configure is the episode `haptic run` runs with the same settings.
-    """
-    truth_rng, world_rng, loc_rng, policy_rng = episode_streams(settings.seed)
-    loc_rng = (loc_rng, policy_rng)
-    cls = BACKENDS.load(config.backend.name)
-    if config.backend.name != "sim":
-        options = dict(config.backend.options)
-        factory = getattr(cls, "from_cli", None)  # the hardware backends' builder, if any
-        try:
-            if factory is not None:
-                return factory(radius=settings.radius, step=settings.step, **options), None, \
-                    loc_rng
-            return cls(**options), None, loc_rng
-        except TypeError as exc:
-            raise ConfigError(f"backend '{config.backend.name}' options: {exc}") from None
-    from sim_backend.finger import SimConfig  # concrete backend chosen at run time
-
-    truth = draw_truth(settings, surface.map, truth_rng)
-    sim = SimConfig(start=truth.as_tuple(), radius=settings.radius,
-                    noise=settings.noise_spec, step_duration_s=config.backend.step_duration_s)
-    return cls(surface.map, sim, world_rng), truth, loc_rng
-
-
-class Node:
+class Node(CommandHandlers):
     def __init__(self, config: DaemonConfig) -> None:
         self.config = config
         self.lifecycle = Lifecycle()
         self.ready = threading.Event()
+        """Set once serving and the start-up configure has finished (or failed)."""
         self._stop = threading.Event()
         self._settled = False
         """Whether the first episode's long-lived objects have been frozen (`gc.freeze`)."""
@@ -86,6 +61,11 @@ class Node:
         self.episode_truth: list[float] | None = None
         """The simulator's hidden pose at the start of the current episode."""
         self.explorer: Explorer | None = None
+        self.link = WorkerLink()
+        self.reconf: Reconfiguration | None = None
+        self.starting: Deferred | None = None
+        """A `start_exploration` waiting for the episode's first belief."""
+        self.faults = 0
         self.last_state: FingerState | None = None
         self.localizer_work = Samples()
         self.lease = Lease(config.lease.ttl_s)
@@ -102,7 +82,8 @@ class Node:
 
     # -- running ---------------------------------------------------------------------------
     def serve(self) -> None:
-        """Bind, configure, run the loop until `stop()`, then shut down cleanly."""
+        """Bind, start the compute process, configure, run the loop until `stop()`, then
+        shut down cleanly."""
         ctx = zmq.Context()
         curve = None
         try:
@@ -117,18 +98,18 @@ class Node:
                                      max_request_bytes=ep.max_request_bytes, curve=curve)
             self.endpoints = {"pub": self.pub.endpoint, "cmd": self.cmd.endpoint}
             _log("listening", **self.endpoints)
+            self.link.start()
+            _preload()
             if self.config.auto_configure:
-                try:
-                    self.configure({})
-                except FirmwareError as exc:
-                    _log("configure_failed", level=logging.ERROR, error=str(exc))
+                self.configure({}).on_settle(self._configured_at_start)
+            else:
+                self.ready.set()
             self.pub.event("started", state=self.lifecycle.state.value)
             gc.collect()
             gc.freeze()  # start-up objects leave the collector's view: shorter GC pauses
             # BLAS threads buy nothing at our sizes and cost a core-handover stall (10 ms
             # when the other core is busy) in calls as small as a 20,000-vector product
             threadpool_limits(limits=1)
-            self.ready.set()
             self.loop.run(self._stop.is_set)
         except BaseException as exc:
             self.error = exc
@@ -139,6 +120,12 @@ class Node:
                 curve.stop()
             ctx.term()
             self.ready.set()
+
+    def _configured_at_start(self, result: dict[str, Any] | None, error: Exception | None
+                             ) -> None:
+        if error is not None:
+            _log("configure_failed", level=logging.ERROR, error=str(error))
+        self.ready.set()
 
     def stop(self) -> None:
         """Ask the loop to finish (thread- and signal-safe)."""
@@ -168,6 +155,7 @@ class Node:
         if self._curve is not None and tick.index % 50 == 0:
             self._check_revocations()
         self.pub.ensure_bound()
+        replies = self._worker_replies()
         ended = self.lease.expire_due()
         if ended is not None:
             self._lease_expired(*ended)
@@ -177,38 +165,69 @@ class Node:
                 self._deactivate("lease expired")
                 self._event("stopped", reason="lease expired")
         state = self._read()
-        loc_ns = None
+        if self.reconf is not None:
+            self._reconfigure(replies)
         if (state is not None and self.lifecycle.state is State.ACTIVE and self.explorer
                 and self.explorer.running):
-            budget = tick.start_ns + int(self.config.loop.work_fraction * self.loop.period_ns)
-            try:
-                out = self.explorer.tick(state, self.backend.command_step, budget)
-            except FirmwareError as exc:
-                self._fault(f"exploration failed: {exc}")
-                out = TickOutput()
-            except Exception as exc:  # a localizer/policy bug: stop safely, keep serving
-                log.exception("exploration raised")
-                self._fault(f"internal error in exploration: {type(exc).__name__}: {exc}")
-                out = TickOutput()
-            loc_ns = out.localizer_ns
-            self._publish_outputs(out)
-        if loc_ns is not None:
-            self.localizer_work.add(loc_ns)
+            self._explore(state, replies)
         if tick.index % self.config.loop.state_every == 0:
             self._publish_state(tick)
-        cloud = None
         if tick.start_ns >= self._next_cloud_ns and self.explorer:
             self._next_cloud_ns = tick.start_ns + int(1e9 / self.config.loop.cloud_hz)
-            cloud = self.explorer.cloud()
-        if cloud is not None:
-            if self.explorer.estimate is not None:
-                # Re-sent at the cloud's pace so late subscribers catch up with the belief.
-                self.pub.publish("estimate", "estimate", self.explorer.estimate_fields())
-            hyp = cloud.hypotheses  # poses, weights, total and step of one moment
-            self.pub.publish("cloud", "cloud", {
-                "episode": self.explorer.episode, "step": cloud.step,
-                "poses": hyp.poses.astype(np.float32), "weights": hyp.weights.astype(np.float32),
-                "total": cloud.total})
+            self._publish_cloud()
+
+    def _worker_replies(self) -> list[Message]:
+        try:
+            return self.link.poll()
+        except WorkerDied as exc:  # it is spawned again by the next configure
+            _log("compute_process_died", level=logging.ERROR, error=str(exc))
+            if self.reconf is not None:
+                self._end_reconfigure(exc)
+            if self.explorer is not None and self.explorer.running:
+                self._fault(f"the localizer's process died: {exc}")
+            self._fail_start(exc)
+            self.link.start()
+            return []
+
+    def _explore(self, state: FingerState, replies: list[Message]) -> None:
+        try:
+            out = self.explorer.tick(state, self.backend.command_step, replies)
+        except FirmwareError as exc:
+            self._fault(f"exploration failed: {exc}")
+            self._fail_start(exc)
+            return
+        except Exception as exc:  # a localizer/policy error: stop safely, keep serving
+            log.exception("exploration raised")
+            self._fault(f"error in exploration: {type(exc).__name__}: {exc}")
+            self._fail_start(exc)
+            return
+        if out.localizer_ms is not None:
+            self.localizer_work.add(int(out.localizer_ms * 1e6))
+        self._publish_outputs(out)
+
+    def _fail_start(self, error: Exception) -> None:
+        if self.starting is not None:
+            self.starting.fail(error)
+            self.starting = None
+
+    def _reconfigure(self, replies: list[Message]) -> None:
+        """Advance the configure under way; commit it once every part has worked."""
+        rc = self.reconf
+        stage = rc.step(replies)
+        if stage is Stage.FAILED:
+            self._end_reconfigure(rc.error)
+        elif stage is Stage.READY:
+            if self.faults != rc.fault_count:
+                self._end_reconfigure(StateError(
+                    "a fault was latched (an estop?) while configuring; nothing was changed: "
+                    "configure again or reset"))
+            else:
+                self._commit(rc)
+
+    def _end_reconfigure(self, error: Exception) -> None:
+        rc, self.reconf = self.reconf, None
+        rc.abandon()
+        rc.deferred.fail(error)
 
     def _check_revocations(self) -> None:
         """A key removed from authorized_clients: its requests are refused already; its
@@ -223,6 +242,8 @@ class Node:
     def _read(self) -> FingerState | None:
         if self.backend is None or self.lifecycle.state is State.UNCONFIGURED:
             return None
+        if self.reconf is not None and self.reconf.opening:
+            return None  # a new backend is opening, perhaps on the same bus: leave it be
         try:
             state = self.backend.read_state()
         except FirmwareError as exc:
@@ -238,14 +259,15 @@ class Node:
     def _publish_outputs(self, out: TickOutput) -> None:
         if out.estimate_updated:
             self.pub.publish("estimate", "estimate", self.explorer.estimate_fields())
-            if self.explorer.estimate.converged:
+            if self.explorer.estimate["converged"]:
                 self._next_cloud_ns = 0  # viewers get the final cloud now, not in 1/cloud_hz
+        if out.started and self.starting is not None:
+            self.starting.resolve({"episode": self.explorer.episode,
+                                   "candidates": self.explorer.candidates})
+            self.starting = None
         for name, fields in out.events:
             if name == "episode_started":
-                self.episode_truth = self._truth_now()
-                fields["truth"] = self.episode_truth
-            elif name == "episode_done" and self.episode_truth is not None:
-                fields["true_pose_eliminated"] = self._truth_eliminated()
+                self.episode_truth = fields["truth"]
             self._event(name, **fields)
             if name == "episode_done" and not self._settled:
                 # the first episode loads what start-up did not (lazy imports, caches):
@@ -254,22 +276,14 @@ class Node:
                 gc.collect()
                 gc.freeze()
 
-    def _truth_now(self) -> list[float] | None:
+    def truth_at(self, state: FingerState) -> list[float] | None:
         """The simulator's hidden pose where the finger is now (the start of an episode
         begun here): the configured start moved by the finger's measured displacement."""
-        if self.truth is None or self.last_state is None:
+        if self.truth is None:
             return None
         t = self.truth
-        dx, dy = rotate(np.asarray(t.heading), *self.last_state.centre[:2])
+        dx, dy = rotate(np.asarray(t.heading), *state.centre[:2])
         return [float(t.x + dx), float(t.y + dy), float(t.heading)]
-
-    def _truth_eliminated(self) -> bool | None:
-        """Whether a discrete localizer dropped the episode's true pose (None elsewhere)."""
-        retains = getattr(self.explorer.localizer, "retains", None)
-        if retains is None:
-            return None
-        kept = retains(tuple(self.episode_truth), 1e-6 * self.config.scenario.step, 1e-6)
-        return None if kept is None else not kept
 
     def _publish_state(self, tick: Tick) -> None:
         if tick.index % 20 == 0 or not self._timing_cache:
@@ -289,13 +303,21 @@ class Node:
             "episode": ex.episode if ex else 0, "lease_holder": self.lease.holder_name,
             "timing": self._timing_cache}, t_mono_ns=tick.start_ns)
 
+    def _publish_cloud(self) -> None:
+        cloud = self.explorer.cloud()
+        if cloud is None:
+            return
+        if self.explorer.estimate is not None:
+            # Re-sent at the cloud's pace so late subscribers catch up with the belief.
+            self.pub.publish("estimate", "estimate", self.explorer.estimate_fields())
+        hyp = cloud.hypotheses  # poses, weights, total and step of one moment
+        self.pub.publish("cloud", "cloud", {
+            "episode": self.explorer.episode, "step": cloud.step,
+            "poses": hyp.poses, "weights": hyp.weights, "total": cloud.total})
+
     def _event(self, name: str, **fields: Any) -> None:
         self.pub.event(name, **fields)
         _log(name, **fields)
-
-    def on_command(self, cmd: str, client: str | None) -> None:
-        if cmd not in QUIET_COMMANDS:
-            self._event("command", cmd=cmd, client=client)
 
     # -- lifecycle -------------------------------------------------------------------------
     def _transition(self, event: str, reason: str | None = None) -> None:
@@ -308,10 +330,12 @@ class Node:
         fault while faulted is not news (a dead port fails every read) unless `again`."""
         if self.lifecycle.state is State.FAULT and not again:
             return
+        self.faults += 1
         if self.explorer:
             self.explorer.stop()
+        self._fail_start(StateError(f"faulted: {reason}"))
         self._hold_until_ns = None
-        if self.backend is not None:
+        if self.backend is not None and not (self.reconf and self.reconf.opening):
             with contextlib.suppress(Exception):  # torque off is best effort on a lost bus
                 self.backend.set_torque(False)
         self._transition("fault", reason)
@@ -320,6 +344,7 @@ class Node:
     def _deactivate(self, reason: str | None = None) -> None:
         if self.explorer:
             self.explorer.stop()
+        self._fail_start(StateError("deactivated before the first belief"))
         self._hold_until_ns = None
         self.backend.set_torque(False)
         self._transition("deactivate", reason)
@@ -333,13 +358,16 @@ class Node:
             self._event("holding", seconds=self.config.lease.hold_s)
 
     def _shutdown(self) -> None:
-        if self.explorer:
-            self.explorer.close()
+        if self.reconf is not None:
+            self.reconf.abandon()
+            self.reconf = None
         if self.backend is not None:
-            with contextlib.suppress(FirmwareError):
+            with contextlib.suppress(Exception):
                 self.backend.set_torque(False)
-            self.backend.close()
+            with contextlib.suppress(Exception):
+                self.backend.close()
             self.backend = None
+        self.link.close()
         if self.pub is not None:
             self.lifecycle.apply("shutdown")
             self._event("shutdown", state=self.lifecycle.state.value)
@@ -348,116 +376,16 @@ class Node:
             self.cmd.close()
         _log("exited")
 
-    # -- commands (service.wire.commands.TABLE calls these) -------------------------------------
-    def status(self) -> dict[str, Any]:
-        ex = self.explorer
-        timing = self.loop.summary()
-        localizer = self.localizer_work.summary_ms()  # one percentile pass, not two
-        timing["localizer_p99_ms"], timing["localizer_max_ms"] = localizer["p99"], localizer["max"]
-        return {
-            "state": self.lifecycle.state.value, "fault": self.lifecycle.fault,
-            "exploring": bool(ex and ex.running), "phase": ex.phase.value if ex else "idle",
-            "estimate": ex.estimate_fields() if ex and ex.estimate else None,
-            "lease": {"holder": self.lease.holder_name,
-                      "remaining_s": self.lease.remaining_s()},
-            "timing": timing, "published": dict(self.pub.sent),
-            "commands": {"handled": self.cmd.handled, "errors": self.cmd.errors},
-            "backend": self.config.backend.name, "map": self.config.scenario.map,
-            "sim_truth": self.episode_truth if self.episode_truth is not None else (
-                None if self.truth is None else list(self.truth.as_tuple())),
-        }
 
-    def config_dict(self) -> dict[str, Any]:
-        return self.config.to_dict()
+def _preload() -> None:
+    """Import every localizer, policy and backend now: `configure` checks options against
+    their signatures, and an import inside a command would stall the loop for a second."""
+    from service.registry import BACKENDS, LOCALIZERS, POLICIES
 
-    def configure(self, changes: dict[str, Any]) -> dict[str, Any]:
-        self.lifecycle.check("configure")
-        new = self.config.updated(changes)
-        settings = new.run_settings()  # built and checked once
-        surface = surface_for(settings)
-        backend, truth, rng = make_backend(new, settings, surface)
-        try:
-            backend.open()
-        except BaseException:
-            backend.close()
-            raise
-        if self.backend is not None:
-            self.backend.close()
-        self.backend, self.truth, self.config = backend, truth, new
-        episode = 1
-        if self.explorer is not None:
-            episode = self.explorer.episode + 1  # ids stay unique across configure
-            self.explorer.close()
-        self.episode_truth = None
-        offload = new.loop.localizer_mode == "thread"
-        self.explorer = Explorer(settings, surface, rng, offload=offload, first_episode=episode,
-                                 cloud_points=new.loop.cloud_points)
-        if offload:  # let the loop thread take the GIL back from the worker promptly
-            sys.setswitchinterval(min(sys.getswitchinterval(), 0.0005))
-        self.last_state = None
-        self.lease.ttl_ns = int(new.lease.ttl_s * 1e9)
-        if new.loop.period_ns != self.loop.period_ns or new.loop.overrun != self.loop.overrun:
-            self.loop.overrun = new.loop.overrun
-            self.loop.retime(new.loop.period_ns)
-        self._transition("configure")
-        return {"state": self.lifecycle.state.value}
-
-    def activate(self) -> dict[str, Any]:
-        self.lifecycle.check("activate")
-        self.lifecycle.require_valid_read()
-        try:
-            self.backend.set_torque(True)
-        except HardwareFault as exc:  # e.g. the bus went away while touching down
-            self._fault(f"activate failed: {exc}")
-            raise
-        self._transition("activate")
-        return {"state": self.lifecycle.state.value}
-
-    def deactivate(self) -> dict[str, Any]:
-        self.lifecycle.check("deactivate")
-        self._deactivate()
-        return {"state": self.lifecycle.state.value}
-
-    def start_exploration(self, repeat: bool) -> dict[str, Any]:
-        if self.lifecycle.state is not State.ACTIVE:
-            raise StateError(f"cannot start exploration while {self.lifecycle.state.value}; "
-                             f"activate first")
-        if self.explorer.running:
-            raise StateError("already exploring; stop_exploration first")
-        if self._hold_until_ns is not None:
-            raise StateError("the finger is holding after a lost lease and will stop")
-        state = self.last_state
-        if state is None or state.moving:
-            raise StateError("a step is still under way; try again in a moment")
-        self._publish_outputs(self.explorer.start(state, repeat))
-        return {"episode": self.explorer.episode,
-                "candidates": self.explorer.estimate.candidates}
-
-    def stop_exploration(self) -> dict[str, Any]:
-        was = bool(self.explorer and self.explorer.running)
-        if self.explorer:
-            self.explorer.stop()
-        self._hold_until_ns = None
-        return {"was_exploring": was}
-
-    def reset(self) -> dict[str, Any]:
-        """Clear the fault: the backend re-opens its port and configures every servo again;
-        if that fails the daemon stays in fault and the reply says why."""
-        self.lifecycle.check("reset")
-        self.backend.clear_fault()
-        self.last_state = None
-        self._transition("reset")
-        return {"state": self.lifecycle.state.value}
-
-    def estop(self, reason: str) -> dict[str, Any]:
-        if self.lifecycle.state is not State.UNCONFIGURED:
-            self._fault(f"estop: {reason}", again=True)
-        return {"state": self.lifecycle.state.value}
-
-    def reset_stats(self) -> dict[str, Any]:
-        self.loop.reset_stats()
-        self.localizer_work.reset()
-        return {}
+    for registry in (LOCALIZERS, POLICIES, BACKENDS):
+        for name in registry.names():
+            with contextlib.suppress(ImportError):  # a backend this machine lacks
+                registry.load(name)
 
 
 def _log(event: str, level: int = logging.INFO, **fields: Any) -> None:
@@ -470,4 +398,3 @@ def json_line(record: logging.LogRecord) -> str:
            "level": record.levelname.lower(), "event": record.getMessage()}
     out.update(getattr(record, "fields", {}) or {})
     return json.dumps(out, default=str)
-

@@ -44,7 +44,12 @@ def test_hapticd_sim_localizes_at_the_true_pose_and_shuts_down_cleanly(daemon) -
     with Subscriber(pub, ["estimate", "event"]) as sub, \
             Client(cmd, timeout_s=15.0, retries=0) as ctl:
         assert ctl.call("ping") == {"pong": True}  # waits for the daemon to come up
-        status = ctl.status()
+        status = ctl.status()  # it answers while it configures: wait for the finger
+        for _ in range(600):
+            if status["state"] != "unconfigured":
+                break
+            sub.recv(0.05)
+            status = ctl.status()
         assert status["state"] == "inactive" and status["backend"] == "sim"
         assert ctl.call("activate")["state"] == "active"
         assert ctl.call("start_exploration")["candidates"] > 1000
@@ -147,12 +152,15 @@ def test_bad_config_is_one_line_and_exit_2(tmp_path: Path, capsys) -> None:
     assert "without CurveZMQ" in capsys.readouterr().err
 
 
-def test_thread_mode_localizes_off_the_control_path() -> None:
+def test_the_localizer_runs_in_a_process_of_its_own() -> None:
+    import os
+
     config = loopback_config({"backend": {"step_duration_s": 0.01},
-                              "loop": {"localizer_mode": "thread", "cloud_hz": 50.0}})
+                              "loop": {"cloud_hz": 50.0}})
     with running_node(config) as node, \
             Subscriber(node.endpoints["pub"], ["estimate", "cloud"]) as sub, \
             Client(node.endpoints["cmd"]) as ctl:
+        assert node.link.alive and node.link.pid != os.getpid()
         ctl.call("activate")
         ctl.call("start_exploration")
         clouds = []
@@ -161,7 +169,8 @@ def test_thread_mode_localizes_off_the_control_path() -> None:
         assert done is not None
         np.testing.assert_allclose(done["pose"], ctl.status()["sim_truth"], atol=1e-6)
         assert clouds and all(c["poses"].shape[1] == 3 for c in clouds)
-        assert ctl.status()["timing"]["localizer_p99_ms"] == 0.0  # never on the loop thread
+        timing = ctl.status()["timing"]
+        assert timing["localizer_max_ms"] > 0  # measured in the compute process
 
 
 def test_lease_keeper_holds_control_through_long_waits() -> None:

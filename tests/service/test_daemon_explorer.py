@@ -1,23 +1,36 @@
-"""The sliced explorer takes exactly the steps the offline episode runner takes."""
+"""The loop's explorer, with its localizer in the compute process, takes exactly the steps
+the offline episode runner takes; the compute process survives what the loop throws at it."""
 
 from __future__ import annotations
 
-import time
+from collections.abc import Iterator
+from dataclasses import asdict
 
 import numpy as np
 import pytest
 
 from firmware_if.backend import StepCommand
 from service.daemon.explorer import Explorer, Phase
+from service.daemon.worker import estimate_fields
+from service.daemon.worker_link import WorkerDied, WorkerLink
 from service.episode.runner import run_episode
 from service.episode.scenario import (
     RunSettings,
     build_localizer,
     build_policy,
     draw_truth,
+    episode_streams,
     surface_for,
 )
 from sim_backend.finger import SimConfig, SimulatedFinger
+
+
+@pytest.fixture(scope="module")
+def link() -> Iterator[WorkerLink]:
+    link = WorkerLink()
+    link.start()
+    yield link
+    link.close()
 
 
 def finger(settings: RunSettings, surface, seed: int) -> SimulatedFinger:
@@ -30,19 +43,32 @@ def finger(settings: RunSettings, surface, seed: int) -> SimulatedFinger:
     return f
 
 
-@pytest.mark.parametrize("noise, offload", [(False, False), (True, False), (True, True)])
-def test_sliced_exploration_matches_run_episode(noise: bool, offload: bool) -> None:
+def reply(link: WorkerLink, kind: str, timeout_s: float = 60.0) -> dict:
+    """The next reply (of `kind`) from the compute process."""
+    for msg in link.poll(timeout_s):
+        assert msg.type == kind, msg.body
+        return msg.body
+    raise AssertionError(f"no {kind} within {timeout_s} s")
+
+
+def configure(link: WorkerLink, settings: RunSettings) -> None:
+    link.send("setup", settings=asdict(settings), backend="sim", cloud_points=50)
+    assert reply(link, "ready")["truth"] is not None
+    link.send("commit")
+
+
+@pytest.mark.parametrize("noise", [False, True])
+def test_exploration_matches_run_episode(link: WorkerLink, noise: bool) -> None:
     settings = RunSettings(noise=noise, max_steps=40)
     surface = surface_for(settings)
-    # Offline reference.
-    loc_rng, policy_rng = np.random.default_rng(7).spawn(2)
+    _, _, loc_rng, policy_rng = episode_streams(settings.seed)  # the first episode's
     reference = run_episode(finger(settings, surface, 3), build_localizer(settings, surface,
                             loc_rng), build_policy(settings), surface=surface,
                             step_length=settings.step, max_steps=settings.max_steps,
                             rng=policy_rng, walls=settings.walls)
-    # The same, one tick at a time: read, step, update and decide spread over ticks.
+    configure(link, settings)
     f = finger(settings, surface, 3)
-    explorer = Explorer(settings, surface, np.random.default_rng(7), offload=offload)
+    explorer = Explorer(link, settings)
     commands: list[StepCommand] = []
 
     def command(step: StepCommand) -> None:
@@ -50,25 +76,53 @@ def test_sliced_exploration_matches_run_episode(noise: bool, offload: bool) -> N
         f.command_step(step)
 
     explorer.start(f.read_state())
-    ticks = 0
-    while explorer.phase is not Phase.IDLE and ticks < 10_000:
-        explorer.tick(f.read_state(), command, time.monotonic_ns() + 10**9)
-        explorer.wait_update(5.0)
-        ticks += 1
-    explorer.close()
+    while explorer.phase is not Phase.IDLE:
+        waiting = explorer.phase in (Phase.DECIDE, Phase.UPDATING) and not explorer.paused
+        explorer.tick(f.read_state(), command, link.poll(60.0 if waiting else 0.0))
     assert [(c.dx, c.dy) for c in commands] == [s.command for s in reference.steps]
-    assert explorer.estimate == reference.estimate
+    assert explorer.estimate == estimate_fields(reference.estimate)
     assert explorer.steps == len(reference.steps)
 
 
-def test_pause_holds_and_nothing_is_commanded() -> None:
+def test_pause_holds_and_nothing_is_commanded(link: WorkerLink) -> None:
     settings = RunSettings()
+    configure(link, settings)
     surface = surface_for(settings)
     f = finger(settings, surface, 1)
-    explorer = Explorer(settings, surface, np.random.default_rng(0))
+    explorer = Explorer(link, settings)
     explorer.start(f.read_state())
     explorer.paused = True
     sent: list[StepCommand] = []
+    out = explorer.tick(f.read_state(), sent.append, link.poll(60.0))
+    assert out.started  # the first belief arrived, and with it a move, held back
     for _ in range(20):
-        explorer.tick(f.read_state(), sent.append, time.monotonic_ns() + 10**9)
+        explorer.tick(f.read_state(), sent.append, link.poll())
     assert sent == [] and explorer.phase is Phase.DECIDE
+    explorer.stop()
+
+
+def test_a_refused_setup_leaves_the_current_scenario(link: WorkerLink) -> None:
+    configure(link, RunSettings())
+    link.send("setup", settings=asdict(RunSettings(map="/etc/hostname.txt", spacing=0.001)),
+              backend="sim", cloud_points=50)
+    error = reply(link, "error")
+    assert error["code"] == "bad_config"
+    # a file's content, and whether it exists, are not the client's business
+    assert "missing, unreadable or not a grid" in error["message"]
+    link.send("discard")
+    link.send("start", truth=None, t_ns=0, decide=False)
+    assert reply(link, "belief")["estimate"]["candidates"] > 0  # still the peaks scenario
+
+
+def test_a_killed_compute_process_is_reported_and_replaced() -> None:
+    link = WorkerLink()
+    link.start()
+    try:
+        link.kill()
+        with pytest.raises(WorkerDied):
+            link.poll(1.0)
+        assert not link.alive
+        link.start()
+        configure(link, RunSettings())
+    finally:
+        link.close()

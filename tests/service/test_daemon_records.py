@@ -19,6 +19,10 @@ from sim_backend.finger import SimConfig, SimulatedFinger
 def test_every_cloud_is_one_moment_even_mid_update() -> None:
     """total, poses and weights of a cloud come from the same update (1 cloud in 70 once
     carried more poses than its total: a sample taken mid-update beside an older count)."""
+    from dataclasses import asdict
+
+    from service.daemon.worker_link import WorkerLink
+
     settings = RunSettings(noise=True, max_steps=12, seed=3)
     surface = surface_for(settings)
     truth = draw_truth(settings, surface.map, np.random.default_rng(3))
@@ -27,20 +31,31 @@ def test_every_cloud_is_one_moment_even_mid_update() -> None:
                         np.random.default_rng(4))
     f.open()
     f.set_torque(True)
-    explorer = Explorer(settings, surface, np.random.default_rng(5))
-    out = explorer.start(f.read_state())
-    count_after = {0: out.events[0][1]["candidates"]}
-    clouds, mid_update = [], 0
-    while explorer.phase is not Phase.IDLE:
-        # 2 ms ticks: every update is spread over several, with a cloud asked in each
-        out = explorer.tick(f.read_state(), f.command_step, time.monotonic_ns() + 2_000_000)
-        for name, fields in out.events:
-            if name == "step":
-                count_after[fields["index"]] = fields["candidates"]
-        mid_update += explorer.phase is Phase.UPDATING
-        cloud = explorer.cloud()
-        if cloud is not None:
-            clouds.append(cloud)
+    link = WorkerLink()
+    link.start()
+    try:
+        link.send("setup", settings=asdict(settings), backend="sim", cloud_points=500)
+        assert link.poll(60.0)[0].type == "ready"
+        link.send("commit")
+        explorer = Explorer(link, settings)
+        explorer.start(f.read_state())
+        count_after: dict[int, int] = {}
+        clouds, mid_update = [], 0
+        deadline = time.monotonic() + 120
+        while explorer.phase is not Phase.IDLE and time.monotonic() < deadline:
+            # a cloud is asked for in every tick, mid-update too
+            out = explorer.tick(f.read_state(), f.command_step, link.poll(0.002))
+            for name, fields in out.events:
+                if name == "episode_started":
+                    count_after[0] = fields["candidates"]
+                if name == "step":
+                    count_after[fields["index"]] = fields["candidates"]
+            mid_update += explorer.phase is Phase.UPDATING
+            cloud = explorer.cloud()
+            if cloud is not None:
+                clouds.append(cloud)
+    finally:
+        link.close()
     assert mid_update > 0 and len(clouds) > 20
     for cloud in clouds:
         assert cloud.total == count_after[cloud.step]

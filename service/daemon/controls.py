@@ -1,0 +1,165 @@
+"""The node's command handlers (service.wire.commands.TABLE calls these), on the loop thread.
+
+Each either answers at once or returns a `Deferred` for work that happens off the loop:
+`configure` (and `set_map`, `set_localizer`, `set_policy`) waits for the compute process
+and a new backend; `start_exploration` waits for the episode's first belief. A refused
+request changes nothing.
+"""
+
+from __future__ import annotations
+
+import contextlib
+from typing import TYPE_CHECKING, Any
+
+from firmware_if.errors import HardwareFault
+from service.daemon.explorer import Explorer
+from service.daemon.lifecycle import State
+from service.daemon.reconfigure import Reconfiguration
+from service.errors import StateError
+from service.wire.commands import Deferred
+
+if TYPE_CHECKING:
+    from service.daemon.node import Node
+
+QUIET_COMMANDS = frozenset({"ping", "status", "get_config", "acquire"})
+"""Commands not echoed as `command` events (they change nothing)."""
+
+
+class CommandHandlers:
+    """Mixed into Node: the commands of docs/protocol.md."""
+
+    def on_command(self: Node, cmd: str, client: str | None) -> None:
+        if cmd not in QUIET_COMMANDS:
+            self._event("command", cmd=cmd, client=client)
+
+    def status(self: Node) -> dict[str, Any]:
+        ex = self.explorer
+        timing = self.loop.summary()
+        localizer = self.localizer_work.summary_ms()  # one percentile pass, not two
+        timing["localizer_p99_ms"], timing["localizer_max_ms"] = localizer["p99"], localizer["max"]
+        return {
+            "state": self.lifecycle.state.value, "fault": self.lifecycle.fault,
+            "exploring": bool(ex and ex.running), "phase": ex.phase.value if ex else "idle",
+            "configuring": self.reconf is not None,
+            "estimate": ex.estimate_fields() if ex and ex.estimate else None,
+            "lease": {"holder": self.lease.holder_name,
+                      "remaining_s": self.lease.remaining_s()},
+            "timing": timing, "published": dict(self.pub.sent),
+            "commands": {"handled": self.cmd.handled, "errors": self.cmd.errors},
+            "backend": self.config.backend.name, "map": self.config.scenario.map,
+            "sim_truth": self.episode_truth if self.episode_truth is not None else (
+                None if self.truth is None else list(self.truth.as_tuple())),
+        }
+
+    def config_dict(self: Node) -> dict[str, Any]:
+        return self.config.to_dict()
+
+    def _not_configuring(self: Node) -> None:
+        if self.reconf is not None:
+            raise StateError("a configure is under way; try again when it is answered")
+
+    def configure(self: Node, changes: dict[str, Any]) -> Deferred:
+        """Validate the whole change now; prepare it off the loop; commit when all of it
+        has worked (`_commit`)."""
+        self.lifecycle.check("configure")
+        self._not_configuring()
+        new = self.config.updated(changes)
+        settings = new.run_settings()
+        self.link.start()  # (again, if the compute process died)
+        rebuild = (self.backend is None or new.backend != self.config.backend
+                   or new.backend.name == "sim"
+                   or self.lifecycle.state in (State.UNCONFIGURED, State.FAULT))
+        deferred = Deferred()
+        self.reconf = Reconfiguration(new, settings, self.link, deferred,
+                                      rebuild_backend=rebuild, fault_count=self.faults)
+        return deferred
+
+    def _commit(self: Node, rc: Reconfiguration) -> None:
+        """Everything worked: swap in the new backend, scenario and settings."""
+        self.reconf = None
+        if rc.backend is not None:
+            if self.backend is not None:
+                with contextlib.suppress(Exception):  # torque off, port released
+                    self.backend.close()
+            self.backend, self.truth = rc.backend, rc.truth
+            self.last_state = None
+            self.lifecycle.valid_read = False
+        self.link.send("commit")
+        new = rc.new
+        episode = 1 if self.explorer is None else self.explorer.episode + 1
+        if self.explorer is not None:
+            self.explorer.stop()
+        self.explorer = Explorer(self.link, new.run_settings(), first_episode=episode,
+                                 truth_at=self.truth_at)
+        self.episode_truth = None
+        self.config = new
+        self.lease.ttl_ns = int(new.lease.ttl_s * 1e9)
+        if new.loop.period_ns != self.loop.period_ns or new.loop.overrun != self.loop.overrun:
+            self.loop.overrun = new.loop.overrun
+            self.loop.retime(new.loop.period_ns)
+        self._transition("configure")
+        self._read()  # a first reading now, so the finger may be activated at once
+        rc.deferred.resolve({"state": self.lifecycle.state.value})
+
+    def activate(self: Node) -> dict[str, Any]:
+        self.lifecycle.check("activate")
+        self._not_configuring()
+        self.lifecycle.require_valid_read()
+        try:
+            self.backend.set_torque(True)
+        except HardwareFault as exc:  # e.g. the bus went away while touching down
+            self._fault(f"activate failed: {exc}")
+            raise
+        self._transition("activate")
+        return {"state": self.lifecycle.state.value}
+
+    def deactivate(self: Node) -> dict[str, Any]:
+        self.lifecycle.check("deactivate")
+        self._deactivate()
+        return {"state": self.lifecycle.state.value}
+
+    def start_exploration(self: Node, repeat: bool) -> Deferred:
+        """Start an episode here; the reply comes with its first belief."""
+        if self.lifecycle.state is not State.ACTIVE:
+            raise StateError(f"cannot start exploration while {self.lifecycle.state.value}; "
+                             f"activate first")
+        if self.explorer.running:
+            raise StateError("already exploring; stop_exploration first")
+        if self._hold_until_ns is not None:
+            raise StateError("the finger is holding after a lost lease and will stop")
+        state = self.last_state
+        if state is None or state.moving:
+            raise StateError("a step is still under way; try again in a moment")
+        self.explorer.start(state, repeat, self.truth_at(state))
+        self.starting = Deferred()
+        return self.starting
+
+    def stop_exploration(self: Node) -> dict[str, Any]:
+        was = bool(self.explorer and self.explorer.running)
+        if self.explorer:
+            self.explorer.stop()
+        self._fail_start(StateError("stopped before the first belief"))
+        self._hold_until_ns = None
+        return {"was_exploring": was}
+
+    def reset(self: Node) -> dict[str, Any]:
+        """Clear the fault: the backend re-opens its port and configures every servo again;
+        if that fails the daemon stays in fault and the reply says why."""
+        self.lifecycle.check("reset")
+        self._not_configuring()
+        if self.backend is None:
+            raise StateError("no backend: configure first")
+        self.backend.clear_fault()  # raises (a FirmwareError) if it cannot: still faulted
+        self.last_state = None
+        self._transition("reset")
+        return {"state": self.lifecycle.state.value}
+
+    def estop(self: Node, reason: str) -> dict[str, Any]:
+        if self.lifecycle.state is not State.UNCONFIGURED:
+            self._fault(f"estop: {reason}", again=True)
+        return {"state": self.lifecycle.state.value}
+
+    def reset_stats(self: Node) -> dict[str, Any]:
+        self.loop.reset_stats()
+        self.localizer_work.reset()
+        return {}

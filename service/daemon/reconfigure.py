@@ -1,0 +1,154 @@
+"""A `configure` in progress, off the loop: nothing is replaced until all of it has worked.
+
+The new config was validated whole before a Reconfiguration starts. Then the compute
+process loads the map, builds the surface, checks the localizer and, for the simulator,
+builds the world (`setup`); when it is ready, a helper thread builds and opens the new
+backend (bus I/O, or mapping the simulated world's arrays). Only then does the loop commit:
+swap the backend, tell the compute process, apply the loop and lease settings. If any part
+fails the old backend, config and scenario stay as they were.
+
+The backend is rebuilt only when it must be: a new backend section, the simulator (its
+world follows the map and seed), or a daemon without a working one (unconfigured, fault).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import threading
+from dataclasses import asdict
+from enum import StrEnum
+from typing import Any
+
+import numpy as np
+
+from firmware_if.backend import Backend
+from service.daemon.config import DaemonConfig
+from service.daemon.worker_link import WorkerLink
+from service.episode.scenario import RunSettings, Truth
+from service.errors import ConfigError, ServiceError
+from service.registry import BACKENDS
+from service.wire.commands import Deferred
+from service.wire.envelope import Message
+
+
+class Stage(StrEnum):
+    SETUP = "setup"
+    """The compute process prepares the scenario."""
+    OPENING = "opening"
+    """A helper thread opens the new backend."""
+    READY = "ready"
+    FAILED = "failed"
+
+
+class Reconfiguration:
+    def __init__(self, new: DaemonConfig, settings: RunSettings, link: WorkerLink,
+                 deferred: Deferred, *, rebuild_backend: bool, fault_count: int) -> None:
+        self.new = new
+        self.settings = settings
+        self.link = link
+        self.deferred = deferred
+        self.rebuild_backend = rebuild_backend
+        self.fault_count = fault_count
+        """Faults latched before this began: one latched since (an estop) voids it."""
+        self.stage = Stage.SETUP
+        self.error: Exception | None = None
+        self.backend: Backend | None = None
+        self.truth: Truth | None = None
+        self._world: dict[str, Any] | None = None
+        self._thread: threading.Thread | None = None
+        self.req = link.send("setup", settings=asdict(settings), backend=new.backend.name,
+                             cloud_points=new.loop.cloud_points)
+
+    @property
+    def opening(self) -> bool:
+        """The helper thread may be talking to the bus: the loop leaves the backend be."""
+        return self.stage is Stage.OPENING
+
+    def step(self, replies: list[Message]) -> Stage:
+        """Advance with this tick's replies from the compute process."""
+        for msg in replies:
+            if int(msg.get("req", -1)) != self.req or self.stage is not Stage.SETUP:
+                continue
+            if msg.type == "error":
+                self._fail(_ComputeRefusal(str(msg.get("code")), str(msg.get("message"))))
+            elif msg.type == "ready":
+                truth = msg.get("truth")
+                self.truth = None if truth is None else Truth(*truth)
+                self._world = msg.get("world")
+                if self.rebuild_backend:
+                    self.stage = Stage.OPENING
+                    self._thread = threading.Thread(target=self._open, daemon=True,
+                                                    name="hapticd-configure")
+                    self._thread.start()
+                else:
+                    self.stage = Stage.READY
+        if self.stage is Stage.OPENING and not self._thread.is_alive():
+            self.stage = Stage.FAILED if self.error is not None else Stage.READY
+        return self.stage
+
+    def _open(self) -> None:
+        """Helper thread: build and open the new backend (I/O waits release the GIL)."""
+        try:
+            backend = make_backend(self.new, self.settings, self.truth, self._world)
+            try:
+                backend.open()
+            except BaseException:
+                with contextlib.suppress(Exception):
+                    backend.close()
+                raise
+            self.backend = backend
+        except Exception as exc:  # reported to the client; the old backend stays
+            self.error = exc
+
+    def _fail(self, error: Exception) -> None:
+        self.error = error
+        self.stage = Stage.FAILED
+
+    def abandon(self) -> None:
+        """Drop what was prepared (after a failure, or a fault that voids it)."""
+        with contextlib.suppress(Exception):
+            self.link.send("discard")
+        if self._thread is not None:
+            self._thread.join(10)
+        if self.backend is not None:
+            with contextlib.suppress(Exception):
+                self.backend.close()
+            self.backend = None
+
+
+class _ComputeRefusal(ServiceError):
+    """The compute process refused the setup (a map, a localizer option: `bad_config`) or
+    failed it (`internal`)."""
+
+    def __init__(self, code: str, message: str) -> None:
+        super().__init__(message)
+        self.code = code
+
+
+def make_backend(config: DaemonConfig, settings: RunSettings, truth: Truth | None,
+                 world: dict[str, Any] | None) -> Backend:
+    """The configured backend, not yet opened. The simulator's world (the perturbed map
+    and its contact surface) was built by the compute process and is mapped here."""
+    cls = BACKENDS.load(config.backend.name)
+    if config.backend.name != "sim":
+        options = dict(config.backend.options)
+        factory = getattr(cls, "from_cli", None)  # the hardware backends' builder, if any
+        try:
+            if factory is not None:
+                return factory(radius=settings.radius, step=settings.step, **options)
+            return cls(**options)
+        except TypeError as exc:
+            raise ConfigError(f"backend '{config.backend.name}' options: {exc}") from None
+    from service.localization.surface import ContactSurface, HeightMap
+    from sim_backend.finger import SimConfig
+
+    heights = np.load(world["paths"]["heights"], mmap_mode="r", allow_pickle=False)
+    centre = np.load(world["paths"]["centre"], mmap_mode="r", allow_pickle=False)
+    world_map = HeightMap(heights, world["spacing"], name=world["name"])
+    surface = ContactSurface(map=world_map, radius=settings.radius, centre_heights=centre)
+    rng = np.random.Generator(np.random.PCG64())
+    rng.bit_generator.state = json.loads(world["rng"])
+    sim = SimConfig(start=truth.as_tuple(), radius=settings.radius,
+                    noise=settings.noise_spec, step_duration_s=config.backend.step_duration_s)
+    return cls(world_map, sim, rng, surface=surface)
