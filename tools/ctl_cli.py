@@ -182,18 +182,22 @@ def _start(client: Client, sub: Subscriber, wait_s: float) -> dict[str, Any]:
             if state == "fault":
                 raise ExploreFailed(f"hapticd is in fault: {status['fault']}; clear it with "
                                     "`haptic ctl reset`, then explore again")
-            if state == "unconfigured":
+            if status.get("configuring"):  # hapticd's own start-up configure, say
+                _say(said, "configuring", "waiting: hapticd is configuring")
+                last = ExploreFailed("hapticd was still configuring")
+            elif state == "unconfigured":
                 client.call("configure")
                 continue
-            if state == "inactive":
+            elif state == "inactive":
                 client.call("activate")
                 continue
-            if status["exploring"]:
-                client.call("stop_exploration")  # a controller that left: take over
-            result = client.call("start_exploration")
-            config = client.call("get_config")
-            return {**result, "max_steps": config["scenario"]["max_steps"],
-                    "truth": status.get("sim_truth")}
+            else:
+                if status["exploring"]:
+                    client.call("stop_exploration")  # a controller that left: take over
+                result = client.call("start_exploration")
+                config = client.call("get_config")
+                return {**result, "max_steps": config["scenario"]["max_steps"],
+                        "truth": status.get("sim_truth")}
         except CommandFailed as exc:
             if exc.code not in ("lease_held", "bad_state"):
                 raise ExploreFailed(str(exc)) from exc
