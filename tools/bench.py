@@ -19,6 +19,10 @@ SCENARIOS: dict[str, tuple[str, str]] = {
                                        "under B2's noise"),
     "profile": ("tools.bench_profile", "B5: 1-D profiles for the planar finger, B2's noise"),
     "service": ("tools.bench_service", "B4: the real-time loop under load"),
+    "soak": ("tools.bench_soak", "the daemon for minutes with subscriber processes "
+                                 "reconnecting and stuck: gaps, overruns, memory"),
+    "faults": ("tools.bench_faults", "kill the servo bus under hapticd again and again: "
+                                     "a latched fault and a reset every time"),
     "bus": ("tools.bench_bus", "bus cycle time on the servo-bus emulator"),
     "anytime": ("tools.bench_anytime", "longest localizer work slice under a time budget"),
     "grasp": ("tools.bench_grasp", "B6: a hand localizes a held object without dropping it"),
