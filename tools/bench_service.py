@@ -138,8 +138,8 @@ def measure(subscribers: int, args: argparse.Namespace) -> dict[str, Any]:
         ctx = zmq.Context()
         readers: list[Reader] = []
         stuck = None
+        ctl = Client(cmd, ctx=ctx, timeout_s=20.0, retries=0)
         try:
-            ctl = Client(cmd, ctx=ctx, timeout_s=20.0, retries=0)
             wait_configured(ctl)
             if subscribers > 0:
                 stuck = ctx.socket(zmq.SUB)  # connected, subscribed, never read
@@ -148,10 +148,10 @@ def measure(subscribers: int, args: argparse.Namespace) -> dict[str, Any]:
                 readers = [Reader(pub, ctx) for _ in range(subscribers - 1)]
                 for r in readers:
                     r.start()
-            ctl.timeout_s = 2.0
             ctl.call("activate")
-            ctl.call("start_exploration", repeat=True)
+            ctl.call("start_exploration", repeat=True)  # answered with the first belief
             ctl.call("reset_stats")
+            ctl.timeout_s = 2.0
             rtts: list[float] = []
             end = time.monotonic() + args.duration
             period = 1.0 / args.ping_hz
@@ -163,8 +163,8 @@ def measure(subscribers: int, args: argparse.Namespace) -> dict[str, Any]:
                 next_ping += period
                 time.sleep(max(0.0, next_ping - time.monotonic()))
             status = ctl.status()
-            ctl.close()
         finally:
+            ctl.close()  # (an open socket would keep ctx.term() waiting for ever)
             for r in readers:
                 r.stop.set()
             for r in readers:

@@ -99,10 +99,10 @@ def soak(args: argparse.Namespace) -> dict[str, Any]:
             modes = (["steady"] + ["reconnecting"] * args.reconnecting
                      + ["stuck"] * (args.subscribers - 1 - args.reconnecting))
             subs = [_subscriber(m, pub, args.duration + 2.0, args.reconnect_s) for m in modes]
-            ctl.timeout_s = 2.0
             ctl.call("activate")
-            ctl.call("start_exploration", repeat=True)
+            ctl.call("start_exploration", repeat=True)  # answered with the first belief
             ctl.call("reset_stats")
+            ctl.timeout_s = 2.0
             t0 = time.monotonic()
             next_rss = t0
             while time.monotonic() < t0 + args.duration and proc.poll() is None:
