@@ -179,19 +179,26 @@ class Node(CommandHandlers):
     def _worker_replies(self) -> list[Message]:
         try:
             return self.link.poll()
-        except WorkerDied as exc:  # it is spawned again by the next configure
-            _log("compute_process_died", level=logging.ERROR, error=str(exc))
-            if self.reconf is not None:
-                self._end_reconfigure(exc)
-            if self.explorer is not None and self.explorer.running:
-                self._fault(f"the localizer's process died: {exc}")
-            self._fail_start(exc)
-            self.link.start()
+        except WorkerDied as exc:
+            self._compute_died(exc)
             return []
+
+    def _compute_died(self, exc: WorkerDied) -> None:
+        """Whatever waited for the compute process fails; a new one starts at once."""
+        _log("compute_process_died", level=logging.ERROR, error=str(exc))
+        if self.reconf is not None:
+            self._end_reconfigure(exc)
+        if self.explorer is not None and self.explorer.running:
+            self._fault(f"the localizer's process died: {exc}")
+        self._fail_start(exc)
+        self.link.start()
 
     def _explore(self, state: FingerState, replies: list[Message]) -> None:
         try:
             out = self.explorer.tick(state, self.backend.command_step, replies)
+        except WorkerDied as exc:  # a request found it gone before a poll did
+            self._compute_died(exc)
+            return
         except FirmwareError as exc:
             self._fault(f"exploration failed: {exc}")
             self._fail_start(exc)

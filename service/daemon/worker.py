@@ -273,7 +273,10 @@ def serve(conn: Connection) -> None:
 
     def send(kind: str, req: int, fields: dict[str, Any]) -> None:
         seq[0] += 1
-        conn.send_bytes(wire.encode(kind, seq[0], {"req": req, **fields}))
+        try:
+            conn.send_bytes(wire.encode(kind, seq[0], {"req": req, **fields}))
+        except OSError:  # (BrokenPipeError) the daemon closed its end: it is stopping
+            raise _DaemonGone from None
 
     worker = Worker(send)
     backlog: list[wire.Message] = []
@@ -288,19 +291,32 @@ def serve(conn: Connection) -> None:
         msg = backlog.pop(0) if backlog else _receive(conn)
         if msg is None or msg.type == "exit":
             break
-        req = int(msg.get("req", 0))
         try:
-            if msg.type == "update":
-                worker.update(req, msg.body, interrupted)
-            elif msg.type in HANDLERS:
-                getattr(worker, msg.type)(req, msg.body)
-        except InputError as exc:
-            send("error", req, {"code": "bad_config", "message": str(exc)})
-        except Exception as exc:  # a localizer or policy bug: reported, the process lives on
-            log.error("compute process: %s", traceback.format_exc())
-            send("error", req, {"code": "internal",
-                                "message": f"{type(exc).__name__}: {exc}"})
+            _handle(worker, msg, send, interrupted)
+        except _DaemonGone:
+            break
     worker._drop_files()
+
+
+class _DaemonGone(Exception):
+    """The daemon's end of the socket is closed: nobody is left to answer."""
+
+
+def _handle(worker: Worker, msg: wire.Message, send: Any, interrupted: Any) -> None:
+    """One request; its refusal or failure is a reply (bad_config, internal)."""
+    req = int(msg.get("req", 0))
+    try:
+        if msg.type == "update":
+            worker.update(req, msg.body, interrupted)
+        elif msg.type in HANDLERS:
+            getattr(worker, msg.type)(req, msg.body)
+    except _DaemonGone:
+        raise
+    except InputError as exc:
+        send("error", req, {"code": "bad_config", "message": str(exc)})
+    except Exception as exc:  # a localizer or policy bug: reported, the process lives on
+        log.error("compute process: %s", traceback.format_exc())
+        send("error", req, {"code": "internal", "message": f"{type(exc).__name__}: {exc}"})
 
 
 def _receive(conn: Connection) -> wire.Message | None:

@@ -68,7 +68,8 @@ class WorkerLink:
         try:
             self._conn.send_bytes(wire.encode(kind, self._seq, {"req": req, **fields}))
         except (OSError, ValueError) as exc:
-            raise WorkerDied(f"the compute process is gone ({exc})") from None
+            self._lost()
+            raise WorkerDied(f"the compute process died ({exc})") from None
         return req
 
     def poll(self, timeout_s: float = 0.0) -> list[wire.Message]:

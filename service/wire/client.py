@@ -151,17 +151,26 @@ class Subscriber:
         self.close()
 
 
+SLOW_COMMANDS = frozenset({"configure", "set_map", "set_localizer", "set_policy",
+                           "start_exploration"})
+"""Commands answered when slow work is done (docs/protocol.md): a map, a localizer, a new
+backend. A retry of one waits for the same reply, so waiting long is safe."""
+
+
 class Client:
     """Commands with ids, timeouts and retries on one connection (which holds the lease, if
     it takes it). `client_id` is only a label the daemon shows; it grants nothing.
-    Requests may come from several threads: one runs at a time."""
+    Requests may come from several threads: one runs at a time. SLOW_COMMANDS wait at
+    least `slow_timeout_s` unless a call gives its own timeout."""
 
     def __init__(self, endpoint: str, *, client_id: str | None = None, timeout_s: float = 2.0,
                  retries: int = 2, ctx: zmq.Context | None = None,
-                 socket_options: dict[int, Any] | None = None) -> None:
+                 socket_options: dict[int, Any] | None = None,
+                 slow_timeout_s: float = 120.0) -> None:
         self.endpoint = endpoint
         self.client_id = client_id or f"py-{uuid.uuid4().hex[:12]}"
         self.timeout_s = timeout_s
+        self.slow_timeout_s = slow_timeout_s
         self.retries = retries
         self._ctx = ctx or zmq.Context.instance()
         self._options = socket_options
@@ -190,6 +199,8 @@ class Client:
                                  "client": self.client_id, "args": args or {}},
                                 use_bin_type=True)
         timeout = self.timeout_s if timeout_s is None else timeout_s
+        if timeout_s is None and cmd in SLOW_COMMANDS:
+            timeout = max(timeout, self.slow_timeout_s)
         for _attempt in range(self.retries + 1):
             self._sock.send(payload)
             deadline = time.monotonic() + timeout
