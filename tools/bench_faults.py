@@ -34,20 +34,7 @@ CONFIG = """
 [backend]
 name = "dynamixel"
 options = {{ port = "{port}", hand = "{hand}", cycle_budget_s = 0.05 }}
-[scenario]
-localizer = "{algorithm}"
-policy = "{policy}"
-noise = true
-max_steps = 60
-seed = {seed}
-[loop]
-rate_hz = {rate}
-[endpoints]
-pub = "{pub}"
-cmd = "{cmd}"
-[lease]
-ttl_s = 5.0
-"""
+""" + bench_service.SCENARIO
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

@@ -32,10 +32,7 @@ from service.registry import LOCALIZERS, POLICIES
 from service.wire.client import Client, Subscriber
 from tools.bench_common import percentile, write_json
 
-CONFIG = """
-[backend]
-name = "sim"
-step_duration_s = {step_s}
+SCENARIO = """
 [scenario]
 localizer = "{algorithm}"
 policy = "{policy}"
@@ -50,6 +47,12 @@ cmd = "{cmd}"
 [lease]
 ttl_s = 5.0
 """
+"""B4's daemon apart from its backend: B2 episodes at `rate`, on ipc endpoints."""
+CONFIG = """
+[backend]
+name = "sim"
+step_duration_s = {step_s}
+""" + SCENARIO
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
