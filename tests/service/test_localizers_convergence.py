@@ -101,6 +101,10 @@ def test_modes_group_and_merge():
     ("profile:plate:20:2", 0, "3.1 mm off: one plate edge in a flat valley of misfit"),
     ("profile:shell:20:1", 2, "3.6 mm off: a valley 5 mm wide, its curvature claimed 0.46"),
     ("profile:terrain:20:2", 1, "3.0 mm off: errors of the map that correlate over a step"),
+    ("plate:20:2", 5, "a half turn about a pocket: the sweep judged cells on the flat "
+                      "readings round the start, and the truth's cell never made its hand"),
+    ("plate:20:1", 2, "a quarter turn about a square pocket: the truth's cells were handed "
+                      "over but three Gauss-Newton steps left them short of it"),
 ])
 def test_no_wrong_declaration_where_one_was_found(surface, seed, why):
     from service.localization.maps import load_map
