@@ -103,6 +103,7 @@ def test_modes_group_and_merge():
     ("profile:terrain:20:2", 1, "3.0 mm off: errors of the map that correlate over a step"),
     ("plate:20:2", 5, "a half turn about a pocket: the sweep judged cells on the flat "
                       "readings round the start, and the truth's cell never made its hand"),
+    ("plate:20:1", 16, "a half turn, 111 mm off, at a leading-mode mass of 1"),
     ("plate:20:1", 2, "a quarter turn about a square pocket: the truth's cells were handed "
                       "over but three Gauss-Newton steps left them short of it"),
 ])
