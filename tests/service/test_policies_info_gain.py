@@ -119,6 +119,28 @@ def test_never_dithers_between_two_places_when_the_hypotheses_agree():
                for i in range(len(places) - 2)), f"dithered: {places}"
 
 
+def test_a_workspace_limit_ends_the_way_beyond_it():
+    """What would tell two hypotheses apart lies two places past the finger's reach (a
+    planar finger on the bus emulator): past the first blocked step nothing that way is a
+    target, so it never shuttles between the last places before the limit (it did for 30
+    steps, its target kept beyond the limit)."""
+    row = np.zeros(400)
+    row[165:176] = 0.004  # a bump that only the first hypothesis puts at place 7
+    surface = contact_surface(HeightMap(row, 0.001, name="profile"), 0.008)
+    poses = np.array([[0.10, 0.0, 0.0], [0.30, 0.0, 0.0]])
+    policy = InfoGainPolicy()
+    place, places, blocked = 0, [0], set()
+    for _ in range(16):
+        move = policy.next_move(_view(surface, poses, blocked, displacement=(place * 0.01, 0)))
+        if place + int(MOVES[move][0]) > 5:  # beyond the finger's reach
+            blocked = {move}
+            continue
+        blocked, place = set(), place + int(MOVES[move][0])
+        places.append(place)
+    shuttles = sum(places[i] == places[i + 2] != places[i + 1] for i in range(len(places) - 2))
+    assert shuttles <= 1, f"shuttled: {places}"
+
+
 def test_paper_policy_samples_only_candidates_with_weight():
     """Fewer nonzero weights than the 10 samples must not crash the paper's heuristic."""
     from service.localization.localizers.base import Hypotheses

@@ -30,6 +30,7 @@ the plan at most `modes` distinct ones over at most 2 reach (reach + 1) + 1 plac
 
 from __future__ import annotations
 
+from collections import Counter
 from typing import ClassVar
 
 import numpy as np
@@ -72,17 +73,23 @@ class InfoGainPolicy:
         this are treated as one, so a noise-free run does not chase negligible differences."""
         self._walls: set[tuple[int, int, int]] = set()
         """(place, move) pairs found blocked this episode, never tried again."""
-        self._visited: set[tuple[int, int]] = set()
+        self._reads: Counter[tuple[int, int]] = Counter()
+        """Readings taken at each place (lattice point) this episode."""
         self._unreachable: set[tuple[int, int]] = set()
         """Places a blocked step could not reach: never targets again."""
         self._target: tuple[int, int] | None = None
 
     def next_move(self, view: PolicyInput) -> int:
         here = _place(view.displacement, view.step_length)
-        self._visited.add(here)
+        self._reads[here] += 1
         for m in view.blocked:
             self._walls.add((*here, m))
-            self._unreachable.add((here[0] + int(MOVES[m][0]), here[1] + int(MOVES[m][1])))
+            # and every place beyond it that way: the map and the workspace are convex
+            # enough (kept as a target past a workspace limit, a planar finger shuttled
+            # between the last two places before it)
+            for k in range(1, 2 * self.reach + 1):
+                self._unreachable.add((here[0] + k * int(MOVES[m][0]),
+                                       here[1] + k * int(MOVES[m][1])))
         moves = self._moves(view, here)
         poses, weights = view.hypotheses.poses, view.hypotheses.weights
         if len(poses) == 0:
@@ -99,7 +106,7 @@ class InfoGainPolicy:
         if self._target is not None and self._target != here:
             kept = np.flatnonzero((offsets[:, 0] == self._target[0] - here[0])
                                   & (offsets[:, 1] == self._target[1] - here[1]))
-            if len(kept) and rate[best] < KEEP_TARGET * rate[kept[0]]:
+            if len(kept) and reachable[kept[0]] and rate[best] < KEEP_TARGET * rate[kept[0]]:
                 target = self._target
         self._target = target
         return self._toward(view, here, target, moves, poses, weights, s)
@@ -114,9 +121,10 @@ class InfoGainPolicy:
         z, inside = _readings(view, p, offsets)
         info = information(z[:, :, np.newaxis], w, s) if len(p) > 1 else np.zeros(len(z))
         here = _place(view.displacement, view.step_length)
-        novel = np.array([(here[0] + int(i), here[1] + int(j)) not in self._visited
+        reads = np.array([self._reads[(here[0] + int(i), here[1] + int(j))]
                           for i, j in offsets])
-        return _credit(info, _precision(view, offsets, s), novel * (inside @ w))
+        return _credit(info, _precision(view, offsets, s), (reads == 0) * (inside @ w),
+                       reads == 1)
 
     def _toward(self, view: PolicyInput, here: tuple[int, int], target: tuple[int, int],
                 moves: list[int], poses: np.ndarray, weights: np.ndarray, s: float) -> int:
@@ -133,9 +141,10 @@ class InfoGainPolicy:
         steps = MOVES[options].astype(np.int64)
         z, inside = _readings(view, poses[top], steps)
         gain = (information(z[:, :, np.newaxis], w, s) if k > 1 else np.zeros(len(options)))
-        novel = np.array([(here[0] + int(MOVES[m][0]), here[1] + int(MOVES[m][1]))
-                          not in self._visited for m in options])
-        value = _credit(gain, _precision(view, steps, s), novel * (inside @ w))
+        reads = np.array([self._reads[(here[0] + int(MOVES[m][0]), here[1] + int(MOVES[m][1]))]
+                          for m in options])
+        value = _credit(gain, _precision(view, steps, s), (reads == 0) * (inside @ w),
+                        reads == 1)
         return options[int(np.argmax(value))]
 
     def _moves(self, view: PolicyInput, here: tuple[int, int]) -> list[int]:
@@ -175,15 +184,19 @@ def _precision(view: PolicyInput, offsets: np.ndarray, s: float) -> np.ndarray:
     return np.where(on_map, 0.5 * np.log1p(np.maximum(var, 0.0) / s**2) * mass, 0.0)
 
 
-def _credit(info: np.ndarray, precision: np.ndarray, novel: np.ndarray) -> np.ndarray:
+def _credit(info: np.ndarray, precision: np.ndarray, novel: np.ndarray, once: np.ndarray
+            ) -> np.ndarray:
     """What a reading is worth. At a new place: what it tells the modes apart by, what it
     pins the leading pose by, and `NOVELTY` times the chance that the place is on the map.
-    At a place read before: a share of the first only. The map errs there as it did the
+    At a place read once: a share of the first only. The map errs there as it did the
     first time, so a second reading cannot pin the pose any better (the localizer counts
     it as the same place); crediting that drew a planar finger on hardware into reading
-    the same two places for fifty steps."""
+    the same two places for fifty steps. At a place read twice or more: nothing (the same
+    two places, each read again for want of better, were a planar finger's last 30 steps
+    on the bus emulator)."""
     info = np.where(info < TRIVIAL, 0.0, info)
-    return np.where(novel > 0, info + precision + NOVELTY * novel, REREAD * info)
+    return np.where(novel > 0, info + precision + NOVELTY * novel,
+                    np.where(once, REREAD * info, 0.0))
 
 
 def _place(displacement: np.ndarray, step: float) -> tuple[int, int]:
