@@ -18,8 +18,11 @@ bringing contour the fingers could not reach under them.
   the posterior weight of the plausible poses under which it would. Plausible poses are
   the heaviest hypotheses under which the grasp as it is holds the object (it is held).
   While the pose is a continuum the quality spans every level across it, and a rule over
-  every sample would forbid every move; the weights say how likely each is. With the
-  gate off (the ablation), only reach limits moves.
+  every sample would forbid every move; the weights say how likely each is. The samples
+  leave gaps where an opposed grasp's quality changes fast, so the gate also holds for
+  weightless cover poses in those gaps that the readings allow (`_with_cover`), as for the
+  leader's own spread: no move may take one below the threshold. With the gate off (the
+  ablation), only reach limits moves.
 * Manipulation: turns of the object about its centroid in place (`rolling.plan_turn` under
   the leading pose), each checked the same way at every substep of its rolling motion for
   every plausible pose (`rolling.carry`); the safe turn whose readings tell most, or that
@@ -66,6 +69,13 @@ BUFFER = 0.25
 SPREAD_CAP = (0.0015, np.deg2rad(3.0))
 """Largest position (metres) and heading (radians) sd the gate's neighbours stand for: a
 wider spread is the pool's to cover."""
+COVER = 32
+"""Most plausible poses (the heaviest first) whose gaps the gate's cover fills."""
+COVER_LENGTH = 0.02
+"""Metres that one radian of heading counts as when measuring gaps between poses (about
+an object's radius: a turn moves its contour by that much per radian)."""
+COVER_GAP = (0.0005, 0.004)
+"""Least and largest step (scaled metres) from a pose to the cover poses beside it."""
 STEP_PARTS = (1.0, 0.5, 0.25, 0.1)
 """Shares of the step length tried: while the pose is uncertain, only a short roll may be
 safe under every plausible pose; as it narrows, longer ones become safe."""
@@ -130,6 +140,7 @@ class GraspGatedPolicy:
         """Plausible poses that stand for the leader's own spread: no weight of their own,
         but the gate holds for each as for a likely pose."""
 
+
     # -- the decision ----------------------------------------------------------------------
     def decide(self, view: HandView) -> HandDecision:
         poses, weights = self._plausible(view)
@@ -152,7 +163,8 @@ class GraspGatedPolicy:
         """The `plausible` heaviest hypotheses under which the grasp as it is holds the
         object (it is held) and the grasp the hand last started from - its first, or the
         one a manipulation ended in - kept the threshold (the hand starts only from such a
-        grasp, and a manipulation is gated to end in one)."""
+        grasp, and a manipulation is gated to end in one), with the gate's cover of the
+        gaps between them that hold too."""
         poses, w = view.hypotheses.poses[:self.plausible], view.hypotheses.weights[
             :self.plausible]
         if view.fixed:
@@ -160,15 +172,29 @@ class GraspGatedPolicy:
         poses, w, self._guard = _with_spread(poses, w, view.spread)
         if self._certified is None:
             self._certified = (view.centres.copy(), view.joints)
+        poses, w, now = self._held(view, poses, w)
+        if self.gate:  # fill the gaps between the poses that hold, then keep what holds
+            cover = _with_cover(view, poses)
+            poses, w = np.vstack([poses, cover]), np.concatenate([w, np.zeros(len(cover))])
+            self._guard = np.concatenate([self._guard, np.ones(len(cover), dtype=bool)])
+            poses, w, now = self._held(view, poses, w)
+        self._now = now
+        return poses, w / w.sum()
+
+    def _held(self, view: HandView, poses: np.ndarray, w: np.ndarray
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The poses (and weights, guard mask) under which the grasp holds the object now
+        and the grasp the hand last started from kept the threshold, with the quality now
+        under each; failing that, those under which it holds now; failing that, all."""
+        assert self._certified is not None
         now = self._quality(view, poses, view.centres, view.joints)
         start = self._quality(view, poses, *self._certified)
         for keep in ((now >= view.grasp.margin_n) & (start >= view.grasp.threshold_n),
                      now >= view.grasp.margin_n):
             if keep.any() and w[keep].sum() > 0:
-                poses, w, now, self._guard = poses[keep], w[keep], now[keep], self._guard[keep]
-                break
-        self._now = now
-        return poses, w / w.sum()
+                self._guard = self._guard[keep]
+                return poses[keep], w[keep], now[keep]
+        return poses, w, now
 
     def _quality(self, view: HandView, poses: np.ndarray, centres: np.ndarray,
                  joints: tuple[np.ndarray, ...]) -> np.ndarray:
@@ -355,6 +381,54 @@ def _with_spread(poses: np.ndarray, weights: np.ndarray, spread: tuple[float, fl
     return (np.vstack([poses[:1], poses[:1] + offsets, poses[1:]]),
             np.concatenate([weights[:1], np.zeros(len(offsets)), weights[1:]]),
             np.concatenate([[False], np.ones(len(offsets), dtype=bool), guard[1:]]))
+
+
+def _with_cover(view: HandView, poses: np.ndarray) -> np.ndarray:
+    """The poses the readings still allow between the plausible ones, weightless but
+    guarded: the hypotheses are samples of a continuum, and an opposed grasp's quality is
+    so sensitive to the pose that the truth between two samples can drop the object where
+    both hold it (rounded:7, seed 7, two fingers: the nearest hypothesis 1.5 mm and 1.4
+    degrees from the truth, predicted 1.0 N, the truth gave 0.10 N). Beside each of the
+    `COVER` heaviest poses, half-way and all the way to the pool's typical gap, along the
+    direction the fingertips' readings constrain least (where the continuum runs); a cover
+    pose under which the grasp does not hold the object is dropped by `_plausible` as any
+    other. Returns the cover poses (k, 3)."""
+    anchors = poses[:COVER]
+    if len(poses) < 2 or len(view.fingers) == 0:
+        return np.empty((0, 3))
+    scale = np.array([1.0, 1.0, COVER_LENGTH])
+    gap = float(np.clip(_typical_gap(poses * scale), *COVER_GAP))
+    loose, next_loose, tight = _loosest(view, anchors)  # (a, 3) scaled directions, (a,)
+    across = np.minimum(gap, 2 * max(view.sigma, 1e-4) / np.maximum(tight, 1e-9))[:, None]
+    steps = np.concatenate([f * gap * loose for f in (0.5, -0.5, 1.0, -1.0)]
+                           + [f * across * next_loose for f in (1.0, -1.0)]) / scale
+    return np.tile(anchors, (6, 1)) + steps
+
+
+def _typical_gap(points: np.ndarray) -> float:
+    """Median distance from each point to its nearest other point."""
+    d = np.linalg.norm(points[:, None] - points[None], axis=-1)
+    np.fill_diagonal(d, np.inf)
+    return float(np.median(d.min(axis=1)))
+
+
+def _loosest(view: HandView, poses: np.ndarray
+             ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per pose, the unit pose changes (a, 3) (scaled as in `_with_cover`) that move the
+    object's contour least and next-least across the fingertip centres - the readings' own
+    null direction, and the one they constrain least besides - and how many metres the
+    latter moves it per scaled metre (a,)."""
+    c, s = np.cos(poses[:, 2]), np.sin(poses[:, 2])
+    w = view.centres[None] - poses[:, None, :2]  # (a, n, 2)
+    u = c[:, None] * w[..., 0] + s[:, None] * w[..., 1]
+    v = -s[:, None] * w[..., 0] + c[:, None] * w[..., 1]
+    _, gu, gv = view.field.distance(u, v)
+    nx, nz = c[:, None] * gu - s[:, None] * gv, s[:, None] * gu + c[:, None] * gv
+    turn = (gu * v - gv * u) / COVER_LENGTH  # d(distance)/d(heading), scaled
+    jac = np.stack([-nx, -nz, turn], axis=-1)  # (a, n, 3)
+    _, sv, vt = np.linalg.svd(jac, full_matrices=True)
+    second = sv[:, 1] if sv.shape[1] > 1 else np.zeros(len(poses))  # one finger: loose too
+    return vt[:, -1], vt[:, -2], second
 
 
 def _ambiguous(poses: np.ndarray, weights: np.ndarray) -> bool:
