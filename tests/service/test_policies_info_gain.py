@@ -141,6 +141,29 @@ def test_a_workspace_limit_ends_the_way_beyond_it():
     assert shuttles <= 1, f"shuttled: {places}"
 
 
+def test_once_everything_in_reach_is_read_it_heads_for_a_new_place():
+    """Walked to the map's edge, every place within reach read twice, the hypotheses
+    agreeing: it heads for the nearest place not read, however far (a planar finger on
+    the bus emulator shuttled between the last two places before the edge for 50 steps)."""
+    row = bumps(40.0, seed=3).heights[200]
+    surface = contact_surface(HeightMap(row, 0.001, name="profile"), 0.008)
+    poses = np.array([[0.07, 0.0, 0.0]])
+    policy = InfoGainPolicy()
+    place, places, blocked = 0, [0], set()
+    for _ in range(7):  # seven steps left to the edge: each place read once
+        policy.next_move(_view(surface, poses, blocked, displacement=(place * 0.01, 0)))
+        place -= 1
+        places.append(place)
+    for _ in range(20):
+        move = policy.next_move(_view(surface, poses, blocked, displacement=(place * 0.01, 0)))
+        if place + int(MOVES[move][0]) < -7:  # off the map's edge
+            blocked = {move}
+            continue
+        blocked, place = set(), place + int(MOVES[move][0])
+        places.append(place)
+    assert max(places) >= 1, f"never left the edge: {places}"
+
+
 def test_paper_policy_samples_only_candidates_with_weight():
     """Fewer nonzero weights than the 10 samples must not crash the paper's heuristic."""
     from service.localization.localizers.base import Hypotheses

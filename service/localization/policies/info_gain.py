@@ -103,6 +103,8 @@ class InfoGainPolicy:
         rate = np.where((dist > 0) & reachable, value / np.maximum(dist, 1), -np.inf)
         best = int(np.argmax(rate))
         target = (here[0] + int(offsets[best, 0]), here[1] + int(offsets[best, 1]))
+        if not rate[best] > 0:  # nothing in reach tells anything: to the nearest new place
+            target = self._nearest_unread(here, view.surface.map.is_profile) or target
         if self._target is not None and self._target != here:
             kept = np.flatnonzero((offsets[:, 0] == self._target[0] - here[0])
                                   & (offsets[:, 1] == self._target[1] - here[1]))
@@ -146,6 +148,20 @@ class InfoGainPolicy:
         value = _credit(gain, _precision(view, steps, s), (reads == 0) * (inside @ w),
                         reads == 1)
         return options[int(np.argmax(value))]
+
+    def _nearest_unread(self, here: tuple[int, int], profile: bool
+                        ) -> tuple[int, int] | None:
+        """The nearest place not read yet and not known unreachable, at any distance: once
+        every place in reach has been read, the finger shuttled between the last two (a
+        planar finger at the map's edge, its unread places 7 steps away)."""
+        for radius in range(1, 16 * self.reach + 1):
+            ring = _diamond(radius, profile)
+            ring = ring[np.abs(ring).sum(axis=1) == radius]
+            for i, j in ring:
+                place = (here[0] + int(i), here[1] + int(j))
+                if self._reads[place] == 0 and place not in self._unreachable:
+                    return place
+        return None
 
     def _moves(self, view: PolicyInput, here: tuple[int, int]) -> list[int]:
         """Allowed moves minus those found blocked from here."""
