@@ -23,7 +23,6 @@ from dataclasses import dataclass
 from typing import Any, Protocol
 
 import zmq
-from zmq.utils.monitor import recv_monitor_message
 
 from firmware_if.errors import FirmwareError, HandConfigError
 from service.errors import InputError, StateError
@@ -191,6 +190,11 @@ class CommandServer:
             ctx, zmq.ROUTER, endpoint, {zmq.MAXMSGSIZE: MAX_FRAME_BYTES, zmq.LINGER: 200},
             curve)
         self._monitor = self._sock.get_monitor_socket(zmq.EVENT_DISCONNECTED)
+        # imported by the server only, at its start: zmq's monitor module loads asyncio,
+        # 50 ms of every client's start-up otherwise (and of a tick, if done on first use)
+        from zmq.utils.monitor import recv_monitor_message
+
+        self._recv_monitor = recv_monitor_message
         self.curve = curve
         self.controls = controls
         self.lease = lease
@@ -228,7 +232,7 @@ class CommandServer:
         """Closed connections, from the socket monitor: the holder's ends its lease."""
         while True:
             try:
-                event = recv_monitor_message(self._monitor, flags=zmq.NOBLOCK)
+                event = self._recv_monitor(self._monitor, flags=zmq.NOBLOCK)
             except zmq.Again:
                 return
             if event["event"] == zmq.EVENT_DISCONNECTED:
