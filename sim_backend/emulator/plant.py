@@ -66,19 +66,21 @@ class FingerPlant:
         """(joint angles the finger ends at, in contact) for drives at `q_drive`."""
         centre = kin.forward(self.hand, q_drive)
         height = self.contact_height(centre)
-        if height is None:
+        at_wall = height is None
+        if at_wall:
             # a wall: the finger stays where it was along the surface, and slides down the
             # wall to the surface or the drives' height (held in the air where it met the
             # wall, it reported a reading 15 mm above the surface as a contact)
             self.walls += 1
+            drive_z = centre[2]
             centre = kin.forward(self.hand, self._actual_q)
-            centre[2] = kin.forward(self.hand, q_drive)[2]
+            centre[2] = drive_z
             height = self.contact_height(centre)
             if height is None:
                 return self._actual_q.copy(), True
             q_drive = self._actual_q
         if centre[2] >= height:
-            if q_drive is self._actual_q:  # along the wall, above the surface
+            if at_wall:  # along the wall, above the surface: the drives' height
                 result = kin.inverse(self.hand, centre, q_drive, tolerance=1e-7)
                 return (result.q, False) if bool(result.reachable) else (q_drive.copy(), True)
             return q_drive, False

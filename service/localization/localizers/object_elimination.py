@@ -32,7 +32,7 @@ from service.localization.localizers.object_base import (
     carry_poses,
     object_rule,
 )
-from service.localization.localizers.object_judge import ObjectTracks, judge
+from service.localization.localizers.object_judge import ObjectTracks, TrackJudged
 from service.localization.localizers.pool import niche
 from service.localization.localizers.refine import Fit
 from service.localization.localizers.spread import pose_spread
@@ -43,7 +43,7 @@ POLISHED = 3000
 """Survivors are polished once no more than this many remain."""
 
 
-class ObjectElimination:
+class ObjectElimination(TrackJudged):
     """Algorithm III over a table of object poses."""
 
     name: ClassVar[str] = "elimination"
@@ -126,17 +126,9 @@ class ObjectElimination:
         self.fit, self.converged = None, False
         if len(self.poses) == 0:
             return
-        scale = self.ctx.scale
         score = -np.arange(len(self.poses), dtype=np.float64)  # survivors are equal: any
-        leaders = niche(self.poses, score, 0.5 * scale, np.deg2rad(15.0), limit=32)
-        self.tracks.update(self.ctx, self.points, self.radii, self.poses[leaders],
-                           np.zeros(len(leaders)), sd=max(self.sigma, 0.002 * scale),
-                           position_tol=0.25 * scale, heading_tol=np.deg2rad(5.0))
-        v = judge(self.ctx, self.points, self.radii, self.tracks, rule=self.rule,
-                  noisy=self.noisy, places_before=self.places_before, epoch=self.epoch,
-                  previous=None if previous is None else previous.pose, motions=self.motions)
-        self.fit, self.converged, self.mode_mass = v.fit, v.converged, v.mode_mass
-        self.runner_up, self.runner_up_mass = v.runner_up, v.runner_up_mass
+        leaders = niche(self.poses, score, 0.5 * self.ctx.scale, np.deg2rad(15.0), limit=32)
+        self._judge_leaders(self.poses[leaders], np.zeros(len(leaders)), previous)
 
     def estimate(self) -> Estimate:
         if self.fit is not None:

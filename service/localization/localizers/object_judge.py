@@ -267,3 +267,25 @@ def _floored(ctx: ObjectContext, points: np.ndarray, radii: np.ndarray, fit: Fit
     spread = assess(ctx.field, points, radii, np.asarray(fit.pose), floor)
     return dataclasses.replace(fit, position_sd=spread.position_sd,
                                heading_sd=spread.heading_sd)
+
+
+class TrackJudged:
+    """The judgement both object localizers end an update with: their leading poses feed
+    the mode tracks, and the tracks are judged (`judge`). Expects the localizer's context,
+    readings (`points`, `radii`), `tracks`, `rule`, `sigma`, `noisy`, `places_before`,
+    `epoch` and `motions`."""
+
+    def _judge_leaders(self, poses: np.ndarray, prior: np.ndarray, previous: Fit | None
+                       ) -> ObjectVerdict:
+        """Track `poses` (with their `prior`), judge against the `previous` update's fit,
+        and keep the verdict's fit and modes."""
+        scale = self.ctx.scale
+        self.tracks.update(self.ctx, self.points, self.radii, poses, prior,
+                           sd=max(self.sigma, 0.002 * scale), position_tol=0.25 * scale,
+                           heading_tol=np.deg2rad(5.0))
+        v = judge(self.ctx, self.points, self.radii, self.tracks, rule=self.rule,
+                  noisy=self.noisy, places_before=self.places_before, epoch=self.epoch,
+                  previous=None if previous is None else previous.pose, motions=self.motions)
+        self.fit, self.converged, self.mode_mass = v.fit, v.converged, v.mode_mass
+        self.runner_up, self.runner_up_mass = v.runner_up, v.runner_up_mass
+        return v

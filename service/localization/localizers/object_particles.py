@@ -40,7 +40,7 @@ from service.localization.localizers.object_base import (
     carry_poses,
     object_rule,
 )
-from service.localization.localizers.object_judge import ObjectTracks, judge
+from service.localization.localizers.object_judge import ObjectTracks, TrackJudged
 from service.localization.localizers.pool import (
     AnytimeJob,
     effective_sample_size,
@@ -57,7 +57,7 @@ CHUNK = 4096
 SCREEN_READINGS = 4
 
 
-class ObjectParticles:
+class ObjectParticles(TrackJudged):
     """Algorithm IV over a bounded, evolving pool of object poses."""
 
     name: ClassVar[str] = "particles"
@@ -318,16 +318,8 @@ class ObjectParticles:
         self.fit, self.converged = None, False
         if len(self.poses) == 0:
             return
-        scale = self.ctx.scale
         leaders = self._leaders(self.rivals)
-        self.tracks.update(self.ctx, self.points, self.radii, self.poses[leaders],
-                           self.prior[leaders], sd=max(self.sigma, 0.002 * scale),
-                           position_tol=0.25 * scale, heading_tol=np.deg2rad(5.0))
-        v = judge(self.ctx, self.points, self.radii, self.tracks, rule=self.rule,
-                  noisy=self.noisy, places_before=self.places_before, epoch=self.epoch,
-                  previous=None if previous is None else previous.pose, motions=self.motions)
-        self.fit, self.converged, self.mode_mass = v.fit, v.converged, v.mode_mass
-        self.runner_up, self.runner_up_mass = v.runner_up, v.runner_up_mass
+        v = self._judge_leaders(self.poses[leaders], self.prior[leaders], previous)
         if v.fit is not None and len(self.points):
             best = int(np.argmax(self.tracks.total)) if len(self.tracks.centres) else None
             prior = 0.0 if best is None else self.tracks.prior[best]
