@@ -127,6 +127,7 @@ class Explorer:
                 self._req = self.link.send("cancel")
         self.phase = Phase.IDLE
         self.repeat = False
+        self._next_move = None  # a move held back by a pause ends with its episode
 
     def cloud(self) -> Cloud | None:
         return self._cloud
@@ -141,6 +142,7 @@ class Explorer:
         self._belief_step, self._belief_displacement = 0, self.displacement
         self._blocked_here.clear()
         self._cloud = None
+        self._next_move = None
         self._req = self.link.send("start", truth=truth, t_ns=state.t_ns,
                                    decide=self.settings.max_steps > 0)
         self.phase = Phase.DECIDE

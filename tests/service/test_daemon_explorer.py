@@ -101,6 +101,28 @@ def test_pause_holds_and_nothing_is_commanded(link: WorkerLink) -> None:
     explorer.stop()
 
 
+def test_a_move_held_back_by_a_pause_dies_with_its_episode(link: WorkerLink) -> None:
+    """The finger held (a lost lease), the holder stopped and started again: the old
+    episode's pending move must not be commanded before the new episode's first belief (it
+    was, and the new belief's move then met a step under way: a fault)."""
+    settings = RunSettings()
+    configure(link, settings)
+    f = finger(settings, surface_for(settings), 1)
+    explorer = Explorer(link, settings)
+    explorer.start(f.read_state())
+    explorer.paused = True
+    sent: list[StepCommand] = []
+    assert explorer.tick(f.read_state(), sent.append, link.poll(60.0)).started
+    explorer.stop()
+    explorer.start(f.read_state())
+    out = explorer.tick(f.read_state(), sent.append, [])
+    assert sent == [] and not out.started  # nothing until the new belief
+    while not out.started:
+        out = explorer.tick(f.read_state(), sent.append, link.poll(60.0))
+    assert len(sent) == 1 and explorer.phase is Phase.STEPPING
+    explorer.stop()
+
+
 def test_a_refused_setup_leaves_the_current_scenario(link: WorkerLink) -> None:
     configure(link, RunSettings())
     link.send("setup", settings=asdict(RunSettings(map="/etc/hostname.txt", spacing=0.001)),
