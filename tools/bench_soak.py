@@ -29,10 +29,12 @@ from typing import Any
 
 import numpy as np
 
+from service.daemon.config import DaemonConfig
 from service.errors import ConfigError
 from service.wire.client import Client, CommandFailed, CommandTimeout
 from tools import bench_service
 from tools.bench_common import write_json
+from tools.wake_floor import wake_floor
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -41,6 +43,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--reconnecting", type=int, default=5,
                         help="subscribers that reconnect (default: %(default)s; of "
                              "--subscribers, which also counts one steady and one stuck)")
+    parser.add_argument("--floor-s", type=float, default=10.0,
+                        help="seconds of the same loop with empty ticks, measured first: the "
+                             "machine's own timing floor (default: %(default)s)")
     parser.add_argument("--reconnect-s", type=float, default=2.0,
                         help="seconds between a reconnecting subscriber's connections")
 
@@ -89,6 +94,7 @@ def memory_trend(samples: list[tuple[float, float]]) -> dict[str, float | None]:
 
 def soak(args: argparse.Namespace) -> dict[str, Any]:
     load_before = _load()
+    floor = wake_floor(args.rate, args.floor_s, DaemonConfig().loop.realtime_priority)
     with bench_service.daemon_process(args) as (proc, pub, cmd):
         ctl = Client(cmd, timeout_s=60.0, retries=0)
         subs: list[subprocess.Popen] = []
@@ -151,12 +157,14 @@ def soak(args: argparse.Namespace) -> dict[str, Any]:
         "subscribers_reporting": len([s for s in seen if s]),
         "unanswered": unanswered, "refused": refused, "pings": pings,
         "rss": memory_trend(memory), "cores": os.cpu_count(),
+        "loop_scheduling": status.get("loop_scheduling"), "empty_loop_floor": floor,
     }
 
 
 def run(args: argparse.Namespace) -> int:
-    if not args.duration > 0 or not args.rate > 0 or args.reconnect_s <= 0:
-        raise ConfigError("--duration, --rate and --reconnect-s must be > 0")
+    if (not args.duration > 0 or not args.rate > 0 or args.reconnect_s <= 0
+            or not args.floor_s > 0):
+        raise ConfigError("--duration, --rate, --reconnect-s and --floor-s must be > 0")
     if not 0 <= args.reconnecting <= args.subscribers - 2:
         raise ConfigError("--subscribers counts one steady and one stuck subscriber besides "
                           "the --reconnecting ones: make it at least --reconnecting + 2")
@@ -171,6 +179,11 @@ def run(args: argparse.Namespace) -> int:
           f"unanswered; RSS {m['start_mb']} -> {m['half_mb']} -> {m['end_mb']} MB "
           f"(second half {m['second_half_mb_per_min']} MB/min); load {r['load_before']} "
           f"-> {r['load_after']}")
+    f, s = r["empty_loop_floor"], r["loop_scheduling"] or {}
+    print(f"the loop's thread: {s.get('policy', '?')} {s.get('priority', '')}"
+          f"{' (' + s['note'] + ')' if s.get('note') else ''}; the same loop with empty "
+          f"ticks on this machine just before ({args.floor_s:g} s, {f['scheduling']}): period p50 "
+          f"{f['period_p50_ms']:.3f} p99 {f['period_p99_ms']:.3f} max {f['period_max_ms']:.3f} ms")
     write_json(args.json, r)
     ok = (r["gaps"] == 0 and r["unanswered"] == 0 and r["refused"] == 0
           and r["subscribers_reporting"] == args.subscribers)

@@ -105,6 +105,9 @@ class LoopConfig:
     cloud_points: int = setting(500, "int", lo=1, hi=20_000)
     stats_window: int = setting(1000, "int", lo=10, hi=65_536)
     """Ticks the `state` timing percentiles cover."""
+    realtime_priority: int = setting(20, "int", lo=0, hi=98)
+    """SCHED_FIFO priority of the loop's thread where the machine allows it (0: ordinary
+    scheduling); without it a loaded machine makes ticks start late (service.daemon.priority)."""
 
     def __post_init__(self) -> None:
         check_fields(self, "loop.")

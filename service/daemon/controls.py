@@ -9,6 +9,7 @@ request changes nothing.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 from typing import TYPE_CHECKING, Any
 
 from firmware_if.errors import HardwareFault
@@ -47,6 +48,7 @@ class CommandHandlers:
             "timing": timing, "published": dict(self.pub.sent),
             "commands": {"handled": self.cmd.handled, "errors": self.cmd.errors},
             "backend": self.config.backend.name, "map": self.config.scenario.map,
+            "loop_scheduling": self.scheduling and dataclasses.asdict(self.scheduling),
             "sim_truth": self.episode_truth if self.episode_truth is not None else (
                 None if self.truth is None else list(self.truth.as_tuple())),
         }
@@ -97,6 +99,7 @@ class CommandHandlers:
         if new.loop.period_ns != self.loop.period_ns or new.loop.overrun != self.loop.overrun:
             self.loop.overrun = new.loop.overrun
             self.loop.retime(new.loop.period_ns)
+        self._apply_priority()  # commit runs in the loop's thread
         self._transition("configure")
         self._read()  # a first reading now, so the finger may be activated at once
         rc.deferred.resolve({"state": self.lifecycle.state.value})

@@ -13,6 +13,7 @@ in `service.daemon.controls`.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import gc
 import json
 import logging
@@ -31,6 +32,7 @@ from service.daemon.controls import CommandHandlers
 from service.daemon.explorer import Explorer, TickOutput
 from service.daemon.lifecycle import Lifecycle, State
 from service.daemon.loop import RateLoop, Samples, Tick
+from service.daemon.priority import Scheduling, set_loop_priority
 from service.daemon.reconfigure import Reconfiguration, Stage
 from service.daemon.worker_link import WorkerDied, WorkerLink
 from service.episode.scenario import Truth
@@ -79,6 +81,8 @@ class Node(CommandHandlers):
         self.error: BaseException | None = None
         self._curve: CurveServer | None = None
         self._revocations_seen = 0
+        self.scheduling: Scheduling | None = None
+        """What the loop's thread runs under (set as the loop starts)."""
 
     # -- running ---------------------------------------------------------------------------
     def serve(self) -> None:
@@ -110,6 +114,7 @@ class Node(CommandHandlers):
             # BLAS threads buy nothing at our sizes and cost a core-handover stall (10 ms
             # when the other core is busy) in calls as small as a 20,000-vector product
             threadpool_limits(limits=1)
+            self._apply_priority()
             self.loop.run(self._stop.is_set)
         except BaseException as exc:
             self.error = exc
@@ -120,6 +125,15 @@ class Node(CommandHandlers):
                 curve.stop()
             ctx.term()
             self.ready.set()
+
+    def _apply_priority(self) -> None:
+        """The loop's thread under real-time scheduling as configured, or a warning why not."""
+        before, self.scheduling = self.scheduling, set_loop_priority(
+            self.config.loop.realtime_priority)
+        if self.scheduling == before:
+            return
+        _log("loop_scheduling", level=logging.WARNING if self.scheduling.note else logging.INFO,
+             **dataclasses.asdict(self.scheduling))
 
     def _configured_at_start(self, result: dict[str, Any] | None, error: Exception | None
                              ) -> None:

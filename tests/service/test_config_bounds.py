@@ -42,6 +42,8 @@ REPRODUCTIONS = [
     ("backend", "options", {"port": "/dev/null"}),
     ("loop", "stats_window", 10**9),
     ("endpoints", "sndhwm", 0),
+    ("loop", "realtime_priority", 99),  # above what an ordinary RT task should take
+    ("loop", "realtime_priority", -1),
 ]
 
 

@@ -51,6 +51,10 @@ def test_hapticd_sim_localizes_at_the_true_pose_and_shuts_down_cleanly(daemon) -
             sub.recv(0.05)
             status = ctl.status()
         assert status["state"] == "inactive" and status["backend"] == "sim"
+        # the loop's thread under SCHED_FIFO where allowed, or a note that says why not
+        assert status["loop_scheduling"]["policy"] in ("fifo", "other")
+        assert (status["loop_scheduling"]["policy"] == "fifo") != bool(
+            status["loop_scheduling"]["note"])
         assert ctl.call("activate")["state"] == "active"
         assert ctl.call("start_exploration")["candidates"] > 1000
         estimates: list[Message] = []

@@ -16,7 +16,7 @@ def test_a_short_soak_has_no_gap_and_answers_everything(tmp_path: Path) -> None:
     bench_soak.add_arguments(parser)
     out = tmp_path / "soak.json"
     args = parser.parse_args(["--duration", "5", "--subscribers", "4", "--reconnecting", "2",
-                              "--reconnect-s", "1", "--json", str(out)])
+                              "--reconnect-s", "1", "--floor-s", "0.5", "--json", str(out)])
     assert bench_soak.run(args) == 0
     r = json.loads(out.read_text())
     assert r["gaps"] == 0 and r["unanswered"] == 0 and r["subscribers_reporting"] == 4
@@ -24,6 +24,8 @@ def test_a_short_soak_has_no_gap_and_answers_everything(tmp_path: Path) -> None:
     assert r["received"]["reconnecting_min"] > 100 and r["received"]["steady"] > 500
     assert r["episodes"] >= 1 and r["ticks"] > 300 and r["periods_timed"] > 300
     assert r["rss"]["end_mb"] > 10
+    assert r["loop_scheduling"]["policy"] in ("fifo", "other")
+    assert 4.0 < r["empty_loop_floor"]["period_p50_ms"] < 6.0  # 200 Hz, nothing in the ticks
 
 
 def test_memory_trend_reads_the_second_half() -> None:
