@@ -9,6 +9,7 @@ injected so tests drive the loop deterministically.
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -19,20 +20,39 @@ from service.errors import ConfigError
 
 
 class Samples:
-    """A ring buffer of durations (ns) with percentiles over the recent window or the run."""
+    """Durations (ns): a ring buffer for percentiles over the recent window, and a log
+    histogram for the whole run (a ring alone forgot all but the last 65,536 ticks, 5.5
+    minutes at 200 Hz, and a percentile over it cost `status` 1-2 ms of the loop's time)."""
+
+    BIN_RATIO = 1.01
+    """Neighbouring histogram edges differ by 1 %: whole-run percentiles are exact to 1 %."""
+    _LOW_NS = 1_000
+    _BINS = int(math.log(1e11 / _LOW_NS) / math.log(BIN_RATIO)) + 2  # 1 us .. 100 s
 
     def __init__(self, capacity: int = 1 << 16) -> None:
         self._buf = np.zeros(capacity, dtype=np.int64)
+        self._hist = np.zeros(self._BINS, dtype=np.int64)
         self._n = 0
         self.max_ns = 0
 
     def add(self, value_ns: int) -> None:
         self._buf[self._n % len(self._buf)] = value_ns
+        self._hist[self._bin(value_ns)] += 1
         self._n += 1
         self.max_ns = max(self.max_ns, int(value_ns))
 
+    def _bin(self, value_ns: int) -> int:
+        if value_ns <= self._LOW_NS:
+            return 0
+        k = 1 + int(math.log(value_ns / self._LOW_NS) / math.log(self.BIN_RATIO))
+        return min(k, self._BINS - 1)
+
+    def _upper_edge_ns(self, k: int) -> float:
+        return self._LOW_NS * self.BIN_RATIO ** k
+
     def reset(self) -> None:
         self._n = 0
+        self._hist[:] = 0
         self.max_ns = 0
 
     @property
@@ -50,12 +70,20 @@ class Samples:
         return self._buf[idx]
 
     def summary_ms(self, window: int | None = None) -> dict[str, float]:
-        data = self.recent(window)
-        if data.size == 0:
+        """p50, p99 and max over the last `window` samples (exact), or over the whole run
+        (None: from the histogram, each percentile the upper edge of its bin, capped at
+        the true maximum)."""
+        if self._n == 0:
             return {"p50": 0.0, "p99": 0.0, "max": 0.0}
-        p50, p99 = np.percentile(data, [50, 99])
-        peak = self.max_ns if window is None else int(data.max())
-        return {"p50": float(p50) / 1e6, "p99": float(p99) / 1e6, "max": peak / 1e6}
+        if window is not None:
+            data = self.recent(window)
+            p50, p99 = np.percentile(data, [50, 99])
+            return {"p50": float(p50) / 1e6, "p99": float(p99) / 1e6,
+                    "max": float(data.max()) / 1e6}
+        cumulative = np.cumsum(self._hist)
+        p50, p99 = (min(self._upper_edge_ns(int(np.searchsorted(cumulative, q * self._n))),
+                        self.max_ns) for q in (0.5, 0.99))
+        return {"p50": p50 / 1e6, "p99": p99 / 1e6, "max": self.max_ns / 1e6}
 
 
 @dataclass(frozen=True)

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from service.daemon.loop import RateLoop, Samples, Tick
 from service.errors import ConfigError
@@ -95,3 +97,21 @@ def test_samples_ring_buffer_percentiles() -> None:
     assert s.summary_ms(window=4)["p50"] == pytest.approx(18.5)
     s.reset()
     assert s.summary_ms() == {"p50": 0.0, "p99": 0.0, "max": 0.0}
+
+
+@given(st.lists(st.integers(min_value=1, max_value=10**10), min_size=1, max_size=3000),
+       st.integers(min_value=1, max_value=64))
+@settings(max_examples=60, deadline=None)
+def test_whole_run_percentiles_are_within_a_bin_of_exact(values: list[int],
+                                                         capacity: int) -> None:
+    """Over the whole run, however small the ring: at or above the exact percentile (the
+    lower rank's, as a histogram reads it) and at most one bin (1 %) above it."""
+    s = Samples(capacity=capacity)
+    for v in values:
+        s.add(v)
+    got = s.summary_ms()
+    data = np.sort(np.asarray(values))
+    for q, key in ((0.5, "p50"), (0.99, "p99")):
+        exact = data[max(0, int(np.ceil(q * len(data))) - 1)] / 1e6
+        assert exact * (1 - 1e-9) <= got[key] <= max(exact * Samples.BIN_RATIO, 1e-3) + 1e-12
+    assert got["max"] == data[-1] / 1e6
