@@ -30,7 +30,7 @@ from firmware_if.errors import (
     NotReadyError,
     PortLost,
 )
-from firmware_if.hand import Hand, load_hand
+from firmware_if.hand import Hand, Joint, load_hand
 from firmware_if.registers import (
     CURRENT_BASED_POSITION,
     RAD_PER_TICK,
@@ -77,7 +77,7 @@ class DynamixelBackend(HandOfOne):
                           cycle_budget_s=self.settings.cycle_budget_s,
                           failure_tolerance=self.settings.failure_tolerance)
         self._state: FingerState | None = None
-        self._q = np.asarray(hand.home, dtype=np.float64)
+        self._q = np.asarray(hand.fingers[0].home, dtype=np.float64)
         self._torque = False
         self._fault: str | None = None
         self._steps_done = 0
@@ -199,27 +199,35 @@ class DynamixelBackend(HandOfOne):
 
     # -- I/O -------------------------------------------------------------------------------
     def read_state(self) -> FingerState:
-        if self._fault and not self.bus.is_open:  # a reset could not reopen the port
-            return self._stale()
-        self._require_open()
-        goals, self._pending_goals = self._pending_goals, None
-        try:
-            state = self._read(goals)
-        except HardwareFault as exc:
-            self._fault = self._fault or str(exc)  # the first cause, not "reset first"
-            self._torque = False
-            if self._step is not None:
-                self._finish(blocked=True)  # whoever waits for the step sees it end
-            return self._stale()
-        except CommunicationError:
-            if goals:
-                self._pending_goals = goals  # resend with the next cycle
+        state = self._poll()
+        if state is None:
             return self._stale()
         if self._step is not None:
             self._advance_step(state)
             state = self._stamp(state)
         self._state = state
         return state
+
+    def _poll(self):
+        """One bus cycle, sending any goals waiting: the new reading, or None when there is
+        none (a fault latched now or before: torque off and a step under way ends blocked;
+        or a missed cycle, whose goals go with the next). Shared by every hand of servos."""
+        if self._fault and not self.bus.is_open:  # a reset could not reopen the port
+            return None
+        self._require_open()
+        goals, self._pending_goals = self._pending_goals, None
+        try:
+            return self._read(goals)
+        except HardwareFault as exc:
+            self._fault = self._fault or str(exc)  # the first cause, not "reset first"
+            self._torque = False
+            if self._step is not None:
+                self._finish(blocked=True)  # whoever waits for the step sees it end
+            return None
+        except CommunicationError:
+            if goals:
+                self._pending_goals = goals  # resend with the next cycle
+            return None
 
     def command_step(self, step: StepCommand) -> None:
         self._require_open()
@@ -306,8 +314,7 @@ class DynamixelBackend(HandOfOne):
                                 "the fingertip; move the hand closer and retry")
 
     def _goal_ticks(self, q: np.ndarray) -> dict[int, int]:
-        return {j.id: rad_to_ticks(float(a), j.zero_ticks, j.direction)
-                for j, a in zip(self.hand.joints, q, strict=True)}
+        return goal_ticks(self.hand.joints, q)
 
     def _read(self, goals: dict[int, int] | None = None) -> FingerState:
         readings = self.bus.cycle(goals)
@@ -342,6 +349,12 @@ class DynamixelBackend(HandOfOne):
     def _require_open(self) -> None:
         if not self.bus.is_open:
             raise NotReadyError("Dynamixel finger is not open: call open() first")
+
+
+def goal_ticks(joints: tuple[Joint, ...], q: np.ndarray) -> dict[int, int]:
+    """Goal Position register values {servo id: ticks} of a chain at joint angles `q`."""
+    return {j.id: rad_to_ticks(float(a), j.zero_ticks, j.direction)
+            for j, a in zip(joints, q, strict=True)}
 
 
 @dataclass

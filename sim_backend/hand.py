@@ -171,6 +171,25 @@ class SimulatedHand(FaultLatch):
         """The object's true pose now (for scoring; the service never sees it)."""
         return tuple(float(v) for v in self._pose)  # type: ignore[return-value]
 
+    @property
+    def dropped(self) -> bool:
+        return self._dropped
+
+    @property
+    def centres(self) -> np.ndarray:
+        """The fingertip centres' true places (n, 2), without measurement noise."""
+        return self._centres.copy()
+
+    @property
+    def steps_done(self) -> int:
+        return self._steps_done
+
+    def reported(self) -> tuple[np.ndarray, list[np.ndarray], np.ndarray]:
+        """What the hand reads now: centres (n, 2) with their measurement noise, the joint
+        angles that put each finger's centre at its true place, and the tips' roll angles.
+        (A plant on the servo bus turns these into encoder values.)"""
+        return self._readings.copy(), [q.copy() for q in self._q], self._rolls.copy()
+
     # -- I/O -------------------------------------------------------------------------------
     def read_hand(self) -> HandState:
         self._require_open()

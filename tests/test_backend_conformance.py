@@ -1,5 +1,6 @@
 """One conformance suite for every backend: the simulated finger, and the Dynamixel backend
-driving emulated servos through the real SDK with the same surface in the loop.
+driving emulated servos through the real SDK with the same surface in the loop; and the hand
+contract over those, the simulated hand and the Dynamixel hand on the emulated bus.
 
 Plus the end-to-end check: `haptic run --backend dynamixel` on the emulator localizes the
 same pose as the simulated finger for the same scenario.
@@ -24,6 +25,7 @@ from firmware_if.backend import (
     StepCommand,
 )
 from firmware_if.dynamixel_backend import DynamixelBackend
+from firmware_if.dynamixel_hand import DynamixelHand
 from firmware_if.errors import HardwareFault, NotReadyError
 from firmware_if.hand import load_hand
 from service.episode.runner import execute_step
@@ -33,6 +35,7 @@ from service.localization.maps import load_map
 from service.localization.objects.presets import preset_object
 from service.localization.surface import contact_surface
 from sim_backend.emulator import ServoBus
+from sim_backend.emulator.hand_plant import HandPlant
 from sim_backend.emulator.plant import FingerPlant, hand_bus_servos
 from sim_backend.finger import SimConfig, SimulatedFinger
 from sim_backend.hand import HandSimConfig, SimulatedHand
@@ -202,8 +205,21 @@ def _sim_hand() -> Iterator[HandRig]:
     hand.close()
 
 
+def _dynamixel_hand() -> Iterator[HandRig]:
+    """The same hand and object as `_sim_hand`, its servos on one emulated bus."""
+    sim = SimulatedHand(load_hand("two-finger"), preset_object("blob:2"),
+                        HandSimConfig(pose=(0.001, -0.001, 0.7)), np.random.default_rng(0))
+    plant = HandPlant(sim)
+    with ServoBus(hand_bus_servos(sim.hand, plant), plant=plant) as bus:
+        hand = DynamixelHand(sim.hand, bus.port)
+        yield HandRig(hand, HandCommand((FingerMove(dz=0.002), None)),
+                      lambda: bus.inject_hardware_error(4, 0x20))
+        hand.close()
+        assert not bus.errors, bus.errors
+
+
 HAND_KINDS = {"sim": _hand_of_one("sim"), "dynamixel": _hand_of_one("dynamixel"),
-              "sim-hand": _sim_hand}
+              "sim-hand": _sim_hand, "dynamixel-hand": _dynamixel_hand}
 
 
 @pytest.fixture(params=sorted(HAND_KINDS))

@@ -9,9 +9,9 @@ from pathlib import Path
 import numpy as np
 
 from firmware_if import kinematics as kin
-from firmware_if.dxl_bus import FAST_READ_MIN_FIRMWARE, DxlBus
+from firmware_if.dxl_bus import FAST_READ_MIN_FIRMWARE, DxlBus, ServoReading
 from firmware_if.errors import CommunicationError
-from firmware_if.hand import Hand, load_hand, presets
+from firmware_if.hand import Finger, Hand, load_hand, presets
 from firmware_if.registers import (
     BAUD_RATES,
     BAUD_REGISTER,
@@ -79,17 +79,22 @@ def cmd_read(args: argparse.Namespace) -> int:
         while args.count <= 0 or n < args.count:
             with signals_held():  # Ctrl-C between exchanges, never inside one
                 readings = bus.cycle()
-            q = np.array([ticks_to_rad(readings[j.id].position, j.zero_ticks, j.direction)
-                          for j in hand.joints])
-            centre = kin.forward(hand, q)
-            joints = " ".join(f"{j.name}={np.degrees(a):7.2f}" for j, a in
-                              zip(hand.joints, q, strict=True))
-            print(f"{joints} deg | centre x={centre[0] * 1e3:8.2f} y={centre[1] * 1e3:8.2f} "
-                  f"z={centre[2] * 1e3:8.2f} mm", flush=True)
+            print("  ||  ".join(_finger_line(f, readings) for f in hand.fingers), flush=True)
             n += 1
             next_t += args.interval
             time.sleep(max(0.0, next_t - time.monotonic()))
     return 0
+
+
+def _finger_line(finger: Finger, readings: dict[int, ServoReading]) -> str:
+    """One finger's joint angles and fingertip centre (hand frame) from one bus cycle."""
+    q = np.array([ticks_to_rad(readings[j.id].position, j.zero_ticks, j.direction)
+                  for j in finger.joints])
+    centre = kin.forward(finger, q)
+    joints = " ".join(f"{j.name}={np.degrees(a):7.2f}" for j, a in
+                      zip(finger.joints, q, strict=True))
+    return (f"{joints} deg | centre x={centre[0] * 1e3:8.2f} y={centre[1] * 1e3:8.2f} "
+            f"z={centre[2] * 1e3:8.2f} mm")
 
 
 def latency_timer(port: str) -> int | None:

@@ -42,6 +42,9 @@ class FaultPlan:
 class Plant(Protocol):
     """Couples servo drives to a physical model (see `sim_backend.emulator.plant`)."""
 
+    def home_ticks(self) -> dict[int, int]:
+        """Where the servos power up: {id: Present Position ticks}."""
+
     def update(self, servos: dict[int, EmulatedServo]) -> None: ...
 
 

@@ -16,6 +16,7 @@ from firmware_if import kinematics as kin
 from firmware_if.hand import Hand
 from firmware_if.registers import BAUD_REGISTER, rad_to_ticks, ticks_to_rad
 from service.localization.surface import ContactSurface, HeightMap, contact_surface
+from sim_backend.emulator.bus import Plant
 from sim_backend.emulator.servo import EmulatedServo
 
 
@@ -125,14 +126,18 @@ class FingerPlant:
                                                               roll.direction))
 
 
-def hand_bus_servos(hand: Hand, plant: FingerPlant | None = None) -> list[EmulatedServo]:
-    """One emulated servo per joint of `hand` (and its tip roll), powered up at home."""
+def hand_bus_servos(hand: Hand, plant: Plant | None = None) -> list[EmulatedServo]:
+    """One emulated servo per joint of every finger of `hand` (and each tip roll), powered
+    up where the plant has them (else at home), all on one bus."""
     home = plant.home_ticks() if plant is not None else {
         j.id: rad_to_ticks(q, j.zero_ticks, j.direction)
-        for j, q in zip(hand.joints, hand.home, strict=True)}
-    servos = [EmulatedServo(j.id, j.model, position=home[j.id]) for j in hand.joints]
-    if hand.tip_roll is not None:
-        servos.append(EmulatedServo(hand.tip_roll.id, position=hand.tip_roll.zero_ticks))
+        for f in hand.fingers for j, q in zip(f.joints, f.home, strict=True)}
+    servos = []
+    for finger in hand.fingers:
+        servos += [EmulatedServo(j.id, j.model, position=home[j.id]) for j in finger.joints]
+        roll = finger.tip_roll
+        if roll is not None:
+            servos.append(EmulatedServo(roll.id, position=home.get(roll.id, roll.zero_ticks)))
     baud = BAUD_REGISTER[hand.baud]
     for servo in servos:
         servo.set("baud_rate", baud)  # as the lab set them up for this hand
