@@ -1,8 +1,11 @@
-"""`haptic emulate`: a Dynamixel servo bus on a pseudo-terminal, with the finger on a surface.
+"""`haptic emulate`: a Dynamixel servo bus on a pseudo-terminal, with the finger on a surface
+or, with `--object`, a hand of several fingers holding an object.
 
 The emulated hand stands at the start pose `haptic run` would draw from the same seed, so
 `haptic run --backend dynamixel --port PORT --hand HAND --seed N` on the printed port
-localizes the same hidden pose as the simulated finger would.
+localizes the same hidden pose as the simulated finger would; with `--object NAME` (and the
+same `--seed`/`--noise`), `haptic run --backend dynamixel --port PORT --hand HAND --object
+NAME` explores the object the simulated hand of `haptic run --hand HAND --object NAME` holds.
 """
 
 from __future__ import annotations
@@ -19,14 +22,17 @@ from service.episode.scenario import RunSettings, Truth, draw_truth, episode_str
 from service.errors import ConfigError
 from service.localization.surface import HeightMap
 from sim_backend.emulator import ServoBus
+from sim_backend.emulator.hand_plant import HandPlant
 from sim_backend.emulator.plant import FingerPlant, hand_bus_servos
+from tools.hand_cli import add_object_world_options, hand_settings
 from tools.scenario_options import add_scenario_options, settings_from_args
 
 
 def register(p: argparse.ArgumentParser) -> None:
     p.description = ("Start a Protocol 2.0 servo-bus emulator whose servos move a fingertip "
-                     "over the map (hardware in the loop); print the port path and serve "
-                     "until Ctrl-C.")
+                     "over the map, or (with --object) a hand's fingers on the object they "
+                     "hold (hardware in the loop); print the port path and serve until "
+                     "Ctrl-C.")
     p.add_argument("--hand", required=True, metavar="PRESET|FILE",
                    help=f"hand preset ({', '.join(presets())}) or TOML file")
     add_scenario_options(p, defaults=RunSettings(), localizer=False, radius=False)
@@ -39,6 +45,11 @@ def register(p: argparse.ArgumentParser) -> None:
     p.add_argument("--link", metavar="PATH",
                    help="also make PATH a symlink to the port (a stable name, like "
                         "/dev/serial/by-id/..., that a restarted emulator takes over)")
+    g = p.add_argument_group(
+        "a hand holding an object (with --object: every finger's servos on one bus, the plant "
+        "the simulated hand of `haptic run --hand HAND --object NAME` with the same --seed "
+        "and --noise)")
+    add_object_world_options(g)
     p.set_defaults(handler=run)
 
 
@@ -49,16 +60,37 @@ def emulator_truth(settings: RunSettings) -> tuple[Truth, HeightMap]:
 
 
 def start_emulator(args: argparse.Namespace) -> tuple[ServoBus, Truth]:
+    if getattr(args, "object", None) is not None:
+        return start_hand_emulator(args)
     hand = load_hand(args.hand)
     settings = settings_from_args(args, radius=hand.radius)
     truth, height_map = emulator_truth(settings)
     plant = FingerPlant(hand, height_map, truth.as_tuple())
+    return _bus(args, hand_bus_servos(hand, plant), plant), truth
+
+
+def start_hand_emulator(args: argparse.Namespace) -> tuple[ServoBus, Truth]:
+    """The hand of `args.hand` holding `args.object` where the seed puts it, on one bus."""
+    from service.episode.hand_episode import simulated_hand
+    from service.episode.hand_scenario import load_parts
+
+    settings = hand_settings(args)
+    parts = load_parts(settings)
+    if len(parts.hand.fingers) < 2:
+        raise ConfigError(f"--object needs a hand of several fingers; '{args.hand}' has one "
+                          "(e.g. --hand two-finger)")
+    sim, start = simulated_hand(settings, parts)
+    plant = HandPlant(sim)
+    bus = _bus(args, hand_bus_servos(parts.hand, plant), plant)
+    x, z, heading = start
+    return bus, Truth(x, z, heading)
+
+
+def _bus(args: argparse.Namespace, servos, plant) -> ServoBus:
     link = getattr(args, "link", None)
     if link is not None and os.path.exists(link) and not os.path.islink(link):
         raise ConfigError(f"--link {link}: a file that is not a symlink is there already")
-    bus = ServoBus(hand_bus_servos(hand, plant), plant=plant,
-                   fast_read=not args.no_fast_read, link=link).start()
-    return bus, truth
+    return ServoBus(servos, plant=plant, fast_read=not args.no_fast_read, link=link).start()
 
 
 def run(args: argparse.Namespace, *, ready: Callable[[str], None] | None = None,
@@ -67,9 +99,11 @@ def run(args: argparse.Namespace, *, ready: Callable[[str], None] | None = None,
     stop = stop or threading.Event()
     try:
         print(bus.port, flush=True)
-        print(f"emulating hand '{args.hand}' (ids {sorted(bus.servos)}) at hidden start "
-              f"x={truth.x:.4f} m, y={truth.y:.4f} m, heading={np.degrees(truth.heading):.1f} deg;"
-              " Ctrl-C to stop", flush=True)
+        where = (f"holding '{args.object}' at hidden x={truth.x:.4f} m, z={truth.y:.4f} m"
+                 if getattr(args, "object", None) is not None else
+                 f"at hidden start x={truth.x:.4f} m, y={truth.y:.4f} m")
+        print(f"emulating hand '{args.hand}' (ids {sorted(bus.servos)}) {where}, "
+              f"heading={np.degrees(truth.heading):.1f} deg; Ctrl-C to stop", flush=True)
         if ready:
             ready(bus.port)
         while not stop.wait(0.5):

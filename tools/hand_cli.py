@@ -7,10 +7,12 @@ hand holding an object (`--hand` then names the hand, default `two-finger`).
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import math
 from pathlib import Path
 
 from service.errors import ConfigError
+from service.localization.models import HARDWARE_SENSOR_SIGMA
 
 DEFAULT_HAND = "two-finger"
 
@@ -22,6 +24,23 @@ def add_object_options(parser: argparse.ArgumentParser) -> None:
     g = parser.add_argument_group(
         "a hand holding an object (with --object; --hand names the hand, default "
         f"{DEFAULT_HAND}; --seed, --noise, --max-steps, --algorithm, --plot and --json apply)")
+    add_object_world_options(g)
+    g.add_argument("--roll", type=float, default=d.step, metavar="M",
+                   help="how far a finger rolls per step, metres (default: %(default)s)")
+    g.add_argument("--threshold", type=float, default=d.threshold_n, metavar="N",
+                   help="grasp quality every move must keep (default: %(default)s)")
+    g.add_argument("--no-gate", action="store_true",
+                   help="the ablation: explore without the grasp-quality gate")
+    g.add_argument("--single-finger", action="store_true",
+                   help="only the hand's first finger, the object clamped in place")
+
+
+def add_object_world_options(g: argparse._ActionsContainer) -> None:
+    """The object and its physics: what `haptic run --object` and `haptic emulate --object`
+    share, so that the same options (and seed) hold the same object the same way."""
+    from service.episode.hand_scenario import HandSettings
+
+    d = HandSettings()
     g.add_argument("--object", metavar="NAME|FILE",
                    help="an object preset (ellipse, rounded, blob, keyed; NAME:SEED picks a "
                         "member) or a file: a .csv outline (x,z metres, first row repeated "
@@ -31,8 +50,6 @@ def add_object_options(parser: argparse.ArgumentParser) -> None:
                         "default: z through the mesh's centroid")
     g.add_argument("--object-units", choices=("m", "mm"), default="m",
                    help="units of an object file (default: %(default)s)")
-    g.add_argument("--roll", type=float, default=d.step, metavar="M",
-                   help="how far a finger rolls per step, metres (default: %(default)s)")
     g.add_argument("--mu", type=float, default=d.mu, help="friction coefficient "
                    "(default: %(default)s)")
     g.add_argument("--mass", type=float, default=d.mass_kg, metavar="KG",
@@ -40,12 +57,6 @@ def add_object_options(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--margin", type=float, default=d.margin_n, metavar="N",
                    help="disturbance the grasp must resist beyond the weight; below it the "
                         "object drops (default: %(default)s)")
-    g.add_argument("--threshold", type=float, default=d.threshold_n, metavar="N",
-                   help="grasp quality every move must keep (default: %(default)s)")
-    g.add_argument("--no-gate", action="store_true",
-                   help="the ablation: explore without the grasp-quality gate")
-    g.add_argument("--single-finger", action="store_true",
-                   help="only the hand's first finger, the object clamped in place")
 
 
 def hand_settings(args: argparse.Namespace, **overrides):
@@ -53,12 +64,18 @@ def hand_settings(args: argparse.Namespace, **overrides):
 
     if args.object is None:
         raise ConfigError("--object is needed for a hand run")
+    d = HandSettings()
     fields = dict(object=args.object, plane=args.plane, units=args.object_units,
-                  hand=args.hand or DEFAULT_HAND, algorithm=args.algorithm,
-                  seed=getattr(args, "seed", 0), noise=args.noise, step=args.roll,
-                  max_steps=args.max_steps, mu=args.mu, mass_kg=args.mass,
-                  margin_n=args.margin, threshold_n=args.threshold, gate=not args.no_gate,
-                  single_finger=args.single_finger)
+                  hand=args.hand or DEFAULT_HAND, seed=getattr(args, "seed", 0),
+                  noise=args.noise, mu=args.mu, mass_kg=args.mass, margin_n=args.margin,
+                  # what only an episode uses (`haptic emulate` has none of it)
+                  algorithm=getattr(args, "algorithm", d.algorithm),
+                  step=getattr(args, "roll", d.step),
+                  max_steps=getattr(args, "max_steps", d.max_steps),
+                  threshold_n=getattr(args, "threshold", d.threshold_n),
+                  gate=not getattr(args, "no_gate", False),
+                  single_finger=getattr(args, "single_finger", False),
+                  sensor_sigma=getattr(args, "sensor_sigma", None))
     fields.update(overrides)
     return HandSettings(**fields)
 
@@ -68,13 +85,17 @@ def run_hand(args: argparse.Namespace) -> int:
     from service.episode.hand_episode import simulate_hand
     from service.episode.hand_scenario import load_parts
 
-    if args.backend != "sim":
-        raise ConfigError("--object runs on the simulated hand (--backend sim) for now")
     if args.start is not None:
         raise ConfigError("--start places a finger on a map; an object's start is drawn "
                           "from --seed")
     settings = hand_settings(args)
     parts = load_parts(settings)
+    backend_factory = None
+    if args.backend != "sim":
+        backend_factory = _servo_hand(args, settings)
+        if settings.sensor_sigma is None and not settings.noise:
+            # exact readings would eliminate the truth on the encoders' rounding
+            settings = dataclasses.replace(settings, sensor_sigma=HARDWARE_SENSOR_SIGMA)
     fingers = len(parts.hand.fingers)
     print(f"object {parts.contour.name}: {parts.contour.extent * 1e3:.0f} mm across; hand "
           f"{parts.hand.name}: {fingers} finger{'s' if fingers > 1 else ''}; roll "
@@ -82,8 +103,9 @@ def run_hand(args: argparse.Namespace) -> int:
           f"{' with noise' if settings.noise else ''}"
           f"{'' if settings.gate else '; NO grasp gate (ablation)'}")
     report = simulate_hand(settings, parts, on_step=None if args.quiet else _print_step,
-                           snapshot_steps=(0,) if args.plot else ())
-    _print_summary(report)
+                           snapshot_steps=(0,) if args.plot else (),
+                           backend_factory=backend_factory)
+    _print_summary(report, on_servos=backend_factory is not None)
     if args.json:
         import json
 
@@ -95,6 +117,20 @@ def run_hand(args: argparse.Namespace) -> int:
         hand_figure(report, args.plot)
         print(f"figure written to {args.plot}")
     return 0
+
+
+def _servo_hand(args: argparse.Namespace, settings):
+    """A factory of the hand on servos `--port` names (no I/O until the episode opens it)."""
+    from firmware_if.dynamixel_hand import DynamixelHand
+
+    if args.backend != "dynamixel":
+        raise ConfigError(f"--object runs on --backend sim or dynamixel, not {args.backend}")
+    if not args.port:
+        raise ConfigError("--backend dynamixel needs --port (the servo bus, e.g. what "
+                          "`haptic emulate --hand HAND --object NAME` prints)")
+    if settings.single_finger:
+        raise ConfigError("--single-finger runs on the simulated hand only")
+    return lambda: DynamixelHand.from_cli(port=args.port, hand=settings.hand)
 
 
 def _print_step(step) -> None:
@@ -113,9 +149,11 @@ def _pose_text(pose) -> str:
             f"heading {round(math.degrees(heading), 1) % 360:6.1f} deg")
 
 
-def _print_summary(report) -> None:
+def _print_summary(report, on_servos: bool = False) -> None:
     est = report.result.estimate
-    print(f"truth     {_pose_text(report.truth)}")
+    print(f"truth     {_pose_text(report.truth)}"
+          + ("  (the seed's start, where `haptic emulate` placed the object)"
+             if on_servos else ""))
     if est is None or est.pose is None:
         print("estimate  none")
     else:

@@ -218,19 +218,30 @@ def _step_json(s: HandStepRecord) -> dict[str, Any]:
             "truth": None if s.truth is None else list(s.truth)}
 
 
-def simulate_hand(settings: HandSettings, parts: HandParts | None = None, *,
-                  on_step: Callable[[HandStepRecord], None] | None = None,
-                  snapshot_steps: tuple[int, ...] = ()) -> HandEpisodeReport:
-    """Run one seeded hand episode on the simulated hand. Same settings, same report."""
+def simulated_hand(settings: HandSettings, parts: HandParts) -> tuple[Any, tuple[float, ...]]:
+    """The seed's simulated hand holding the object at the seed's start pose (not opened),
+    and that pose: what `simulate_hand` runs and `haptic emulate --object` puts on a bus."""
     from sim_backend.hand import HandSimConfig, SimulatedHand  # chosen at run time
 
-    parts = parts or load_parts(settings)
-    truth_rng, world_rng, loc_rng, _ = streams(settings.seed)
+    truth_rng, world_rng, _, _ = streams(settings.seed)
     start = draw_truth(settings, parts, truth_rng)
-    sim = SimulatedHand(parts.hand, parts.contour,
-                        HandSimConfig(pose=start, grasp=settings.grasp,
-                                      noise=settings.noise_spec, fixed=settings.single_finger),
-                        world_rng)
+    config = HandSimConfig(pose=start, grasp=settings.grasp, noise=settings.noise_spec,
+                           fixed=settings.single_finger)
+    return SimulatedHand(parts.hand, parts.contour, config, world_rng), start
+
+
+def simulate_hand(settings: HandSettings, parts: HandParts | None = None, *,
+                  on_step: Callable[[HandStepRecord], None] | None = None,
+                  snapshot_steps: tuple[int, ...] = (),
+                  backend_factory: Callable[[], Any] | None = None) -> HandEpisodeReport:
+    """Run one seeded hand episode on the simulated hand, or on the hand `backend_factory`
+    makes (servos: it hides its object, so the truth scored is the seed's start pose, as
+    `haptic emulate` places the object from the same seed). Same settings, same report."""
+    parts = parts or load_parts(settings)
+    loc_rng = streams(settings.seed)[2]
+    sim, start = (simulated_hand(settings, parts) if backend_factory is None
+                  else (None, draw_truth(settings, parts, streams(settings.seed)[0])))
+    hand = sim if sim is not None else backend_factory()  # type: ignore[misc]
     localizer = build_localizer(settings, parts, loc_rng)
     snapshots: dict[int, Hypotheses] = {}
 
@@ -240,22 +251,23 @@ def simulate_hand(settings: HandSettings, parts: HandParts | None = None, *,
         if on_step:
             on_step(step)
 
-    sim.open()
+    hand.open()
     try:
-        sim.set_torque(True)
-        start_quality = sim.quality
-        result = run_hand_episode(sim, localizer, build_policy(settings), parts, settings,
-                                  on_step=record, truth=lambda: sim.pose,
-                                  quality=lambda: sim.quality)
+        hand.set_torque(True)
+        start_quality = sim.quality if sim is not None else float("nan")
+        result = run_hand_episode(hand, localizer, build_policy(settings), parts, settings,
+                                  on_step=record,
+                                  truth=None if sim is None else lambda: sim.pose,
+                                  quality=None if sim is None else lambda: sim.quality)
         if 0 in snapshot_steps:
             snapshots.setdefault(0, localizer.hypotheses(limit=SNAPSHOT_LIMIT))
     finally:
-        sim.close()
-    return HandEpisodeReport(settings=settings, start=start, truth=sim.pose, result=result,
-                             score=score(result.estimate, sim.pose, result.dropped),
+        hand.close()
+    truth = sim.pose if sim is not None else start
+    unknown = settings.single_finger or sim is None
+    return HandEpisodeReport(settings=settings, start=start, truth=truth, result=result,
+                             score=score(result.estimate, truth, result.dropped),
                              parts=parts,
-                             min_quality=float("nan") if settings.single_finger
-                             else sim.min_quality,
-                             start_quality=float("nan") if settings.single_finger
-                             else start_quality,
+                             min_quality=float("nan") if unknown else sim.min_quality,
+                             start_quality=float("nan") if unknown else start_quality,
                              snapshots=snapshots)

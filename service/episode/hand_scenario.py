@@ -55,6 +55,9 @@ class HandSettings:
     """Only the hand's first finger, the object clamped in place (the comparison B6 asks)."""
     start: tuple[float, float, float] | None = None
     """The object's (x, z, theta) at the start; None draws one from the seed."""
+    sensor_sigma: float | None = None
+    """Measurement noise (metres) the localizer assumes; None: what `noise` implies (on
+    servos, noise-free runs assume the encoders' rounding: `HARDWARE_SENSOR_SIGMA`)."""
 
     def __post_init__(self) -> None:
         if not (np.isfinite(self.step) and 0 < self.step <= 0.02):
@@ -63,6 +66,8 @@ class HandSettings:
             raise ConfigError(f"--max-steps must be at least 1, got {self.max_steps}")
         if self.seed < 0:
             raise ConfigError(f"--seed must be >= 0, got {self.seed}")
+        if self.sensor_sigma is not None and not 1e-9 <= self.sensor_sigma <= 0.01:
+            raise ConfigError(f"sensor_sigma must be in [1e-9, 0.01] m, got {self.sensor_sigma}")
         OBJECT_LOCALIZERS.load(self.algorithm)
         self.grasp  # noqa: B018 - validates friction, mass, margin and threshold
 
@@ -142,7 +147,8 @@ def streams(seed: int) -> list[np.random.Generator]:
 
 def build_localizer(settings: HandSettings, parts: HandParts, rng: np.random.Generator):
     noise = settings.noise_spec
-    _, sensor = models_for(noise)
+    _, sensor = models_for(noise if settings.sensor_sigma is None
+                           else NoiseSpec(measurement_sigma=settings.sensor_sigma))
     ctx = ObjectContext(field=parts.field,
                         radii=np.array([f.radius for f in parts.hand.fingers]),
                         sensor=sensor,
