@@ -4,12 +4,15 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from scipy import signal
 
 from service.episode.scenario import RunSettings
 from service.episode.simulate import simulate
 from service.localization.localizers.convergence import ConvergenceRule, distinct, group_modes
 from service.localization.localizers.refine import Fit
-from service.localization.localizers.symmetry import images, symmetries
+from service.localization.localizers.symmetry import _convolve, images, symmetries
 from service.localization.maps import bumps, eggcrate
 from service.localization.surface import contact_surface
 
@@ -45,6 +48,15 @@ def test_egg_crate_symmetries_read_the_same_heights():
     for x, y, _ in rivals[on_map]:
         assert surface.height(x, y) == pytest.approx(here, abs=1e-6)
     assert len(symmetries(contact_surface(bumps(20, seed=1), 0.008))) == 0
+
+
+@given(st.integers(1, 40), st.integers(1, 40), st.integers(1, 40), st.integers(1, 40),
+       st.integers(0, 2**32 - 1))
+@settings(max_examples=40, deadline=None)
+def test_the_symmetry_finders_convolution_is_scipys(h1, w1, h2, w2, seed) -> None:
+    rng = np.random.default_rng(seed)
+    a, b = rng.normal(size=(h1, w1)), rng.normal(size=(h2, w2))
+    np.testing.assert_allclose(_convolve(a, b), signal.fftconvolve(a, b), atol=1e-9)
 
 
 def _fit(**kw) -> Fit:

@@ -16,7 +16,7 @@ from __future__ import annotations
 import weakref
 
 import numpy as np
-from scipy import ndimage, signal
+from scipy import fft, ndimage
 
 from service.localization.surface import ContactSurface
 
@@ -53,10 +53,10 @@ def _find(surface: ContactSurface, threshold: float, min_overlap: float, limit: 
     found = []
     for k in turns:
         b = np.rot90(a, k)
-        num = signal.fftconvolve(a, b[::-1, ::-1])
-        ss_a = signal.fftconvolve(a * a, ones[::-1, ::-1])
-        ss_b = signal.fftconvolve(ones, (b * b)[::-1, ::-1])
-        overlap = signal.fftconvolve(ones, ones[::-1, ::-1])
+        num = _convolve(a, b[::-1, ::-1])
+        ss_a = _convolve(a * a, ones[::-1, ::-1])
+        ss_b = _convolve(ones, (b * b)[::-1, ::-1])
+        overlap = _convolve(ones, ones[::-1, ::-1])
         ncc = num / np.sqrt(np.maximum(ss_a * ss_b, 1e-300))
         ncc[overlap < min_overlap * a.size] = -1.0
         peaks = (ncc >= threshold) & (ncc == ndimage.maximum_filter(ncc, size=5))
@@ -69,6 +69,15 @@ def _find(surface: ContactSurface, threshold: float, min_overlap: float, limit: 
             found.append((ncc[u[i], v[i]], k, -shift_x[i] * h, -shift_y[i] * h))
     found.sort(key=lambda f: -f[0])
     return np.array([f[1:] for f in found[:limit]], dtype=np.float64).reshape(-1, 3)
+
+
+def _convolve(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """The full 2-D linear convolution by FFT: `scipy.signal.fftconvolve(a, b)`, whose
+    module imports scipy.stats and cost every compute process 1.5 s at start."""
+    shape = [a.shape[i] + b.shape[i] - 1 for i in range(2)]
+    padded = [fft.next_fast_len(n, real=True) for n in shape]
+    out = fft.irfft2(fft.rfft2(a, padded) * fft.rfft2(b, padded), padded)
+    return out[:shape[0], :shape[1]]
 
 
 def images(surface: ContactSurface, pose: np.ndarray, motions: np.ndarray) -> np.ndarray:
