@@ -24,6 +24,8 @@ SCENARIOS: dict[str, tuple[str, str]] = {
     "faults": ("tools.bench_faults", "kill the servo bus under hapticd again and again: "
                                      "a latched fault and a reset every time"),
     "bus": ("tools.bench_bus", "bus cycle time on the servo-bus emulator"),
+    "hand-bus": ("tools.bench_hand_bus", "a hand on the bus emulator: the read per tick, and "
+                                         "seeded episodes beside the simulated ones"),
     "anytime": ("tools.bench_anytime", "longest localizer work slice under a time budget"),
     "grasp": ("tools.bench_grasp", "B6: a hand localizes a held object without dropping it"),
 }
