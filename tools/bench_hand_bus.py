@@ -42,15 +42,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--json", type=Path, metavar="FILE", help="write the figures as JSON")
 
 
-def _on_bus(settings: HandSettings, parts, *, fast: bool = True):
+def _on_bus(settings: HandSettings, parts, *, fast: bool = True) -> tuple[ServoBus, HandPlant]:
     plant = HandPlant(simulated_hand(settings, parts)[0])
-    return ServoBus(hand_bus_servos(parts.hand, plant), plant=plant, fast_read=fast).start()
+    return (ServoBus(hand_bus_servos(parts.hand, plant), plant=plant, fast_read=fast).start(),
+            plant)
 
 
 def measure_ticks(settings: HandSettings, ticks: int, fast: bool) -> dict[str, Any]:
     """Times (ms) of `ticks` reads of the whole hand, and packets the emulator got per read."""
     parts = load_parts(settings)
-    bus = _on_bus(settings, parts, fast=fast)
+    bus, _ = _on_bus(settings, parts, fast=fast)
     try:
         hand = DynamixelHand(parts.hand, bus.port)
         hand.open()
@@ -93,11 +94,12 @@ def compare(settings: HandSettings) -> dict[str, Any]:
     t0 = time.perf_counter()
     sim = simulate_hand(settings, parts)
     sim_s = time.perf_counter() - t0
-    bus = _on_bus(settings, parts)
+    bus, plant = _on_bus(settings, parts)
     try:
         t0 = time.perf_counter()
-        hil = simulate_hand(settings, parts,
-                            backend_factory=lambda: DynamixelHand(parts.hand, bus.port))
+        hil = simulate_hand(settings, parts,  # scored on the emulator's hidden object
+                            backend_factory=lambda: DynamixelHand(parts.hand, bus.port),
+                            hidden=plant.sim)
         hil_s = time.perf_counter() - t0
     finally:
         bus.stop()
@@ -109,6 +111,8 @@ def compare(settings: HandSettings) -> dict[str, Any]:
             break
         same_commands += 1
     return {"seed": settings.seed, "sim": _outcome(sim), "bus": _outcome(hil),
+            "sim_error": _error(sim), "bus_error": _error(hil),
+            "turns": [sum(s.kind == "manipulate" for s in r.result.steps) for r in (sim, hil)],
             "sim_steps": len(sim.result.steps), "bus_steps": len(hil.result.steps),
             "same_first_commands": same_commands,
             "pose_gap_mm": math.hypot(a[0] - b[0], a[1] - b[1]) * 1e3,
@@ -117,11 +121,23 @@ def compare(settings: HandSettings) -> dict[str, Any]:
             "sim_s": sim_s, "bus_s": hil_s, "bus_errors": len(bus.errors)}
 
 
+def _error(report: HandEpisodeReport) -> list[float] | None:
+    """(mm, deg) from the estimate to the object's true pose at the end."""
+    s = report.score
+    if s.position_error is None:
+        return None
+    return [s.position_error * 1e3, math.degrees(s.heading_error)]
+
+
 def _close(a, b) -> bool:
     """Two commands the same but for the encoders' rounding (0.2 mm, 0.01 rad)."""
     if [m is None for m in a] != [m is None for m in b]:
         return False
     return all(m is None or np.allclose(m, n, atol=2e-4) for m, n in zip(a, b, strict=True))
+
+
+def _err_text(error: list[float] | None) -> str:
+    return "no estimate" if error is None else f"off by {error[0]:.2f} mm / {error[1]:.1f} deg"
 
 
 def run(args: argparse.Namespace) -> int:
@@ -141,9 +157,10 @@ def run(args: argparse.Namespace) -> int:
         e = compare(HandSettings(object=args.object, hand=args.hand, noise=args.noise,
                                  max_steps=args.max_steps, seed=seed))
         episodes.append(e)
-        print(f"seed {seed}: simulated {e['sim']} after {e['sim_steps']} steps, through the bus "
-              f"{e['bus']} after {e['bus_steps']}; first {e['same_first_commands']} commands "
-              f"alike; poses {e['pose_gap_mm']:.2f} mm / {e['heading_gap_deg']:.1f} deg apart; "
+        print(f"seed {seed}: simulated {e['sim']} after {e['sim_steps']} steps "
+              f"({e['turns'][0]} turns, {_err_text(e['sim_error'])}), through the bus "
+              f"{e['bus']} after {e['bus_steps']} ({e['turns'][1]} turns, "
+              f"{_err_text(e['bus_error'])}); first {e['same_first_commands']} commands alike; "
               f"{e['sim_s']:.1f} s / {e['bus_s']:.1f} s", flush=True)
     same = sum(e["sim"] == e["bus"] for e in episodes)
     if episodes:

@@ -151,9 +151,13 @@ def _pose_text(pose) -> str:
 
 def _print_summary(report, on_servos: bool = False) -> None:
     est = report.result.estimate
-    print(f"truth     {_pose_text(report.truth)}"
-          + ("  (the seed's start, where `haptic emulate` placed the object)"
-             if on_servos else ""))
+    if not report.truth_known:
+        print(f"truth     unknown: the hand turned the object from the seed's start "
+              f"({_pose_text(report.truth)}) and servos cannot see where it went")
+    else:
+        print(f"truth     {_pose_text(report.truth)}"
+              + ("  (the seed's start, where `haptic emulate` placed the object)"
+                 if on_servos else ""))
     if est is None or est.pose is None:
         print("estimate  none")
     else:
@@ -163,6 +167,9 @@ def _print_summary(report, on_servos: bool = False) -> None:
     s = report.score
     if report.result.dropped:
         print(f"result    DROPPED the object at step {steps}")
+    elif not report.truth_known:
+        print(f"result    {'converged' if report.result.converged else 'not converged'} "
+              f"after {steps} steps (not scored: the truth is unknown)")
     elif s.success:
         print(f"result    localized in {steps} steps: position error "
               f"{s.position_error * 1e3:.2f} mm, heading error "

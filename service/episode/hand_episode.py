@@ -177,6 +177,9 @@ class HandEpisodeReport:
     """The least true grasp quality at any substep of any move (newtons)."""
     start_quality: float
     snapshots: dict[int, Hypotheses] = field(default_factory=dict)
+    truth_known: bool = True
+    """False for a run on servos after a manipulation moved the object where it cannot see:
+    `truth` is then the start and the run is not scored."""
 
     def to_json(self) -> dict[str, Any]:
         est = self.result.estimate
@@ -186,6 +189,7 @@ class HandEpisodeReport:
             "hand": self.parts.hand.name,
             "start": list(self.start),
             "truth": list(self.truth),
+            "truth_known": self.truth_known,
             "start_centres": [list(c) for c in self.result.start_centres],
             "steps": [_step_json(s) for s in self.result.steps],
             "estimate": None if est is None or est.pose is None else {
@@ -233,15 +237,23 @@ def simulated_hand(settings: HandSettings, parts: HandParts) -> tuple[Any, tuple
 def simulate_hand(settings: HandSettings, parts: HandParts | None = None, *,
                   on_step: Callable[[HandStepRecord], None] | None = None,
                   snapshot_steps: tuple[int, ...] = (),
-                  backend_factory: Callable[[], Any] | None = None) -> HandEpisodeReport:
+                  backend_factory: Callable[[], Any] | None = None,
+                  hidden: Any | None = None) -> HandEpisodeReport:
     """Run one seeded hand episode on the simulated hand, or on the hand `backend_factory`
-    makes (servos: it hides its object, so the truth scored is the seed's start pose, as
-    `haptic emulate` places the object from the same seed). Same settings, same report."""
+    makes (servos). Same settings, same report.
+
+    `hidden` is the simulated hand behind an emulated bus, if any: the truth and the grasp's
+    quality are read from it. Without it a run on servos knows the object's pose only while
+    nothing turned it (the seed's start, where `haptic emulate` places it); once a
+    manipulation has moved the object, the run is not scored (`truth_known` False)."""
     parts = parts or load_parts(settings)
     loc_rng = streams(settings.seed)[2]
-    sim, start = (simulated_hand(settings, parts) if backend_factory is None
-                  else (None, draw_truth(settings, parts, streams(settings.seed)[0])))
-    hand = sim if sim is not None else backend_factory()  # type: ignore[misc]
+    if backend_factory is None:
+        sim, start = simulated_hand(settings, parts)
+        hand = world = sim
+    else:
+        start = draw_truth(settings, parts, streams(settings.seed)[0])
+        hand, world = backend_factory(), hidden
     localizer = build_localizer(settings, parts, loc_rng)
     snapshots: dict[int, Hypotheses] = {}
 
@@ -254,20 +266,22 @@ def simulate_hand(settings: HandSettings, parts: HandParts | None = None, *,
     hand.open()
     try:
         hand.set_torque(True)
-        start_quality = sim.quality if sim is not None else float("nan")
+        start_quality = world.quality if world is not None else float("nan")
         result = run_hand_episode(hand, localizer, build_policy(settings), parts, settings,
                                   on_step=record,
-                                  truth=None if sim is None else lambda: sim.pose,
-                                  quality=None if sim is None else lambda: sim.quality)
+                                  truth=None if world is None else lambda: world.pose,
+                                  quality=None if world is None else lambda: world.quality)
         if 0 in snapshot_steps:
             snapshots.setdefault(0, localizer.hypotheses(limit=SNAPSHOT_LIMIT))
     finally:
         hand.close()
-    truth = sim.pose if sim is not None else start
-    unknown = settings.single_finger or sim is None
+    truth = world.pose if world is not None else start
+    known = world is not None or not any(s.kind == "manipulate" for s in result.steps)
+    unknown_quality = settings.single_finger or world is None
     return HandEpisodeReport(settings=settings, start=start, truth=truth, result=result,
-                             score=score(result.estimate, truth, result.dropped),
+                             score=score(result.estimate, truth, result.dropped) if known
+                             else HandScore(None, None, False, False),
                              parts=parts,
-                             min_quality=float("nan") if unknown else sim.min_quality,
-                             start_quality=float("nan") if unknown else start_quality,
-                             snapshots=snapshots)
+                             min_quality=float("nan") if unknown_quality else world.min_quality,
+                             start_quality=float("nan") if unknown_quality else start_quality,
+                             snapshots=snapshots, truth_known=known)
