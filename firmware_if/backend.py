@@ -132,6 +132,35 @@ def check_can_step(*, fault: str | None, torque_on: bool, busy: bool) -> None:
         raise NotReadyError("a step is still under way")
 
 
+def check_hand_command(command: HandCommand, *, hand: str, fingers: int, fault: str | None,
+                       torque_on: bool, busy: bool, dropped: bool) -> None:
+    """The contract's preconditions for `command_hand` of a planar hand, raised the same way
+    by every implementation: as `check_can_step`, then a held object, a move (or None) per
+    finger, at least one moving, all in the hand's x-z plane."""
+    check_can_step(fault=fault, torque_on=torque_on, busy=busy)
+    if dropped:
+        raise NotReadyError("the object was dropped: nothing left to explore")
+    if len(command.moves) != fingers:
+        raise ValueError(f"a command for hand '{hand}' needs {fingers} moves (None for a "
+                         f"finger that holds), got {len(command.moves)}")
+    if not command.moving:
+        raise ValueError("a command moves at least one finger")
+    if any(m is not None and m.dy for m in command.moves):
+        raise ValueError(f"hand '{hand}' moves in its x-z plane: dy must be 0")
+
+
+class PlanarHand:
+    """A single finger's shorthand on a planar hand: `read_state` is the first finger's
+    state, and steps go through `command_hand` (a finger of a hand moves in x-z)."""
+
+    def read_state(self) -> FingerState:
+        return self.read_hand().fingers[0]  # type: ignore[attr-defined]
+
+    def command_step(self, step: StepCommand) -> None:
+        raise ValueError(f"hand '{self.hand.name}' moves in its x-z plane: step it with "  # type: ignore[attr-defined]
+                         "command_hand (a FingerMove per finger)")
+
+
 class HandOfOne:
     """`read_hand` and `command_hand` for a backend of one finger, in terms of its
     `read_state` and `command_step`: a single finger is a hand of one."""

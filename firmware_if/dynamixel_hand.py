@@ -22,7 +22,13 @@ from dataclasses import dataclass
 import numpy as np
 
 from firmware_if import kinematics as kin
-from firmware_if.backend import FingerState, HandCommand, HandState, StepCommand, check_can_step
+from firmware_if.backend import (
+    FingerState,
+    HandCommand,
+    HandState,
+    PlanarHand,
+    check_hand_command,
+)
 from firmware_if.dxl_bus import ServoReading
 from firmware_if.dynamixel_backend import DynamixelBackend, StepSettings, goal_ticks
 from firmware_if.errors import HandConfigError, HardwareFault, NotReadyError
@@ -36,7 +42,7 @@ PRESSING = 0.5
 """A finger touches something when a joint draws at least this fraction of the goal current."""
 
 
-class DynamixelHand(DynamixelBackend):
+class DynamixelHand(PlanarHand, DynamixelBackend):  # type: ignore[misc]
     """Several planar fingers of Dynamixel servos on one bus, implementing
     `firmware_if.backend.Backend` (see module docstring)."""
 
@@ -107,28 +113,11 @@ class DynamixelHand(DynamixelBackend):
         self._state = state
         return state
 
-    def read_state(self) -> FingerState:
-        """The first finger's state (the contract's single-finger shorthand)."""
-        return self.read_hand().fingers[0]
-
-    def command_step(self, step: StepCommand) -> None:
-        raise ValueError(f"hand '{self.hand.name}' moves in its x-z plane: step it with "
-                         "command_hand (a FingerMove per finger)")
-
     def command_hand(self, command: HandCommand) -> None:
         self._require_open()
-        check_can_step(fault=self._fault, torque_on=self._torque,
-                       busy=self._step is not None)
-        if self._dropped:
-            raise NotReadyError("the object was dropped: nothing left to explore")
-        if len(command.moves) != len(self.fingers):
-            raise ValueError(f"a command for hand '{self.hand.name}' needs "
-                             f"{len(self.fingers)} moves (None for a finger that holds), "
-                             f"got {len(command.moves)}")
-        if not command.moving:
-            raise ValueError("a command moves at least one finger")
-        if any(m is not None and m.dy for m in command.moves):
-            raise ValueError(f"hand '{self.hand.name}' moves in its x-z plane: dy must be 0")
+        check_hand_command(command, hand=self.hand.name, fingers=len(self.fingers),
+                           fault=self._fault, torque_on=self._torque,
+                           busy=self._step is not None, dropped=self._dropped)
         for i in command.moving:
             if command.moves[i].roll and self.fingers[i].tip_roll is None:  # type: ignore[union-attr]
                 raise ValueError(f"finger '{self.fingers[i].name}' has no tip-roll servo")

@@ -29,8 +29,8 @@ from firmware_if.backend import (
     FingerState,
     HandCommand,
     HandState,
-    StepCommand,
-    check_can_step,
+    PlanarHand,
+    check_hand_command,
 )
 from firmware_if.errors import NotReadyError
 from firmware_if.hand import Finger, Hand
@@ -113,7 +113,7 @@ class _Dropped(Exception):
     """The grasp lost its margin part-way through a move."""
 
 
-class SimulatedHand(FaultLatch):
+class SimulatedHand(PlanarHand, FaultLatch):
     """A simulated hand and object, implementing `firmware_if.backend.Backend`."""
 
     def __init__(self, hand: Hand, contour: Contour, config: HandSimConfig,
@@ -204,29 +204,12 @@ class SimulatedHand(FaultLatch):
             for r, q, roll in zip(self._readings, self._q, self._rolls, strict=True))
         return HandState(t_ns=self._clock.now_ns(), fingers=fingers, dropped=self._dropped)
 
-    def read_state(self) -> FingerState:
-        """The first finger's state (the contract's single-finger shorthand)."""
-        return self.read_hand().fingers[0]
-
-    def command_step(self, step: StepCommand) -> None:
-        raise ValueError(f"hand '{self.hand.name}' moves in its x-z plane: step it with "
-                         "command_hand (a FingerMove per finger)")
-
     def command_hand(self, command: HandCommand) -> None:
         self._require_open()
-        check_can_step(fault=self._fault, torque_on=self._torque,
-                       busy=self._busy_until is not None)
-        if self._dropped:
-            raise NotReadyError("the object was dropped: nothing left to explore")
-        if len(command.moves) != len(self.fingers):
-            raise ValueError(f"a command for hand '{self.hand.name}' needs "
-                             f"{len(self.fingers)} moves (None for a finger that holds), "
-                             f"got {len(command.moves)}")
+        check_hand_command(command, hand=self.hand.name, fingers=len(self.fingers),
+                           fault=self._fault, torque_on=self._torque,
+                           busy=self._busy_until is not None, dropped=self._dropped)
         moving = command.moving
-        if not moving:
-            raise ValueError("a command moves at least one finger")
-        if any(m is not None and m.dy for m in command.moves):
-            raise ValueError(f"hand '{self.hand.name}' moves in its x-z plane: dy must be 0")
         moves = np.array([[0.0, 0.0] if m is None else [m.dx, m.dz] for m in command.moves])
         rolls = np.array([0.0 if m is None else m.roll for m in command.moves])
         self._blocked = not self._reachable(self._centres + moves)
