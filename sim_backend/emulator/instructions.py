@@ -42,10 +42,10 @@ def write_inst(bus: ServoBus, packet: pk.Packet, now: int) -> None:
     for servo in bus.targets(packet.id):
         old_id = servo.id
         error = servo.write(address, data, now)
+        _rekey(bus, old_id, servo)  # before the reply: whoever has it finds the servo moved
         if bus.wants_reply(servo, packet, False):
             # sent after the write: an ID change answers with the new id
             bus.reply(servo, servo.error_byte(error))
-        _rekey(bus, old_id, servo)
 
 
 def _rekey(bus: ServoBus, old_id: int, servo: EmulatedServo) -> None:
