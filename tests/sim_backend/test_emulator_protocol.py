@@ -129,7 +129,8 @@ def test_factory_reset_example_keeps_id(bus):
     b.servos[1].set("return_delay_time", 0)
     reply = port.exchange(h("FF FF FD 00 01 04 00 06 01 A1 E6"), 11)
     assert reply == h("FF FF FD 00 01 04 00 55 00 A1 0C")
-    assert b.servos[1].get("return_delay_time") == 250
+    # the servo answers, then resets: the bus applies it after the reply has gone out
+    assert b.wait_until(lambda: b.servos[1].get("return_delay_time") == 250)
     assert b.servos[1].id == 1
 
 
@@ -150,7 +151,7 @@ def test_reboot_example_clears_hardware_error_and_keeps_eeprom(bus):
     assert ping.params[0] & 0x80  # the alert bit
     reply = pk.parse(port.exchange(h("FF FF FD 00 01 03 00 08 2F 4E"), 11))
     assert reply.params == b"\x80"  # answered (alert still set), then rebooted
-    assert b.servos[1].get("hardware_error_status") == 0
+    assert b.wait_until(lambda: b.servos[1].get("hardware_error_status") == 0)
     assert b.servos[1].get("return_delay_time") == 3
 
 
