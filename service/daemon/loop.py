@@ -27,7 +27,8 @@ class Samples:
     BIN_RATIO = 1.01
     """Neighbouring histogram edges differ by 1 %: whole-run percentiles are exact to 1 %."""
     _LOW_NS = 1_000
-    _BINS = int(math.log(1e11 / _LOW_NS) / math.log(BIN_RATIO)) + 2  # 1 us .. 100 s
+    _LOG_RATIO = math.log(BIN_RATIO)
+    _BINS = int(math.log(1e11 / _LOW_NS) / _LOG_RATIO) + 2  # 1 us .. 100 s
 
     def __init__(self, capacity: int = 1 << 16) -> None:
         self._buf = np.zeros(capacity, dtype=np.int64)
@@ -44,7 +45,7 @@ class Samples:
     def _bin(self, value_ns: int) -> int:
         if value_ns <= self._LOW_NS:
             return 0
-        k = 1 + int(math.log(value_ns / self._LOW_NS) / math.log(self.BIN_RATIO))
+        k = 1 + int(math.log(value_ns / self._LOW_NS) / self._LOG_RATIO)
         return min(k, self._BINS - 1)
 
     def _upper_edge_ns(self, k: int) -> float:

@@ -154,13 +154,12 @@ class InfoGainPolicy:
         """The nearest place not read yet and not known unreachable, at any distance: once
         every place in reach has been read, the finger shuttled between the last two (a
         planar finger at the map's edge, its unread places 7 steps away)."""
-        for radius in range(1, 16 * self.reach + 1):
-            ring = _diamond(radius, profile)
-            ring = ring[np.abs(ring).sum(axis=1) == radius]
-            for i, j in ring:
-                place = (here[0] + int(i), here[1] + int(j))
-                if self._reads[place] == 0 and place not in self._unreachable:
-                    return place
+        offsets = _diamond(16 * self.reach, profile)
+        nearest_first = np.argsort(np.abs(offsets).sum(axis=1), kind="stable")
+        for i, j in offsets[nearest_first]:
+            place = (here[0] + int(i), here[1] + int(j))
+            if self._reads[place] == 0 and place not in self._unreachable:
+                return place
         return None
 
     def _moves(self, view: PolicyInput, here: tuple[int, int]) -> list[int]:
