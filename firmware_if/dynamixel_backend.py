@@ -30,13 +30,12 @@ from firmware_if.errors import (
     NotReadyError,
     PortLost,
 )
-from firmware_if.hand import Hand, Joint, load_hand
+from firmware_if.hand import Hand, joint_ticks, load_hand
 from firmware_if.registers import (
     CURRENT_BASED_POSITION,
     RAD_PER_TICK,
     amp_to_current,
     rad_s_to_velocity,
-    rad_to_ticks,
     ticks_to_rad,
 )
 
@@ -314,7 +313,7 @@ class DynamixelBackend(HandOfOne):
                                 "the fingertip; move the hand closer and retry")
 
     def _goal_ticks(self, q: np.ndarray) -> dict[int, int]:
-        return goal_ticks(self.hand.joints, q)
+        return joint_ticks(self.hand.joints, q)
 
     def _read(self, goals: dict[int, int] | None = None) -> FingerState:
         readings = self.bus.cycle(goals)
@@ -351,10 +350,6 @@ class DynamixelBackend(HandOfOne):
             raise NotReadyError("Dynamixel finger is not open: call open() first")
 
 
-def goal_ticks(joints: tuple[Joint, ...], q: np.ndarray) -> dict[int, int]:
-    """Goal Position register values {servo id: ticks} of a chain at joint angles `q`."""
-    return {j.id: rad_to_ticks(float(a), j.zero_ticks, j.direction)
-            for j, a in zip(joints, q, strict=True)}
 
 
 @dataclass

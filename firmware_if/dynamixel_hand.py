@@ -30,9 +30,9 @@ from firmware_if.backend import (
     check_hand_command,
 )
 from firmware_if.dxl_bus import ServoReading
-from firmware_if.dynamixel_backend import DynamixelBackend, StepSettings, goal_ticks
+from firmware_if.dynamixel_backend import DynamixelBackend, StepSettings
 from firmware_if.errors import HandConfigError, HardwareFault, NotReadyError
-from firmware_if.hand import Finger, Hand, load_hand
+from firmware_if.hand import Finger, Hand, joint_ticks, load_hand
 from firmware_if.registers import RAD_PER_TICK, amp_to_current, rad_to_ticks, ticks_to_rad
 
 HAND_PRESS = 0.0005
@@ -94,7 +94,7 @@ class DynamixelHand(PlanarHand, DynamixelBackend):  # type: ignore[misc]
         goals: dict[int, int] = {}
         for i, (finger, f) in enumerate(zip(self.fingers, state.fingers, strict=True)):
             q = np.asarray(f.joints)
-            goals.update(goal_ticks(finger.joints, q))
+            goals.update(joint_ticks(finger.joints, q))
             self._goal_q[i] = q
             inward = np.asarray(self.hand.grasp_centre) - _xz(f.centre)
             self._push[i] = inward / max(float(np.hypot(*inward)), 1e-12)
@@ -137,7 +137,7 @@ class DynamixelHand(PlanarHand, DynamixelBackend):  # type: ignore[misc]
                 self._blocked = True
                 return
             goal_q[i] = ik.q
-            goals.update(goal_ticks(finger.joints, ik.q))
+            goals.update(joint_ticks(finger.joints, ik.q))
             roll = finger.tip_roll
             if move.roll and roll is not None and f.tip_roll is not None:
                 goals[roll.id] = rad_to_ticks(f.tip_roll + move.roll, roll.zero_ticks,

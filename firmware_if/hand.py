@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import math
 import tomllib
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -22,9 +23,17 @@ from firmware_if.registers import (
     POSITION_CENTRE,
     RAD_S_PER_VEL,
     REG,
+    rad_to_ticks,
 )
 
 PRESET_DIR = Path(__file__).with_name("hands")
+
+
+def joint_ticks(joints: Sequence[Joint], q: Sequence[float]) -> dict[int, int]:
+    """Position register values {servo id: ticks} of a chain's joints at angles `q`: goals
+    for the backend, present positions for the emulator."""
+    return {j.id: rad_to_ticks(float(a), j.zero_ticks, j.direction)
+            for j, a in zip(joints, q, strict=True)}
 
 
 def _vec3(value: Any, where: str) -> tuple[float, float, float]:

@@ -26,7 +26,7 @@ import numpy as np
 from firmware_if import kinematics as kin
 from firmware_if.backend import FingerMove, HandCommand
 from firmware_if.errors import FirmwareError
-from firmware_if.hand import Hand
+from firmware_if.hand import Hand, joint_ticks
 from firmware_if.registers import rad_to_ticks, ticks_to_rad
 from service.errors import ServiceError
 from sim_backend.emulator.servo import EmulatedServo
@@ -57,8 +57,7 @@ class HandPlant:
         """Register values where the fingers closed on the object (where the servos power up)."""
         ticks: dict[int, int] = {}
         for finger, q, roll in zip(self.hand.fingers, self._reported, self._rolls, strict=True):
-            ticks.update({j.id: rad_to_ticks(float(a), j.zero_ticks, j.direction)
-                          for j, a in zip(finger.joints, q, strict=True)})
+            ticks.update(joint_ticks(finger.joints, q))
             if finger.tip_roll is not None:
                 r = finger.tip_roll
                 ticks[r.id] = rad_to_ticks(float(roll), r.zero_ticks, r.direction)

@@ -13,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 
 from firmware_if import kinematics as kin
-from firmware_if.hand import Hand
+from firmware_if.hand import Hand, joint_ticks
 from firmware_if.registers import BAUD_REGISTER, rad_to_ticks, ticks_to_rad
 from service.localization.surface import ContactSurface, HeightMap, contact_surface
 from sim_backend.emulator.bus import Plant
@@ -46,8 +46,7 @@ class FingerPlant:
 
     def home_ticks(self) -> dict[int, int]:
         """Register values of the home posture (where the servos power up)."""
-        return {j.id: rad_to_ticks(q, j.zero_ticks, j.direction)
-                for j, q in zip(self.hand.joints, self.home_q, strict=True)}
+        return joint_ticks(self.hand.joints, self.home_q)
 
     def to_map(self, centre: np.ndarray) -> tuple[float, float]:
         """Hand-frame centre -> map (x, y)."""
@@ -129,9 +128,12 @@ class FingerPlant:
 def hand_bus_servos(hand: Hand, plant: Plant | None = None) -> list[EmulatedServo]:
     """One emulated servo per joint of every finger of `hand` (and each tip roll), powered
     up where the plant has them (else at home), all on one bus."""
-    home = plant.home_ticks() if plant is not None else {
-        j.id: rad_to_ticks(q, j.zero_ticks, j.direction)
-        for f in hand.fingers for j, q in zip(f.joints, f.home, strict=True)}
+    if plant is not None:
+        home = plant.home_ticks()
+    else:
+        home = {}
+        for finger in hand.fingers:
+            home.update(joint_ticks(finger.joints, finger.home))
     servos = []
     for finger in hand.fingers:
         servos += [EmulatedServo(j.id, j.model, position=home[j.id]) for j in finger.joints]
