@@ -13,7 +13,7 @@ Two measures:
   normal force. Zero without force closure. Geometry only: it ignores how hard the fingers
   can push and what the object weighs.
 * `quality` - what holds the object: the fingers push at most as hard as their joints'
-  goal current allows (through the Jacobian, `kinematics.max_tip_force`), so each contact
+  goal current allows (through the Jacobian, `kinematics.tip_force_bound`), so each contact
   can apply a bounded set of forces; the grasp can apply their Minkowski sum. Quality is
   the largest disturbance wrench (newtons) the grasp resists on top of the object's weight,
   negative when it cannot even carry that. The object slips - a drop - when it falls below
@@ -22,7 +22,8 @@ Two measures:
 `quality` runs in the policy's inner loop for every move and plausible pose, so it is one
 compiled loop: the distance from the load to the boundary of a Minkowski sum of polygons is
 the least, over the sum's facet normals, of the support function minus the load's
-projection; every facet normal is a cross product of two of the polygons' edges.
+projection; every facet normal is a polygon's own plane's or the cross product of edges of
+two different polygons (`_margins`).
 """
 
 from __future__ import annotations
@@ -35,9 +36,10 @@ import numba
 import numpy as np
 from scipy.spatial import ConvexHull, QhullError
 
-from firmware_if.kinematics import Chain, max_tip_force
+from firmware_if.kinematics import Chain, tip_force_bound
 from firmware_if.registers import NEWTON_METRES_PER_AMP
 from service.errors import ConfigError
+from service.localization import chain_kernels
 from service.localization.objects.field import ContactField
 from service.localization.objects.rolling import contacts
 
@@ -134,54 +136,151 @@ def unit_directions(normals: np.ndarray, mu: float) -> np.ndarray:
 
 
 @numba.njit(cache=True, nogil=True)
+def _corners(points: np.ndarray, origins: np.ndarray, forces: np.ndarray, rho: float,
+             b: int, vertices: np.ndarray) -> None:
+    """Grasp b's contacts' wrench polygons' corners into `vertices` (n, k + 1, 3); corner 0
+    is the zero wrench."""
+    for i in range(forces.shape[1]):
+        rx = points[b, i, 0] - origins[b, 0]
+        rz = points[b, i, 1] - origins[b, 1]
+        for v in range(forces.shape[2]):
+            fx, fz = forces[b, i, v, 0], forces[b, i, v, 1]
+            vertices[i, v + 1, 0] = fx
+            vertices[i, v + 1, 1] = fz
+            vertices[i, v + 1, 2] = (rx * fz - rz * fx) / rho
+
+
+@numba.njit(cache=True, nogil=True)
+def _gap(ux: float, uy: float, uz: float, vertices: np.ndarray, load: np.ndarray,
+         best: float) -> float:
+    """The least of `best` and h(u) - u.load and h(-u) + u.load for a candidate facet
+    normal u (unit), h the support function of the Minkowski sum of the polygons."""
+    up, down = 0.0, 0.0
+    for i in range(vertices.shape[0]):
+        top, bottom = 0.0, 0.0  # the zero force is a corner of every polygon
+        for v in range(1, vertices.shape[1]):
+            p = ux * vertices[i, v, 0] + uy * vertices[i, v, 1] + uz * vertices[i, v, 2]
+            top = max(top, p)
+            bottom = max(bottom, -p)
+        up += top
+        down += bottom
+    along = ux * load[0] + uy * load[1] + uz * load[2]
+    return min(best, up - along, down + along)
+
+
+@numba.njit(cache=True, nogil=True)
+def _normal_gap(e: np.ndarray, f: np.ndarray, vertices: np.ndarray, load: np.ndarray,
+                best: float) -> float:
+    """`_gap` for the normal of edges e and f (3,); `best` when they are parallel."""
+    ux = e[1] * f[2] - e[2] * f[1]
+    uy = e[2] * f[0] - e[0] * f[2]
+    uz = e[0] * f[1] - e[1] * f[0]
+    norm = math.sqrt(ux * ux + uy * uy + uz * uz)
+    if norm < 1e-12:
+        return best
+    return _gap(ux / norm, uy / norm, uz / norm, vertices, load, best)
+
+
+@numba.njit(cache=True, nogil=True)
+def _plane_gap(edges: np.ndarray, count: int, vertices: np.ndarray, load: np.ndarray,
+               best: float) -> float:
+    """`_gap` for the normal of a polygon's own plane: its first edge crossed with the
+    first edge not parallel to it."""
+    for e2 in range(1, count):
+        f = edges[e2]
+        e = edges[0]
+        ux = e[1] * f[2] - e[2] * f[1]
+        uy = e[2] * f[0] - e[0] * f[2]
+        uz = e[0] * f[1] - e[1] * f[0]
+        if math.sqrt(ux * ux + uy * uy + uz * uz) >= 1e-12:
+            return _normal_gap(e, f, vertices, load, best)
+    return best
+
+
+@numba.njit(cache=True, nogil=True)
+def _hull_edges(forces: np.ndarray, b: int, i: int, vertices: np.ndarray, edges: np.ndarray
+                ) -> int:
+    """Contact i's polygon's edges (the hull of zero and its force corners) into `edges`,
+    as corner c minus corner a (a < c); how many. A pair of corners is kept unless other
+    corners lie clearly on both sides of the line through them (a diagonal): near-collinear
+    corners keep every pair they could form, so no edge is ever missed."""
+    k = forces.shape[2]
+    m = 0
+    for a in range(k + 1):
+        ax = 0.0 if a == 0 else forces[b, i, a - 1, 0]
+        az = 0.0 if a == 0 else forces[b, i, a - 1, 1]
+        for c in range(a + 1, k + 1):
+            dx, dz = forces[b, i, c - 1, 0] - ax, forces[b, i, c - 1, 1] - az
+            scale = dx * dx + dz * dz
+            left, right = False, False
+            for o in range(k + 1):
+                if o in (a, c):
+                    continue
+                ox = (0.0 if o == 0 else forces[b, i, o - 1, 0]) - ax
+                oz = (0.0 if o == 0 else forces[b, i, o - 1, 1]) - az
+                side = dx * oz - dz * ox
+                tol = 1e-9 * math.sqrt(scale * (ox * ox + oz * oz))
+                left |= side > tol
+                right |= side < -tol
+            if not (left and right):
+                for d in range(3):
+                    edges[i, m, d] = vertices[i, c, d] - vertices[i, a, d]
+                m += 1
+    return m
+
+
+@numba.njit(cache=True, nogil=True)
+def _every_pair(vertices: np.ndarray, load: np.ndarray) -> float:
+    """The least gap over the normals of every pair of corner differences of every polygon:
+    a superset of the sum's facet normals, whatever the grasp."""
+    n, corners = vertices.shape[0], vertices.shape[1]
+    per = corners * (corners - 1) // 2
+    edges = np.empty((n * per, 3))
+    m = 0
+    for i in range(n):
+        for a in range(corners):
+            for c in range(a + 1, corners):
+                for d in range(3):
+                    edges[m, d] = vertices[i, c, d] - vertices[i, a, d]
+                m += 1
+    best = np.inf
+    for e1 in range(m):
+        for e2 in range(e1 + 1, m):
+            best = _normal_gap(edges[e1], edges[e2], vertices, load, best)
+    return best
+
+
+@numba.njit(cache=True, nogil=True)
 def _margins(points: np.ndarray, origins: np.ndarray, forces: np.ndarray, rho: float,
              load: np.ndarray) -> np.ndarray:
     """Per grasp b: min over candidate facet normals u of h(u) - u.load, where h is the
     support function of the Minkowski sum of the contacts' wrench polygons (each the hull
-    of zero and its force corners)."""
+    of zero and its force corners).
+
+    Each polygon lies in a plane through zero, so a facet of the sum is either a translate
+    of one polygon (normal: that plane's) or spanned by edges of two different polygons
+    (normal: their cross product). Those normals are tried first; when the least gap over
+    them is positive the load is inside the sum and that gap is its distance to the
+    boundary, as over any superset. Otherwise (the grasp cannot carry the load) the value
+    is the least over every pair of corner differences (`_every_pair`), as it always was:
+    outside the sum the least depends on which normals are tried."""
     batch, n, k = forces.shape[0], forces.shape[1], forces.shape[2]
     vertices = np.zeros((n, k + 1, 3))
-    per = (k + 1) * k // 2
-    edges = np.empty((n * per, 3))
+    edges = np.empty((n, (k + 1) * k // 2, 3))
+    counts = np.empty(n, dtype=np.int64)
     out = np.empty(batch)
     for b in range(batch):
-        for i in range(n):
-            rx = points[b, i, 0] - origins[b, 0]
-            rz = points[b, i, 1] - origins[b, 1]
-            for v in range(k):
-                fx, fz = forces[b, i, v, 0], forces[b, i, v, 1]
-                vertices[i, v + 1, 0] = fx
-                vertices[i, v + 1, 1] = fz
-                vertices[i, v + 1, 2] = (rx * fz - rz * fx) / rho
-        m = 0
-        for i in range(n):
-            for a in range(k + 1):
-                for c in range(a + 1, k + 1):
-                    for d in range(3):
-                        edges[m, d] = vertices[i, c, d] - vertices[i, a, d]
-                    m += 1
+        _corners(points, origins, forces, rho, b, vertices)
         best = np.inf
-        for e1 in range(m):
-            for e2 in range(e1 + 1, m):
-                ux = edges[e1, 1] * edges[e2, 2] - edges[e1, 2] * edges[e2, 1]
-                uy = edges[e1, 2] * edges[e2, 0] - edges[e1, 0] * edges[e2, 2]
-                uz = edges[e1, 0] * edges[e2, 1] - edges[e1, 1] * edges[e2, 0]
-                norm = math.sqrt(ux * ux + uy * uy + uz * uz)
-                if norm < 1e-12:
-                    continue
-                ux, uy, uz = ux / norm, uy / norm, uz / norm
-                for sign in (1.0, -1.0):
-                    h = 0.0
-                    for i in range(n):
-                        top = 0.0  # the zero force is a corner of every polygon
-                        for v in range(1, k + 1):
-                            p = sign * (ux * vertices[i, v, 0] + uy * vertices[i, v, 1]
-                                        + uz * vertices[i, v, 2])
-                            top = max(top, p)
-                        h += top
-                    value = h - sign * (ux * load[0] + uy * load[1] + uz * load[2])
-                    best = min(best, value)
-        out[b] = best
+        for i in range(n):
+            counts[i] = _hull_edges(forces, b, i, vertices, edges)
+            best = _plane_gap(edges[i], counts[i], vertices, load, best)
+        for i in range(n):
+            for j in range(i + 1, n):
+                for e1 in range(counts[i]):
+                    for e2 in range(counts[j]):
+                        best = _normal_gap(edges[i, e1], edges[j, e2], vertices, load, best)
+        out[b] = best if best > 1e-12 else _every_pair(vertices, load)
     return out
 
 
@@ -207,7 +306,9 @@ def finger_limits(finger: Chain, q: np.ndarray, torque: float, directions: np.nd
     servo's torque per ampere)."""
     d = np.asarray(directions, dtype=np.float64)
     spatial = np.stack([d[..., 0], np.zeros(d.shape[:-1]), d[..., 1]], axis=-1)
-    return max_tip_force(finger, q, torque, spatial)
+    q = np.asarray(q, dtype=np.float64)
+    jac = chain_kernels.jacobians(finger, q.reshape(-1, q.shape[-1]))
+    return tip_force_bound(jac[0] if q.ndim == 1 else jac, torque, spatial)
 
 
 def joint_torque(goal_current_a: float, model: str) -> float:

@@ -6,6 +6,8 @@ import itertools
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from scipy.spatial import ConvexHull
 
 from firmware_if import kinematics as kin
@@ -90,3 +92,37 @@ def test_finger_limits_saturate_a_joint():
 def test_spec_validation(kwargs, message):
     with pytest.raises(ConfigError, match=message):
         g.GraspSpec(**kwargs)
+
+
+def every_pair_reference(points, origin, forces, rho, load):
+    """The quality as first written: the least gap over the normals of every pair of corner
+    differences of every contact's wrench polygon (a superset of the facet normals)."""
+    corners = g.wrenches(points[:, None, :], forces, origin, rho)  # (n, k, 3)
+    polygons = [np.vstack([np.zeros(3), c]) for c in corners]
+    edges = np.array([p[c] - p[a] for p in polygons
+                      for a, c in itertools.combinations(range(len(p)), 2)])
+    i, j = np.triu_indices(len(edges), 1)
+    u = np.cross(edges[i], edges[j])
+    norm = np.linalg.norm(u, axis=1)
+    u = u[norm >= 1e-12] / norm[norm >= 1e-12, None]
+    dots = np.stack([u @ p[1:].T for p in polygons])  # (n, candidates, k)
+    up = np.maximum(dots.max(axis=2), 0).sum(axis=0)
+    down = np.maximum(-dots.min(axis=2), 0).sum(axis=0)
+    return min(np.min(up - u @ load), np.min(down + u @ load))
+
+
+@given(seed=st.integers(0, 2**32 - 1), n=st.integers(2, 4), mu=st.floats(0.1, 1.2))
+@settings(max_examples=40, deadline=None)
+def test_quality_equals_the_every_pair_formulation(seed, n, mu):
+    """The facet normals tried first (each plane, pairs of edges of two polygons) give the
+    value every pair of corner differences gave, inside the sum and outside it."""
+    rng = np.random.default_rng(seed)
+    points, normals = on_disc(rng.uniform(0, 360, n), rng.uniform(0.02, 0.03, (n, 1)))
+    limits = rng.uniform(0.3, 4, (n, 3))
+    limits[rng.uniform(size=n) < 0.2, 1] *= 0.8  # straight in within the cone edges' chord
+    forces = g.force_vertices(normals, mu, limits)
+    origin = rng.normal(0, 0.002, 2)
+    load = rng.normal([0, 0.5, 0], [0.3, 0.5, 0.2])
+    q = float(g.quality(points, origin, forces, 0.03, load))
+    assert q == pytest.approx(every_pair_reference(points, origin, forces, 0.03, load),
+                              rel=1e-9, abs=1e-12)

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from hypothesis import given
+from hypothesis import strategies as st
 
 from firmware_if.hand import load_hand
 from service.episode.hand_episode import simulate_hand
@@ -18,6 +20,7 @@ from service.localization.policies.grasp_gated import (
     SPREAD_CAP,
     GraspGatedPolicy,
     HandView,
+    _best_allowed,
     _with_cover,
     _with_spread,
 )
@@ -152,3 +155,22 @@ def test_two_fingers_hold_where_the_hypotheses_left_gaps(name, seed):
     report = simulate_hand(HandSettings(object=name, hand="two-finger", seed=seed,
                                         noise=True, max_steps=60))
     assert not report.result.dropped and not report.score.wrong_declaration
+
+
+@given(scores=st.lists(st.sampled_from([0.0, -0.0, 0.5, 1.0, 1.0, -np.inf, np.inf, np.nan])
+                       | st.floats(-2, 2), max_size=12),
+       allowed=st.lists(st.booleans(), min_size=12, max_size=12))
+def test_the_best_allowed_option_is_argmax_over_the_allowed(scores, allowed):
+    """Asking best first gives the option `np.argmax` picks among all the allowed ones (NaN
+    first, ties to the lower index), and asks nothing after the one it returns."""
+    score = np.array(scores, dtype=float)
+    asked: list[int] = []
+
+    def check(k: int) -> bool:
+        asked.append(k)
+        return allowed[k]
+
+    best = _best_allowed(score, check)
+    ok = [k for k in range(len(score)) if allowed[k]]
+    assert best == (ok[int(np.argmax(score[ok]))] if ok else None)
+    assert len(set(asked)) == len(asked) and (best is None or asked[-1] == best)

@@ -33,15 +33,16 @@ With nothing safe left to do, the decision says so (`stuck`) and the episode end
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+import dataclasses
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import ClassVar
 
 import numpy as np
 
-from firmware_if import kinematics as kin
 from firmware_if.backend import FingerMove, HandCommand
 from firmware_if.hand import Finger
+from service.localization import chain_kernels
 from service.localization.grasp import GraspSpec, hand_quality
 from service.localization.localizers.base import Hypotheses
 from service.localization.objects import rolling
@@ -209,6 +210,8 @@ class GraspGatedPolicy:
     # -- exploring -------------------------------------------------------------------------
     def _explore(self, view: HandView, poses: np.ndarray, weights: np.ndarray,
                  radii: np.ndarray) -> HandDecision | None:
+        """The best move of one finger that is in reach and safe (`_best_allowed`: reach
+        and the gate are checked best first, only as far as the choice needs)."""
         n = len(view.fingers)
         _, normals = rolling.contacts(view.field, poses[:1], view.centres[None], radii)
         tangents = np.stack([-normals[0, :, 1], normals[0, :, 0]], axis=-1)
@@ -217,44 +220,67 @@ class GraspGatedPolicy:
         if not options:
             return None
         h = len(poses)
-        readings, checks, targets = [], [], []
+        here = rolling.settle(view.field, poses, np.broadcast_to(view.centres, (h, n, 2)).copy(),
+                              radii)  # the fingers that hold, under each pose
+        checks, targets = [], []
         for f, d, part in options:
             delta = d * part * view.step_length * tangents[f]
             aims = []
             for share in (0.5, 1.0):  # the middle and the end of the move
-                centres = np.broadcast_to(view.centres, (h, n, 2)).copy()
-                centres[:, f] = view.centres[f] + share * delta
-                aims.append(rolling.settle(view.field, poses, centres, radii))
-            readings.append(aims[1][:, f])
+                moved = np.broadcast_to(view.centres[f] + share * delta, (h, 1, 2)).copy()
+                centres = here.copy()
+                centres[:, f] = rolling.settle(view.field, poses, moved, radii[f:f + 1])[:, 0]
+                aims.append(centres)
             checks.append(aims)
             targets.append(view.centres[f] + delta)
-        reach = [self._reach(view, f, np.array([targets[k], view.centres[f]
-                                                + 0.5 * (targets[k] - view.centres[f])]))
-                 for k, (f, _, _) in enumerate(options)]
-        quality = np.full((len(options), len(poses)), np.inf)
-        if not view.fixed:
-            quality = self._option_quality(view, poses, options, checks, reach)
+        readings = np.stack([aims[1][:, f] for aims, (f, _, _) in zip(checks, options,
+                                                                       strict=True)])
+        reach: dict[int, tuple[bool, np.ndarray]] = {}
+        quality: dict[int, np.ndarray] = {}
+
+        def reach_of(k: int) -> tuple[bool, np.ndarray]:
+            if k not in reach:
+                f = options[k][0]
+                reach[k] = self._reach(view, f, np.array(
+                    [targets[k], view.centres[f] + 0.5 * (targets[k] - view.centres[f])]))
+            return reach[k]
+
+        def quality_of(k: int, rows: slice = slice(None)) -> np.ndarray:
+            """Least predicted quality over the move's checkpoints, per plausible pose."""
+            if view.fixed:
+                return np.full(h, np.inf)[rows]
+            if k in quality:
+                return quality[k][rows]
+            f = options[k][0]
+            angles = reach_of(k)[1]  # (end, middle)
+            q = np.minimum(*(self._checkpoint_quality(view, poses[rows], checks[k][part][rows],
+                                                      f, angles[1 - part])
+                             for part in range(2)))
+            if rows == slice(None):
+                quality[k] = q
+            return q
+
         gated = self.gate and not view.fixed
-        safe = [not gated or self._safe(view, q, weights) for q in quality]
-        allowed = [k for k in range(len(options)) if reach[k][0] and safe[k]]
-        if not allowed:
-            return None
         s = max(view.sigma, 1e-4)
-        gain = information(np.stack(readings)[allowed], weights, s)
-        novel = np.array([self._novel(readings[k][:1], poses[0]) for k in allowed])
-        larger = np.array([options[k][2] for k in allowed])
+        weighed = weights > 0  # weightless poses add nothing to the information
+        gain = information(readings[:, weighed], weights[weighed], s)
+        novel = np.array([self._novel(readings[k][:1], poses[0]) for k in range(len(options))])
+        larger = np.array([part for _, _, part in options])
         score = gain + NOVELTY * novel + 1e-3 * larger  # ties: the longer step
-        if self.gate and not view.fixed and self._now[0] < 2 * view.grasp.threshold_n:
-            lead_after = np.array([quality[k, 0] for k in allowed])
+        if gated and self._now[0] < 2 * view.grasp.threshold_n:
+            lead_after = np.array([quality_of(k, slice(0, 1))[0] if reach_of(k)[0] else 0.0
+                                   for k in range(len(options))])
             score = score + RECOVERY * (lead_after - self._now[0]) / view.grasp.threshold_n
-        best = int(np.argmax(score))
-        k = allowed[best]
+        k = _best_allowed(score, lambda k: reach_of(k)[0] and (
+            not gated or self._safe(view, quality_of(k), weights)))
+        if k is None:
+            return None
         f, d, _ = options[k]
         moves: list[FingerMove | None] = [None] * n
         delta = targets[k] - view.centres[f]
         moves[f] = FingerMove(dx=float(delta[0]), dz=float(delta[1]))
         return HandDecision(HandCommand(tuple(moves)), "explore", f, d,
-                            float(quality[k].min()), float(gain[best]), bool(novel[best]))
+                            float(quality_of(k).min()), float(gain[k]), bool(novel[k]))
 
     def _reach(self, view: HandView, f: int, targets: np.ndarray
                ) -> tuple[bool, np.ndarray]:
@@ -262,26 +288,16 @@ class GraspGatedPolicy:
         finger = view.fingers[f]
         q0 = np.broadcast_to(view.joints[f], (len(targets), len(view.joints[f])))
         spatial = np.column_stack([targets[:, 0], np.zeros(len(targets)), targets[:, 1]])
-        result = kin.inverse(finger, spatial, q0, iterations=100)
-        return bool(np.all(result.reachable)), result.q
+        q, reached = chain_kernels.inverse(finger, spatial, q0, iterations=100)
+        return bool(np.all(reached)), q
 
-    def _option_quality(self, view: HandView, poses: np.ndarray,
-                        options: list[tuple[int, int, float]],
-                        checks: list[list[np.ndarray]],
-                        reach: list[tuple[bool, np.ndarray]]) -> np.ndarray:
-        """Least predicted quality (options, poses) over each move's checkpoints."""
-        h, n = len(poses), len(view.fingers)
-        centres = np.concatenate([c for aims in checks for c in aims])  # (k*2*h, n, 2)
-        batch = len(centres)
-        angles = [np.broadcast_to(view.joints[i], (batch, len(view.joints[i]))).copy()
-                  for i in range(n)]
-        for k, (f, _, _) in enumerate(options):
-            for part in range(2):
-                rows = slice((2 * k + part) * h, (2 * k + part + 1) * h)
-                angles[f][rows] = reach[k][1][1 - part]  # targets were (end, middle)
-        q = hand_quality(view.field, np.tile(poses, (2 * len(options), 1)), centres,
-                         view.fingers, angles, view.torque, view.grasp)
-        return q.reshape(len(options), 2, h).min(axis=1)
+    def _checkpoint_quality(self, view: HandView, poses: np.ndarray, centres: np.ndarray,
+                            f: int, angles: np.ndarray) -> np.ndarray:
+        """Quality under each pose of fingertips at `centres` (h, n, 2), finger f at joint
+        angles `angles` and the others where they are."""
+        joints = tuple(angles if i == f else q for i, q in enumerate(view.joints))
+        return hand_quality(view.field, poses, centres, view.fingers, joints, view.torque,
+                            view.grasp)
 
     def _safe(self, view: HandView, quality: np.ndarray, weights: np.ndarray) -> bool:
         """The gate on a move's predicted quality per plausible pose: under a likely pose
@@ -301,9 +317,13 @@ class GraspGatedPolicy:
     # -- manipulating ----------------------------------------------------------------------
     def _manipulate(self, view: HandView, poses: np.ndarray, weights: np.ndarray,
                     radii: np.ndarray) -> HandDecision | None:
+        """The best turn in reach that the gate allows (checked best first)."""
         lead = poses[0]
         h, n = len(poses), len(view.fingers)
-        best: tuple[float, HandDecision] | None = None
+        s = max(view.sigma, 1e-4)
+        weighed = weights > 0  # weightless poses add nothing to the information
+        turns: list[tuple[HandDecision, list[tuple[np.ndarray, np.ndarray]], list[np.ndarray]]]
+        turns, scores = [], []
         for turn in self.turns:
             moves, rolls = rolling.plan_turn(view.field, lead, view.centres, radii, turn,
                                              self.substeps)
@@ -315,40 +335,49 @@ class GraspGatedPolicy:
             final_poses, final = rolling.carry(
                 view.field, poses, tips, radii, moves, rolls, self.substeps,
                 on_substep=lambda p, c, states=states: states.append((p.copy(), c.copy())))
-            per_pose = self._turn_quality(view, states)
-            if per_pose is None or (self.gate and not self._safe(view, per_pose, weights)):
+            angles = self._turn_angles(view, states)
+            if angles is None:
                 continue
-            quality = float(per_pose.min())
-            s = max(view.sigma, 1e-4)
-            gain = float(information(final.reshape(1, h, 2 * n), weights, s)[0])
+            gain = float(information(final[weighed].reshape(1, -1, 2 * n), weights[weighed],
+                                     s)[0])
             novel = float(np.mean([self._novel(final[:1, f], final_poses[0])
                                    for f in range(n)]))
-            score = gain + NOVELTY * novel + 1e-3 * abs(turn)  # ties: the larger turn
-            if best is None or score > best[0]:
-                command = HandCommand(tuple(
-                    FingerMove(dx=float(m[0]), dz=float(m[1]), roll=float(r))
-                    for m, r in zip(moves, rolls, strict=True)))
-                best = (score, HandDecision(command, "manipulate", None, int(np.sign(turn)),
-                                            quality, gain))
-        return None if best is None else best[1]
+            command = HandCommand(tuple(
+                FingerMove(dx=float(m[0]), dz=float(m[1]), roll=float(r))
+                for m, r in zip(moves, rolls, strict=True)))
+            turns.append((HandDecision(command, "manipulate", None, int(np.sign(turn)),
+                                       gain=gain), states, angles))
+            scores.append(gain + NOVELTY * novel + 1e-3 * abs(turn))  # ties: the larger turn
+        quality: dict[int, np.ndarray] = {}
 
-    def _turn_quality(self, view: HandView, states: list[tuple[np.ndarray, np.ndarray]]
-                      ) -> np.ndarray | None:
-        """Least quality over every substep, per plausible pose, the fingers' joint angles
-        taken from where the leading pose puts their tips; None when out of reach."""
-        n = len(view.fingers)
+        def allowed(k: int) -> bool:
+            quality[k] = self._turn_quality(view, *turns[k][1:])
+            return not self.gate or self._safe(view, quality[k], weights)
+
+        k = _best_allowed(np.array(scores), allowed)
+        if k is None:
+            return None
+        return dataclasses.replace(turns[k][0], predicted_quality=float(quality[k].min()))
+
+    def _turn_angles(self, view: HandView, states: list[tuple[np.ndarray, np.ndarray]]
+                     ) -> list[np.ndarray] | None:
+        """Each finger's joint angles (substeps, joints) at every substep of a turn, taken
+        from where the leading pose puts its tip; None when out of reach."""
         lead_tips = np.stack([c[0] for _, c in states])  # (substeps, n, 2)
         angles = []
-        for f in range(n):
+        for f in range(len(view.fingers)):
             ok, q = self._reach(view, f, lead_tips[:, f])
             if not ok:
                 return None
-            angles.append(np.repeat(q, len(states[0][0]), axis=0))
-        poses = np.concatenate([p for p, _ in states])
-        centres = np.concatenate([c for _, c in states])
-        q = hand_quality(view.field, poses, centres, view.fingers, angles, view.torque,
-                         view.grasp)
-        return q.reshape(len(states), -1).min(axis=0)
+            angles.append(q)
+        return angles
+
+    def _turn_quality(self, view: HandView, states: list[tuple[np.ndarray, np.ndarray]],
+                      angles: list[np.ndarray]) -> np.ndarray:
+        """Least quality over every substep of a turn, per plausible pose."""
+        return np.min([hand_quality(view.field, p, c, view.fingers,
+                                    tuple(q[i] for q in angles), view.torque, view.grasp)
+                       for i, (p, c) in enumerate(states)], axis=0)
 
     # -- felt contour ----------------------------------------------------------------------
     def _remember(self, centres: np.ndarray, lead: np.ndarray) -> None:
@@ -429,6 +458,18 @@ def _loosest(view: HandView, poses: np.ndarray
     _, sv, vt = np.linalg.svd(jac, full_matrices=True)
     second = sv[:, 1] if sv.shape[1] > 1 else np.zeros(len(poses))  # one finger: loose too
     return vt[:, -1], vt[:, -2], second
+
+
+def _best_allowed(score: np.ndarray, allowed: Callable[[int], bool]) -> int | None:
+    """`np.argmax` of `score` over the indices `allowed` accepts (NaN counts highest; ties:
+    the lower index), asking `allowed` best first and only until one passes: reach and the
+    gate cost most of a decision, and the best option is usually allowed."""
+    nan = np.isnan(score)
+    rest = np.flatnonzero(~nan)
+    for k in np.concatenate([np.flatnonzero(nan), rest[np.argsort(-score[rest], kind="stable")]]):
+        if allowed(int(k)):
+            return int(k)
+    return None
 
 
 def _ambiguous(poses: np.ndarray, weights: np.ndarray) -> bool:
