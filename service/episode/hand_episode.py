@@ -8,13 +8,10 @@ grasp-gated policy decides, the hand moves, the localizer updates, everything is
 
 from __future__ import annotations
 
-import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
-
-import numpy as np
 
 from firmware_if.backend import HandCommand, HandState
 from firmware_if.errors import BusTimeoutError
@@ -29,32 +26,17 @@ from service.episode.hand_scenario import (
     score,
     streams,
 )
+from service.episode.hand_step import (
+    HandStepper,
+    HandStepRecord,
+    json_number,
+    plane_centres,
+    step_json,
+)
 from service.localization.localizers.base import Budget, Estimate, Hypotheses
-from service.localization.localizers.object_base import HandMeasurement
-from service.localization.policies.grasp_gated import GraspGatedPolicy, HandView
+from service.localization.policies.grasp_gated import GraspGatedPolicy
 
 SNAPSHOT_LIMIT = 400
-
-
-@dataclass(frozen=True)
-class HandStepRecord:
-    index: int
-    kind: str
-    """'explore' or 'manipulate'."""
-    finger: int | None
-    command: tuple[tuple[float, float, float] | None, ...]
-    centres: tuple[tuple[float, float], ...]
-    """Every fingertip centre read after the step (hand plane, metres)."""
-    blocked: bool
-    predicted_quality: float
-    """Least quality the policy predicted over the plausible poses (newtons)."""
-    quality: float
-    """The grasp's true quality after the step (simulation only; NaN otherwise)."""
-    candidates: int
-    compute_ms: float
-    policy_ms: float
-    estimate: tuple[float, float, float] | None
-    truth: tuple[float, float, float] | None
 
 
 @dataclass
@@ -69,10 +51,6 @@ class HandEpisodeResult:
     @property
     def converged(self) -> bool:
         return bool(self.estimate and self.estimate.converged)
-
-
-def _centres(state: HandState) -> np.ndarray:
-    return np.array([[f.centre[0], f.centre[2]] for f in state.fingers])
 
 
 def execute(hand: Any, command: HandCommand, timeout_s: float = 10.0) -> HandState:
@@ -97,70 +75,36 @@ def run_hand_episode(hand: Any, localizer: Any, policy: GraspGatedPolicy, parts:
     """Explore until the localizer converges, `max_steps` pass, the object drops or no safe
     move is left. `truth`/`quality` read the simulator's hidden state for the record."""
     state = hand.read_hand()
-    centres = _centres(state)
-    result = HandEpisodeResult(start_centres=tuple(map(tuple, centres.tolist())))
-    n = len(state.fingers)
-    localizer.start(HandMeasurement(step=0, centres=centres, moved=tuple(range(n))))
-    estimate = localizer.estimate()
-    sigma = float(localizer.ctx.sigma)
-    blocked: set[tuple[int, int]] = set()
+    stepper = HandStepper(localizer, policy, parts, settings)
+    result = HandEpisodeResult(start_centres=tuple(map(tuple, plane_centres(state).tolist())))
+    stepper.start(state)
     for index in range(1, settings.max_steps + 1):
-        if estimate.converged or estimate.candidates == 0:
+        if stepper.settled:
             break
-        t0 = time.perf_counter()
-        view = HandView(hypotheses=localizer.hypotheses(limit=500), centres=centres,
-                        joints=tuple(np.asarray(f.joints) for f in state.fingers),
-                        field=parts.field, fingers=parts.hand.fingers, torque=parts.torque,
-                        grasp=settings.grasp, step_length=settings.step, sigma=sigma,
-                        fixed=settings.single_finger, blocked=frozenset(blocked),
-                        spread=(float(estimate.position_sd), float(estimate.heading_sd)))
-        decision = policy.decide(view)
-        policy_ms = (time.perf_counter() - t0) * 1e3
+        decision = stepper.decide(state)
         if decision.command is None:
             result.stuck = True
             break
         state = execute(hand, decision.command)
-        if state.dropped:
-            result.dropped = True
-        moved_now = decision.command.moving
-        was_blocked = any(state.fingers[i].blocked for i in moved_now)
-        if was_blocked:
-            if decision.finger is not None:
-                blocked.add((decision.finger, decision.direction))
-        else:
-            blocked.clear()
-        centres = _centres(state)
+        result.dropped = result.dropped or state.dropped
+        measurement = stepper.observe(index, decision, state)
         compute_ms = 0.0
-        if not (was_blocked or result.dropped):
-            manipulated = decision.kind == "manipulate"
-            carried = None
-            if manipulated:
-                cmd = decision.command.moves
-                carried = (np.array([[m.dx, m.dz] for m in cmd]), np.array([m.roll for m in cmd]))
-            measurement = HandMeasurement(step=index, centres=centres,
-                                          moved=tuple(range(n)) if manipulated else moved_now,
-                                          carried=carried, t_ns=state.t_ns)
+        if measurement is not None:
             t0 = time.perf_counter()
             localizer.begin_update(measurement)
             while not localizer.work(Budget.unlimited()):
                 pass
             compute_ms = (time.perf_counter() - t0) * 1e3
-            estimate = localizer.estimate()
-        record = HandStepRecord(
-            index=index, kind=decision.kind, finger=decision.finger,
-            command=tuple(None if m is None else (m.dx, m.dz, m.roll)
-                          for m in decision.command.moves),
-            centres=tuple(map(tuple, centres.tolist())), blocked=was_blocked,
-            predicted_quality=decision.predicted_quality,
-            quality=float("nan") if quality is None else quality(),
-            candidates=estimate.candidates, compute_ms=compute_ms, policy_ms=policy_ms,
-            estimate=estimate.pose, truth=None if truth is None else truth())
+            stepper.updated()
+        record = stepper.record(index, decision, state, compute_ms=compute_ms,
+                                quality=float("nan") if quality is None else quality(),
+                                truth=None if truth is None else truth())
         result.steps.append(record)
         if on_step:
             on_step(record)
         if result.dropped:
             break
-    result.estimate = estimate
+    result.estimate = stepper.estimate
     return result
 
 
@@ -191,11 +135,11 @@ class HandEpisodeReport:
             "truth": list(self.truth),
             "truth_known": self.truth_known,
             "start_centres": [list(c) for c in self.result.start_centres],
-            "steps": [_step_json(s) for s in self.result.steps],
+            "steps": [step_json(s) for s in self.result.steps],
             "estimate": None if est is None or est.pose is None else {
                 "x": est.pose[0], "z": est.pose[1], "heading": est.pose[2],
-                "candidates": est.candidates, "position_sd": _num(est.position_sd),
-                "heading_sd": _num(est.heading_sd), "mode_mass": _num(est.mode_mass)},
+                "candidates": est.candidates, "position_sd": json_number(est.position_sd),
+                "heading_sd": json_number(est.heading_sd), "mode_mass": json_number(est.mode_mass)},
             "converged": self.result.converged,
             "success": self.score.success,
             "wrong_declaration": self.score.wrong_declaration,
@@ -203,34 +147,22 @@ class HandEpisodeReport:
             "stuck": self.result.stuck,
             "position_error": self.score.position_error,
             "heading_error": self.score.heading_error,
-            "min_quality": _num(self.min_quality),
-            "start_quality": _num(self.start_quality),
+            "min_quality": json_number(self.min_quality),
+            "start_quality": json_number(self.start_quality),
         }
 
 
-def _num(v: float) -> float | None:
-    return None if v is None or not math.isfinite(v) else float(v)
-
-
-def _step_json(s: HandStepRecord) -> dict[str, Any]:
-    return {"index": s.index, "kind": s.kind, "finger": s.finger,
-            "command": [None if m is None else list(m) for m in s.command],
-            "centres": [list(c) for c in s.centres], "blocked": s.blocked,
-            "predicted_quality": _num(s.predicted_quality), "quality": _num(s.quality),
-            "candidates": s.candidates, "compute_ms": s.compute_ms, "policy_ms": s.policy_ms,
-            "estimate": None if s.estimate is None else list(s.estimate),
-            "truth": None if s.truth is None else list(s.truth)}
-
-
-def simulated_hand(settings: HandSettings, parts: HandParts) -> tuple[Any, tuple[float, ...]]:
+def simulated_hand(settings: HandSettings, parts: HandParts, step_duration_s: float = 0.0
+                   ) -> tuple[Any, tuple[float, ...]]:
     """The seed's simulated hand holding the object at the seed's start pose (not opened),
-    and that pose: what `simulate_hand` runs and `haptic emulate --object` puts on a bus."""
+    and that pose: what `simulate_hand` runs, `haptic emulate --object` puts on a bus and
+    `hapticd` drives (its steps taking `step_duration_s` of real time)."""
     from sim_backend.hand import HandSimConfig, SimulatedHand  # chosen at run time
 
     truth_rng, world_rng, _, _ = streams(settings.seed)
     start = draw_truth(settings, parts, truth_rng)
     config = HandSimConfig(pose=start, grasp=settings.grasp, noise=settings.noise_spec,
-                           fixed=settings.single_finger)
+                           fixed=settings.single_finger, step_duration_s=step_duration_s)
     return SimulatedHand(parts.hand, parts.contour, config, world_rng), start
 
 
