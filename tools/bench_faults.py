@@ -69,7 +69,7 @@ class Emulator:
 
 def _explore_until_moving(sub: Subscriber, ctl: Controller) -> bool:
     if sub.wait_for(lambda m: m.topic == "state" and m["state"] == "inactive"
-                    and m["centre"] is not None, 30.0) is None:
+                    and m["fingers"], 30.0) is None:
         return False
     ctl.call("activate")
     ctl.call("start_exploration", repeat=True)

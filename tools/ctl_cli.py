@@ -23,7 +23,7 @@ from service.errors import InputError, ServiceError
 from service.wire.client import Client, CommandFailed, CommandTimeout, Subscriber
 from service.wire.commands import TABLE
 from tools.stream_cli import add_endpoint_options, client_from, subscriber_from
-from tools.words import belief_text, pose_text, why_not_converged
+from tools.words import belief_text, hand_step_text, pose_text, why_not_converged
 
 NO_REPLY = 3
 """Exit status when hapticd does not answer."""
@@ -137,7 +137,8 @@ def _json_default(obj: Any) -> Any:
 # -- haptic explore ----------------------------------------------------------------------
 def register_explore(p: argparse.ArgumentParser) -> None:
     p.description = (
-        "Localize the finger with a running hapticd, on one connection: wait for the daemon, "
+        "Localize the finger (or, for a hand, the object it holds) with a running hapticd, on "
+        "one connection: wait for the daemon, "
         "take the lease, activate, start an episode and print each step until it ends, then "
         "stop, turn torque off and release the lease. Exit status: 0 converged, 1 ended "
         "without a pose (the reason is printed), 3 no daemon.")
@@ -197,7 +198,7 @@ def _start(client: Client, sub: Subscriber, wait_s: float) -> dict[str, Any]:
                 result = client.call("start_exploration")
                 config = client.call("get_config")
                 return {**result, "max_steps": config["scenario"]["max_steps"],
-                        "truth": status.get("sim_truth")}
+                        "truth": status.get("sim_truth"), "object": status.get("object")}
         except CommandFailed as exc:
             if exc.code not in ("lease_held", "bad_state"):
                 raise ExploreFailed(str(exc)) from exc
@@ -233,6 +234,8 @@ class Follower:
         self.episode = int(started["episode"])
         self.max_steps = int(started["max_steps"])
         self.truth = started.get("truth")
+        self.hand = started.get("object") is not None
+        """A hand holding an object: steps are printed from `step` events."""
         self.step = -1
         self.z = 0.0
         self.estimate: dict[str, Any] | None = None
@@ -240,7 +243,9 @@ class Follower:
         """Events before our `episode_started` are old news (a stop before we began), unless
         that event never arrives (dropped), when they count again after this time."""
         if not quiet:
-            print(f"episode {self.episode}: exploring from the finger's place "
+            where = (f"the pose of object {started['object']} held by the hand" if self.hand
+                     else "from the finger's place")
+            print(f"episode {self.episode}: exploring {where} "
                   f"({started['candidates']} hypotheses to start)", flush=True)
 
     def run(self) -> int:
@@ -291,7 +296,7 @@ class Follower:
 
     def _on_estimate(self, est: dict[str, Any]) -> None:
         self.estimate = est
-        if est["step"] == self.step or est["step"] == 0:
+        if est["step"] == self.step or est["step"] == 0 or self.hand:
             return
         self.step = est["step"]
         z = float(est["displacement"][2])
@@ -306,10 +311,14 @@ class Follower:
             self.open_at = 0.0
         if time.monotonic() < self.open_at:
             return None
+        if name == "step" and self.hand and ev.get("episode") == self.episode:
+            self.truth = ev.get("truth") or self.truth  # the object moves when turned
+            if not self.quiet:
+                print(hand_step_text(ev), flush=True)
         if name == "episode_done" and ev.get("episode") == self.episode:
             est = dict(self.estimate or {})
             est.update(converged=ev["converged"], candidates=ev["candidates"], pose=ev["pose"],
-                       step=ev["steps"])
+                       step=ev["steps"], reason=ev.get("reason"))
             return self._outcome(est)
         if name in ("fault", "stopped", "shutdown"):
             why = ev.get("reason") or ev.get("state")
@@ -319,12 +328,21 @@ class Follower:
 
     def _outcome(self, est: dict[str, Any]) -> int:
         steps = int(est.get("step", 0))
+        axis = "z" if self.hand else "y"
         if self.truth is not None:
-            print(f"truth     {pose_text(self.truth)}  (the simulator's)")
-        print(f"estimate  {pose_text(est.get('pose'))}  ({_belief(est)})")
+            print(f"truth     {pose_text(self.truth, axis)}  (the simulator's)")
+        print(f"estimate  {pose_text(est.get('pose'), axis)}  ({_belief(est)})")
+        if est.get("reason") == "dropped":
+            print(f"result    DROPPED the object at step {steps}: the episode failed; put the "
+                  "object back in the hand and configure again")
+            return 1
         if est.get("converged"):
             print(f"result    localized in {steps} steps")
             return 0
+        if est.get("reason") == "stuck":
+            print(f"result    not localized after {steps} steps: no safe move left (every "
+                  "move would weaken the grasp below its threshold)")
+            return 1
         why = why_not_converged(candidates=int(est.get("candidates", 0)), steps=steps,
                                 max_steps=self.max_steps, pose=est.get("pose"),
                                 mode_mass=est.get("mode_mass"), runner_up=est.get("runner_up"),

@@ -7,12 +7,11 @@ hand holding an object (`--hand` then names the hand, default `two-finger`).
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import math
 from pathlib import Path
 
 from service.errors import ConfigError
-from service.localization.models import HARDWARE_SENSOR_SIGMA
+from tools.words import hand_step_text, pose_text
 
 DEFAULT_HAND = "two-finger"
 
@@ -83,7 +82,7 @@ def hand_settings(args: argparse.Namespace, **overrides):
 def run_hand(args: argparse.Namespace) -> int:
     """The body of `haptic run --object ...`."""
     from service.episode.hand_episode import simulate_hand
-    from service.episode.hand_scenario import load_parts
+    from service.episode.hand_scenario import hand_for_backend, load_parts
 
     if args.start is not None:
         raise ConfigError("--start places a finger on a map; an object's start is drawn "
@@ -93,9 +92,7 @@ def run_hand(args: argparse.Namespace) -> int:
     backend_factory = None
     if args.backend != "sim":
         backend_factory = _servo_hand(args, settings)
-        if settings.sensor_sigma is None and not settings.noise:
-            # exact readings would eliminate the truth on the encoders' rounding
-            settings = dataclasses.replace(settings, sensor_sigma=HARDWARE_SENSOR_SIGMA)
+        settings = hand_for_backend(settings, args.backend)
     fingers = len(parts.hand.fingers)
     print(f"object {parts.contour.name}: {parts.contour.extent * 1e3:.0f} mm across; hand "
           f"{parts.hand.name}: {fingers} finger{'s' if fingers > 1 else ''}; roll "
@@ -134,19 +131,13 @@ def _servo_hand(args: argparse.Namespace, settings):
 
 
 def _print_step(step) -> None:
-    what = (f"finger {step.finger} rolls" if step.kind == "explore" else "all turn the object")
-    if step.blocked:
-        what += " (blocked)"
-    quality = "" if math.isnan(step.quality) else f"  quality {step.quality:5.2f} N"
-    print(f"step {step.index:3d}  {what:<26} candidates {step.candidates:5d}  "
-          f"predicted {step.predicted_quality:5.2f} N{quality}  {step.compute_ms:6.2f} ms",
-          flush=True)
+    from service.episode.hand_step import step_json
+
+    print(hand_step_text(step_json(step)), flush=True)
 
 
 def _pose_text(pose) -> str:
-    x, z, heading = pose
-    return (f"x {x * 1e3:7.2f} mm  z {z * 1e3:7.2f} mm  "
-            f"heading {round(math.degrees(heading), 1) % 360:6.1f} deg")
+    return pose_text(pose, second="z")
 
 
 def _print_summary(report, on_servos: bool = False) -> None:

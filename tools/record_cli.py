@@ -182,6 +182,11 @@ def cmd_export(args: argparse.Namespace) -> int:
             raise InputError(f"no episode {args.episode} in '{args.file}'; it holds "
                              f"{', '.join(map(str, episodes))}")
         episodes = {args.episode: episodes[args.episode]}
+    hands = [eid for eid, ep in episodes.items() if (ep["settings"] or {}).get("object")]
+    if hands:
+        raise InputError(f"episode {hands[0]} in '{args.file}' is a hand's: `haptic export` "
+                         "writes a finger's episodes; a hand's steps are the recording's "
+                         "`step` events (`haptic replay FILE` prints them)")
     for eid, ep in episodes.items():
         if not ep.get("complete"):
             print(f"# episode {eid} was still running when the recording ended: exported "

@@ -44,9 +44,12 @@ def _schema(title: str, fields: dict[str, Any], *, open_: bool = False) -> dict[
 
 SCHEMAS: dict[str, dict[str, Any]] = {
     "state": _schema("haptic.state", {
-        "state": _STR, "fault": {"type": ["string", "null"]}, "centre": _POSE,
-        "joints": {"type": "array", "items": _NUM}, "moving": _BOOL, "blocked": _BOOL,
-        "steps_done": _INT, "torque_on": _BOOL, "exploring": _BOOL, "phase": _STR,
+        "state": _STR, "fault": {"type": ["string", "null"]},
+        "fingers": {"type": "array", "items": {"type": "object", "properties": {
+            "centre": {**_POSE, "type": "array"}, "joints": {"type": "array", "items": _NUM},
+            "moving": _BOOL, "blocked": _BOOL}}},
+        "moving": _BOOL, "dropped": _BOOL, "steps_done": _INT, "torque_on": _BOOL,
+        "exploring": _BOOL, "phase": _STR,
         "episode": _INT, "lease_holder": {"type": ["string", "null"]},
         "timing": {"type": "object", "additionalProperties": {"type": ["number", "null"]}}}),
     "estimate": _schema("haptic.estimate", {
@@ -54,7 +57,9 @@ SCHEMAS: dict[str, dict[str, Any]] = {
         "converged": _BOOL, "position_sd": {"type": ["number", "null"]},
         "heading_sd": {"type": ["number", "null"]}, "mode_mass": {"type": ["number", "null"]},
         "runner_up": _POSE, "runner_up_mass": {"type": ["number", "null"]},
-        "displacement": {**_POSE, "type": "array"}}),
+        "kind": _STR, "displacement": _POSE,
+        "predicted_quality": {"type": ["number", "null"]},
+        "quality": {"type": ["number", "null"]}}),
     "cloud": _schema("haptic.cloud", {
         "episode": _INT, "step": _INT, "total": _INT,
         "poses": {"type": "array", "x-dtype": "<f4", "description": "(N, 3): x0, y0 (m), "
@@ -212,7 +217,8 @@ def _read_hrec(path: str | Path) -> tuple[dict[str, Any] | None, list[Record]]:
             continue
         try:
             records.append(Record(r["topic"], r["t_ns"],
-                                  wire.decode(r["payload"], topic=r["topic"])))
+                                  wire.decode(r["payload"], topic=r["topic"],
+                                              versions=wire.READABLE_VERSIONS)))
         except wire.WireError:
             continue  # a damaged message is skipped, as a subscriber would
     return items[0].get("config"), records

@@ -23,7 +23,7 @@ from service.wire.client import (
     default_endpoint,
 )
 from service.wire.stream import TOPICS
-from tools.words import belief_text, pose_text
+from tools.words import belief_text, pose_text, quality_text
 
 CURVE_ENV = {"server": "HAPTIC_CURVE_SERVER_KEY", "client": "HAPTIC_CURVE_CLIENT_KEY"}
 
@@ -96,23 +96,35 @@ def format_message(msg: wire.Message) -> str:
     """One line of text per stream message."""
     b = msg.body
     if msg.topic == "state":
-        c = b.get("centre")
-        where = "centre ?" if c is None else (
-            f"centre ({c[0] * 1e3:+.2f}, {c[1] * 1e3:+.2f}, {c[2] * 1e3:+.2f}) mm")
         t = b.get("timing", {})
-        return (f"state    #{msg.seq} {b['state']:<9} {where} steps={b['steps_done']} "
+        return (f"state    #{msg.seq} {b['state']:<9} {fingers_text(b.get('fingers') or [])}"
+                f"{' DROPPED' if b.get('dropped') else ''} steps={b['steps_done']} "
                 f"{b['phase']} period_p99={t.get('period_p99_ms', 0):.2f} ms "
                 f"overruns={t.get('overruns', 0)}")
     if msg.topic == "estimate":
         done = "CONVERGED " if b["converged"] else ""
-        return (f"estimate #{msg.seq} episode {b['episode']} step {b['step']}: {done}"
-                f"{pose_text(b['pose'])}; "
+        hand = b.get("kind") == "hand"
+        text = (f"estimate #{msg.seq} episode {b['episode']} step {b['step']}: {done}"
+                f"{'object ' if hand else ''}{pose_text(b['pose'], 'z' if hand else 'y')}; "
                 f"{belief_text(b['position_sd'], b['heading_sd'], b['mode_mass'])}")
+        return f"{text}; {quality_text(b['predicted_quality'], b['quality'])}" if hand else text
     if msg.topic == "cloud":
         return (f"cloud    #{msg.seq} episode {b['episode']} step {b['step']}: "
                 f"{len(b['poses'])} hypotheses shown of {b['total']}")
     extra = " ".join(f"{k}={v}" for k, v in b.items() if k != "event")
     return f"event    #{msg.seq} {b.get('event')} {extra}"
+
+
+def fingers_text(fingers: list[dict[str, Any]]) -> str:
+    """Each finger's centre (mm, hand frame) and whether it moves or was blocked."""
+    if not fingers:
+        return "fingers ?"
+    parts = []
+    for i, f in enumerate(fingers):
+        c = f["centre"]
+        flags = "".join(f" {name}" for name in ("moving", "blocked") if f.get(name))
+        parts.append(f"{i}: ({c[0] * 1e3:+.2f}, {c[1] * 1e3:+.2f}, {c[2] * 1e3:+.2f}) mm{flags}")
+    return ("finger " if len(parts) == 1 else "fingers ") + "; ".join(parts)
 
 
 # -- haptic watch ------------------------------------------------------------------------

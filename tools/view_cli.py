@@ -41,6 +41,11 @@ def _map_for_view(args: argparse.Namespace, config: dict[str, Any] | None):
     scenario = (config or {}).get("scenario", {})
     if args.map:
         return load_map(args.map)
+    if scenario.get("object"):
+        raise InputError(f"the daemon runs a hand holding object '{scenario['object']}': "
+                         "`haptic view` draws a finger's belief on its map; follow a hand "
+                         "with `haptic watch` or `haptic explore`, or draw one with `haptic "
+                         "run --object NAME --plot FILE.png`")
     if "map" not in scenario:
         raise InputError("no map to draw: the daemon did not answer and none was recorded; "
                          "name it with --map")

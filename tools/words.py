@@ -19,12 +19,22 @@ def degrees(radians: float) -> float:
     return round(math.degrees(radians), 1) % 360
 
 
-def pose_text(pose: Sequence[float] | None) -> str:
-    """(x, y, heading) in m, m, rad as 'x  120.00 mm  y   80.00 mm  heading  30.0 deg'."""
+def pose_text(pose: Sequence[float] | None, second: str = "y") -> str:
+    """(x, y, heading) in m, m, rad as 'x  120.00 mm  y   80.00 mm  heading  30.0 deg'; an
+    object in a hand's plane is (x, z, heading): `second` 'z'."""
     if pose is None:
         return "none"
     x, y, heading = (float(v) for v in pose)
-    return f"x {x * 1e3:7.2f} mm  y {y * 1e3:7.2f} mm  heading {degrees(heading):6.1f} deg"
+    return (f"x {x * 1e3:7.2f} mm  {second} {y * 1e3:7.2f} mm  "
+            f"heading {degrees(heading):6.1f} deg")
+
+
+def quality_text(predicted: float | None, true: float | None) -> str:
+    """A hand's grasp quality: the policy's prediction and, in simulation, the truth."""
+    if predicted is None and true is None:
+        return "quality ?"
+    text = "quality" if predicted is None else f"quality predicted {predicted:5.2f} N"
+    return text if true is None else f"{text} (true {true:5.2f} N)"
 
 
 def belief_text(position_sd: float | None, heading_sd: float | None,
@@ -60,3 +70,22 @@ def why_not_converged(*, candidates: int, steps: int, max_steps: int,
     else:
         parts.append(f"the leading pose {pose_text(pose)}{lead} is not yet clear of the rest")
     return "; ".join(parts)
+
+
+def hand_step_text(step: dict) -> str:
+    """One step of a hand as `haptic run --object --json` records it (and `hapticd` streams
+    it): which finger rolled or whether all turned the object, the hypotheses left, the
+    grasp quality the policy predicted and (simulation) the true one, the update's time."""
+    what = (f"finger {step['finger']} rolls" if step["kind"] == "explore"
+            else "all turn the object")
+    if step["blocked"]:
+        what += " (blocked)"
+    predicted, quality = step.get("predicted_quality"), step.get("quality")
+    return (f"step {step['index']:3d}  {what:<26}  candidates {step['candidates']:5d}  "
+            f"predicted {_newtons(predicted)}"
+            f"{'' if quality is None else f'  quality {_newtons(quality)}'}  "
+            f"{step['compute_ms']:6.2f} ms")
+
+
+def _newtons(value: float | None) -> str:
+    return "  ?   N" if value is None or not math.isfinite(value) else f"{value:5.2f} N"

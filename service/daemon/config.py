@@ -14,7 +14,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from firmware_if.errors import HandConfigError
+from firmware_if.hand import load_hand
 from service.bounds import check_fields, check_keywords, same_as, setting
+from service.episode.hand_scenario import HandSettings, hand_for_backend
 from service.episode.scenario import RunSettings, for_backend
 from service.errors import ConfigError
 from service.registry import BACKENDS
@@ -74,13 +77,59 @@ class ScenarioConfig:
     sensor_sigma: float | None = same_as(RunSettings, "sensor_sigma")
     """Measurement noise (m) the localizer assumes; None: from `noise`, or
     HARDWARE_SENSOR_SIGMA on a hardware backend."""
+    object: str | None = setting(None, "str", optional=True)
+    """A hand holding this object (`haptic run --object`: a preset NAME[:SEED] or an outline
+    or mesh file) instead of a finger on `map`; None: a finger on the map."""
+    hand: str | None = setting(None, "str", optional=True)
+    """The hand holding `object` (`haptic run --hand`: a preset or a TOML file); None:
+    two-finger."""
+    plane: str | None = setting(None, "str", optional=True)
+    """Where a mesh `object` is cut (`haptic run --plane`)."""
+    object_units: str = setting("m", "str", choices=("m", "mm"))
+    roll: float = setting(HandSettings.step, "float", lo=1e-4, hi=0.02, unit="m")
+    """How far a finger of the hand rolls per step (`haptic run --roll`)."""
 
     def __post_init__(self) -> None:
         check_fields(self, "scenario.")
+        if self.object is None:
+            if self.hand is not None:
+                raise ConfigError("scenario.hand names the hand that holds scenario.object: "
+                                  "set object too (e.g. object = \"blob\")")
+            try:
+                self.run_settings()  # checks localizer_options against the localizer
+            except ConfigError as exc:
+                raise ConfigError(f"scenario.localizer_options: {exc}") from None
+            return
+        if self.start is not None:
+            raise ConfigError("scenario.start places a finger on a map; an object's start "
+                              "is drawn from scenario.seed")
+        if self.localizer_options:
+            raise ConfigError("scenario.localizer_options apply to a finger on a map, not "
+                              "to a hand holding an object")
         try:
-            self.run_settings()  # checks localizer_options against the localizer
+            load_hand(self.hand_name)
+        except HandConfigError as exc:
+            raise ConfigError(f"scenario.hand: {exc}") from None
+        try:
+            self.hand_settings()
         except ConfigError as exc:
-            raise ConfigError(f"scenario.localizer_options: {exc}") from None
+            raise ConfigError(f"scenario: {exc}") from None
+
+    @property
+    def hand_name(self) -> str:
+        return self.hand or HandSettings.hand
+
+    def settings(self) -> RunSettings | HandSettings:
+        """A finger's settings on a map, or a hand's holding an object."""
+        return self.run_settings() if self.object is None else self.hand_settings()
+
+    def hand_settings(self) -> HandSettings:
+        """`haptic run --object`'s settings (the object and hand are loaded, and checked,
+        by the compute process)."""
+        return HandSettings(object=self.object, plane=self.plane, units=self.object_units,
+                            hand=self.hand_name, algorithm=self.localizer, seed=self.seed,
+                            noise=self.noise, step=self.roll, max_steps=self.max_steps,
+                            sensor_sigma=self.sensor_sigma)
 
     def run_settings(self) -> RunSettings:
         return RunSettings(map=self.map, spacing=self.spacing, radius=self.radius,
@@ -177,10 +226,17 @@ class DaemonConfig:
 
     def __post_init__(self) -> None:
         check_fields(self)
+        if (self.scenario.object is not None and self.backend.name != "sim"
+                and "hand" in self.backend.options):
+            raise ConfigError("backend.options.hand names a single finger's chain; the hand "
+                              "holding scenario.object is scenario.hand")
 
-    def run_settings(self) -> RunSettings:
+    def run_settings(self) -> RunSettings | HandSettings:
         """The scenario's settings; on hardware the localizer assumes encoder-level noise."""
-        return for_backend(self.scenario.run_settings(), self.backend.name)
+        settings = self.scenario.settings()
+        if isinstance(settings, HandSettings):
+            return hand_for_backend(settings, self.backend.name)
+        return for_backend(settings, self.backend.name)
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)

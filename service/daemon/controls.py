@@ -38,6 +38,7 @@ class CommandHandlers:
         timing = self.loop.summary()
         localizer = self.localizer_work.summary_ms()  # one percentile pass, not two
         timing["localizer_p99_ms"], timing["localizer_max_ms"] = localizer["p99"], localizer["max"]
+        scenario = self.config.scenario
         return {
             "state": self.lifecycle.state.value, "fault": self.lifecycle.fault,
             "exploring": bool(ex and ex.running), "phase": ex.phase.value if ex else "idle",
@@ -48,6 +49,8 @@ class CommandHandlers:
             "timing": timing, "published": dict(self.pub.sent),
             "commands": {"handled": self.cmd.handled, "errors": self.cmd.errors},
             "backend": self.config.backend.name, "map": self.config.scenario.map,
+            "object": scenario.object,
+            "hand": None if scenario.object is None else scenario.hand_name,
             "loop_scheduling": self.scheduling and dataclasses.asdict(self.scheduling),
             "sim_truth": self.episode_truth if self.episode_truth is not None else (
                 None if self.truth is None else list(self.truth.as_tuple())),
@@ -92,7 +95,7 @@ class CommandHandlers:
         if self.explorer is not None:
             self.explorer.stop()
         self.explorer = Explorer(self.link, new.run_settings(), first_episode=episode,
-                                 truth_at=self.truth_at)
+                                 truth_at=self.truth_at, hidden=self.hidden)
         self.episode_truth = None
         self.config = new
         self.lease.ttl_ns = int(new.lease.ttl_s * 1e9)
@@ -133,6 +136,9 @@ class CommandHandlers:
         state = self.last_state
         if state is None or state.moving:
             raise StateError("a step is still under way; try again in a moment")
+        if state.dropped:
+            raise StateError("the object was dropped: put it back in the hand and configure "
+                             "again (the simulator places it anew on configure)")
         self.explorer.start(state, repeat, self.truth_at(state))
         self.starting = Deferred()
         return self.starting

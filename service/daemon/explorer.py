@@ -1,12 +1,17 @@
-"""Exploration as the loop sees it: what `run_episode` does, without ever waiting.
+"""Exploration as the loop sees it: what `run_episode` (a finger) and `run_hand_episode`
+(a hand) do, without ever waiting.
 
 The localizer and the policy live in the compute process (`service.daemon.worker`); this
-is the loop's half. Each tick gets the latest reading and the compute process's replies:
+is the loop's half, the same for a finger and a hand (a finger is a hand of one): it sends
+the whole hand's reading, commands the `HandCommand` the compute process chose, and
+publishes what the compute process says happened. Each tick gets the latest reading and
+the compute process's replies:
 
     START (the first belief and move are being computed) -> STEPPING (until the backend
     reports the step finished) -> UPDATING (the reading is being taken in, and the next
-    move chosen) -> STEPPING ... until the localizer converges, runs out of candidates or
-    the step limit is reached; with `repeat`, RESTART begins the next episode.
+    move chosen) -> STEPPING ... until the compute process says the episode is done
+    (converged, no candidates, out of steps; a hand also: dropped, no safe move); with
+    `repeat`, RESTART begins the next episode.
 
 A tick only sends small requests and reads small replies: its cost does not depend on the
 localizer's.
@@ -23,13 +28,13 @@ from typing import Any
 
 import numpy as np
 
-from firmware_if.backend import FingerState, StepCommand
+from firmware_if.backend import FingerMove, HandCommand, HandState
 from firmware_if.errors import BusTimeoutError
 from service.daemon.worker_link import WorkerDied, WorkerLink
+from service.episode.hand_scenario import HandSettings
 from service.episode.scenario import RunSettings
 from service.errors import ServiceError
 from service.localization.localizers.base import Hypotheses
-from service.localization.policies.base import MOVES
 from service.wire.envelope import Message
 
 
@@ -75,12 +80,16 @@ class TickOutput:
 class Explorer:
     """One exploration at a time; `repeat` runs episodes back to back."""
 
-    def __init__(self, link: WorkerLink, settings: RunSettings, step_timeout_s: float = 10.0,
-                 *, first_episode: int = 1,
-                 truth_at: Callable[[FingerState], list[float] | None] | None = None) -> None:
+    def __init__(self, link: WorkerLink, settings: RunSettings | HandSettings,
+                 step_timeout_s: float = 10.0, *, first_episode: int = 1,
+                 truth_at: Callable[[HandState], list[float] | None] | None = None,
+                 hidden: Callable[[], dict[str, Any]] | None = None) -> None:
         self.link = link
         self._truth_at = truth_at
-        """The simulator's hidden pose at the finger's place (for `repeat`'s episodes)."""
+        """The simulator's hidden pose at the hand's place (for `repeat`'s episodes)."""
+        self._hidden = hidden
+        """The simulator's hidden state now (a hand's object pose and grasp quality), sent
+        with each reading for the record; None on hardware."""
         self.settings = settings
         self.step_timeout_ns = int(step_timeout_s * 1e9)
         self.phase = Phase.IDLE
@@ -91,21 +100,15 @@ class Explorer:
         replaces the explorer), so ids are unique while the daemon runs."""
         self.steps = 0
         self.estimate: dict[str, Any] | None = None
+        """The localizer's latest estimate (`service.daemon.finger_compute.estimate_fields`)."""
+        self._topic: dict[str, Any] = {}
+        """The rest of the `estimate` topic for it: kind, step, displacement, quality."""
         self.candidates = 0
         self.truth: list[float] | None = None
-        self.true_pose_eliminated: bool | None = None
         self._cloud: Cloud | None = None
         self._req = 0
         """The request whose reply the explorer waits for (older replies are dropped)."""
-        self._policy_ms = 0.0
-        self._move = -1
-        self._next_move: int | None = None
-        self._blocked = False
-        self._belief_step = 0
-        self._belief_displacement = np.zeros(3)
-        self.origin = np.zeros(3)
-        self.displacement = np.zeros(3)
-        self._blocked_here: set[int] = set()
+        self._next: HandCommand | None = None
         self._before = 0
         self._step_started_ns = 0
 
@@ -113,10 +116,10 @@ class Explorer:
     def running(self) -> bool:
         return self.phase is not Phase.IDLE
 
-    def start(self, state: FingerState, repeat: bool = False,
+    def start(self, state: HandState, repeat: bool = False,
               truth: list[float] | None = None) -> None:
-        """Begin an episode at the finger's current place (its unknown start pose); its
-        first belief arrives in a later tick (`TickOutput.started`)."""
+        """Begin an episode where the hand is now (its unknown start pose); its first
+        belief arrives in a later tick (`TickOutput.started`)."""
         self.repeat = repeat
         self.paused = False
         self._begin(state, truth)
@@ -127,27 +130,22 @@ class Explorer:
                 self._req = self.link.send("cancel")
         self.phase = Phase.IDLE
         self.repeat = False
-        self._next_move = None  # a move held back by a pause ends with its episode
+        self._next = None  # a move held back by a pause ends with its episode
 
     def cloud(self) -> Cloud | None:
         return self._cloud
 
-    def _begin(self, state: FingerState, truth: list[float] | None) -> None:
+    def _begin(self, state: HandState, truth: list[float] | None) -> None:
         self.episode += 1
         self.steps = 0
         self.truth = truth
-        self.true_pose_eliminated = None
-        self.origin = np.asarray(state.centre, dtype=np.float64)
-        self.displacement = np.zeros(3)
-        self._belief_step, self._belief_displacement = 0, self.displacement
-        self._blocked_here.clear()
+        self._topic = {}
         self._cloud = None
-        self._next_move = None
-        self._req = self.link.send("start", truth=truth, t_ns=state.t_ns,
-                                   decide=self.settings.max_steps > 0)
+        self._next = None
+        self._req = self.link.send("start", truth=truth, reading=self._reading(state))
         self.phase = Phase.DECIDE
 
-    def tick(self, state: FingerState, command_step: Callable[[StepCommand], None],
+    def tick(self, state: HandState, command_hand: Callable[[HandCommand], None],
              replies: list[Message]) -> TickOutput:
         """Advance as far as this tick allows; `replies` are the compute process's."""
         out = TickOutput()
@@ -164,16 +162,15 @@ class Explorer:
                 self._on_belief(msg, out)
         if self.phase is Phase.STEPPING:
             self._check_step(state)
-        if self._next_move is not None and not self.paused and self.phase is Phase.DECIDE:
-            self._command(state, command_step)
+        if self._next is not None and not self.paused and self.phase is Phase.DECIDE:
+            self._command(state, command_hand)
         return out
 
     def _on_belief(self, msg: Message, out: TickOutput) -> None:
         first = self.phase is Phase.DECIDE and self.steps == 0
         self.estimate = msg["estimate"]
+        self._topic = msg["topic"]
         self.candidates = int(self.estimate["candidates"])
-        self.true_pose_eliminated = msg.get("true_pose_eliminated")
-        self._belief_step, self._belief_displacement = self.steps, self.displacement
         self._cloud = Cloud(Hypotheses(np.asarray(msg["poses"]), np.asarray(msg["weights"])),
                             self.candidates, self.steps)
         out.estimate_updated = True
@@ -183,65 +180,51 @@ class Explorer:
             out.events.append(("episode_started", {
                 "episode": self.episode, "candidates": self.candidates,
                 "settings": self.settings.to_json(), "truth": self.truth}))
-        else:
-            command = MOVES[self._move] * self.settings.step
-            out.events.append(("step", {
-                "episode": self.episode, "index": self.steps, "move": self._move,
-                "command": [float(command[0]), float(command[1])],
-                "measurement": [float(v) for v in self.displacement],
-                "blocked": self._blocked, "candidates": self.candidates,
-                "compute_ms": float(msg["update_ms"]), "policy_ms": self._policy_ms,
-                "estimate": self.estimate["pose"],
-                **{k: self.estimate[k] for k in ("position_sd", "heading_sd", "mode_mass")}}))
-        self._policy_ms = float(msg["policy_ms"])
-        est = self.estimate
-        if est["converged"] or self.candidates == 0 or self.steps >= self.settings.max_steps:
-            reason = ("converged" if est["converged"] else
-                      "eliminated" if self.candidates == 0 else "out_of_steps")
-            out.events.append(("episode_done", {
-                "episode": self.episode, **est, "steps": self.steps, "reason": reason,
-                "true_pose_eliminated": self.true_pose_eliminated}))
+        for name, fields in msg["events"]:
+            out.events.append((name, {"episode": self.episode, **fields}))
+        if msg["done"]:
             self.phase = Phase.RESTART if self.repeat else Phase.IDLE
-            self._next_move = None
+            self._next = None
             return
-        self._next_move = msg.get("move")
+        self._next = HandCommand(tuple(None if m is None else FingerMove(*m)
+                                       for m in msg["command"]))
         self.phase = Phase.DECIDE
 
-    def _command(self, state: FingerState, command_step: Callable[[StepCommand], None]) -> None:
-        self._move, self._next_move = int(self._next_move), None
-        dx, dy = MOVES[self._move] * self.settings.step
-        self._before = state.steps_done
-        command_step(StepCommand(float(dx), float(dy)))
+    def _command(self, state: HandState, command_hand: Callable[[HandCommand], None]) -> None:
+        command, self._next = self._next, None
+        self._before = state.fingers[0].steps_done
+        command_hand(command)
         self._step_started_ns = time.monotonic_ns()
         self.steps += 1
         self.phase = Phase.STEPPING
 
-    def _check_step(self, state: FingerState) -> None:
-        if state.steps_done > self._before and not state.moving:
-            self.displacement = np.asarray(state.centre, dtype=np.float64) - self.origin
-            self._blocked = bool(state.blocked)
-            if state.blocked:
-                self._blocked_here.add(self._move)
-            else:
-                self._blocked_here.clear()
-            command = MOVES[self._move] * self.settings.step
-            self._req = self.link.send(
-                "update", measurement={
-                    "step": self.steps, "displacement": [float(v) for v in self.displacement],
-                    "blocked": self._blocked, "t_ns": state.t_ns,
-                    "command": [float(command[0]), float(command[1])]},
-                blocked_here=sorted(self._blocked_here),
-                displacement=[float(v) for v in self.displacement[:2]],
-                decide=self.steps < self.settings.max_steps)
+    def _check_step(self, state: HandState) -> None:
+        if state.fingers[0].steps_done > self._before and not state.moving:
+            self._req = self.link.send("update", step=self.steps,
+                                       reading=self._reading(state))
             self.phase = Phase.UPDATING
         elif time.monotonic_ns() - self._step_started_ns > self.step_timeout_ns:
             raise BusTimeoutError(f"step {self.steps} did not finish within "
                                   f"{self.step_timeout_ns / 1e9:g} s")
+
+    def _reading(self, state: HandState) -> dict[str, Any]:
+        """The hand's reading as the compute process takes it (plain numbers)."""
+        return {"t_ns": state.t_ns, "dropped": bool(state.dropped),
+                "fingers": [{"centre": [float(v) for v in f.centre],
+                             "joints": [float(q) for q in f.joints], "blocked": bool(f.blocked)}
+                            for f in state.fingers],
+                **(self._hidden() if self._hidden is not None else {})}
 
     def estimate_fields(self) -> dict[str, Any]:
         """The `estimate` topic's fields (docs/protocol.md)."""
         est = self.estimate or {"pose": None, "candidates": 0, "converged": False,
                                 "position_sd": None, "heading_sd": None, "mode_mass": None,
                                 "runner_up": None, "runner_up_mass": None}
-        return {"episode": self.episode, "step": self._belief_step, **est,
-                "displacement": [float(v) for v in self._belief_displacement]}
+        return {"episode": self.episode, "step": 0, "kind": self.kind, "displacement": None,
+                "predicted_quality": None, "quality": None, **est, **self._topic}
+
+    @property
+    def kind(self) -> str:
+        """What the episode localizes: 'finger' (a finger on a map) or 'hand' (an object
+        held by a hand)."""
+        return "hand" if isinstance(self.settings, HandSettings) else "finger"

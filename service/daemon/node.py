@@ -2,9 +2,10 @@
 
 `Node.serve()` binds the sockets, starts the compute process (`service.daemon.worker`,
 where maps, localizers and policies live) and configures (when `auto_configure`), then
-runs the fixed-rate loop until `stop()`. Each tick reads the finger, takes in the compute
-process's replies, advances exploration and publishes; requests are answered while the
-loop waits for its next deadline. Slow work never runs in a tick: it is in the compute
+runs the fixed-rate loop until `stop()`. Each tick reads the hand (every finger, one
+`read_hand`; a single finger is a hand of one), takes in the compute process's replies,
+advances exploration and publishes; requests are answered while the loop waits for its
+next deadline. Slow work never runs in a tick: it is in the compute
 process, or (opening a new backend) on a helper thread while the loop leaves the backend
 be. `stop()` (any thread, or a signal handler) is just an event. The command handlers are
 in `service.daemon.controls`.
@@ -25,7 +26,7 @@ import numpy as np
 import zmq
 from threadpoolctl import threadpool_limits
 
-from firmware_if.backend import Backend, FingerState
+from firmware_if.backend import Backend, HandState
 from firmware_if.errors import FirmwareError
 from service.daemon.config import DaemonConfig
 from service.daemon.controls import CommandHandlers
@@ -68,7 +69,7 @@ class Node(CommandHandlers):
         self.starting: Deferred | None = None
         """A `start_exploration` waiting for the episode's first belief."""
         self.faults = 0
-        self.last_state: FingerState | None = None
+        self.last_state: HandState | None = None
         self.localizer_work = Samples()
         self.lease = Lease(config.lease.ttl_s)
         self.loop = RateLoop(config.loop.period_ns, self._tick, overrun=config.loop.overrun,
@@ -207,9 +208,9 @@ class Node(CommandHandlers):
         self._fail_start(exc)
         self.link.start()
 
-    def _explore(self, state: FingerState, replies: list[Message]) -> None:
+    def _explore(self, state: HandState, replies: list[Message]) -> None:
         try:
-            out = self.explorer.tick(state, self.backend.command_step, replies)
+            out = self.explorer.tick(state, self.backend.command_hand, replies)
         except WorkerDied as exc:  # a request found it gone before a poll did
             self._compute_died(exc)
             return
@@ -260,20 +261,21 @@ class Node(CommandHandlers):
             self.pub.rebind()
             _log("key_revoked", level=logging.WARNING)
 
-    def _read(self) -> FingerState | None:
+    def _read(self) -> HandState | None:
         if self.backend is None or self.lifecycle.state is State.UNCONFIGURED:
             return None
         if self.reconf is not None and self.reconf.opening:
             return None  # a new backend is opening, perhaps on the same bus: leave it be
         try:
-            state = self.backend.read_state()
+            state = self.backend.read_hand()  # every finger, in one bus read
         except FirmwareError as exc:
             self._fault(f"read failed: {exc}")  # once: in fault it only repeats
             return None
         self.last_state = state
         self.lifecycle.mark_read()
-        if state.fault and self.lifecycle.state is not State.FAULT:
-            self._fault(state.fault)
+        fault = next((f.fault for f in state.fingers if f.fault), None)
+        if fault and self.lifecycle.state is not State.FAULT:
+            self._fault(fault)
         return state
 
     # -- publishing ------------------------------------------------------------------------
@@ -297,14 +299,24 @@ class Node(CommandHandlers):
                 gc.collect()
                 gc.freeze()
 
-    def truth_at(self, state: FingerState) -> list[float] | None:
-        """The simulator's hidden pose where the finger is now (the start of an episode
-        begun here): the configured start moved by the finger's measured displacement."""
+    def truth_at(self, state: HandState) -> list[float] | None:
+        """The simulator's hidden pose now (the start of an episode begun here): a finger's,
+        the configured start moved by its measured displacement; a hand's, the object's."""
         if self.truth is None:
             return None
+        if self.explorer is not None and self.explorer.kind == "hand":
+            return self.hidden().get("truth")
         t = self.truth
-        dx, dy = rotate(np.asarray(t.heading), *state.centre[:2])
+        dx, dy = rotate(np.asarray(t.heading), *state.fingers[0].centre[:2])
         return [float(t.x + dx), float(t.y + dy), float(t.heading)]
+
+    def hidden(self) -> dict[str, Any]:
+        """The simulated hand's hidden state now, for the record: the object's pose and the
+        grasp's true quality (nothing for a finger or on hardware)."""
+        quality = getattr(self.backend, "quality", None)  # only the simulated hand has it
+        if self.truth is None or quality is None:
+            return {}
+        return {"truth": [float(v) for v in self.backend.pose], "quality": float(quality)}
 
     def _publish_state(self, tick: Tick) -> None:
         if tick.index % 20 == 0 or not self._timing_cache:
@@ -315,11 +327,12 @@ class Node(CommandHandlers):
         ex = self.explorer
         self.pub.publish("state", "state", {
             "state": self.lifecycle.state.value, "fault": self.lifecycle.fault,
-            "centre": None if s is None else list(s.centre),
-            "joints": [] if s is None else list(s.joints),
-            "moving": bool(s and s.moving), "blocked": bool(s and s.blocked),
-            "steps_done": 0 if s is None else s.steps_done,
-            "torque_on": bool(s and s.torque_on),
+            "fingers": [] if s is None else [
+                {"centre": list(f.centre), "joints": list(f.joints), "moving": f.moving,
+                 "blocked": f.blocked} for f in s.fingers],
+            "moving": bool(s and s.moving), "dropped": bool(s and s.dropped),
+            "steps_done": 0 if s is None else s.fingers[0].steps_done,
+            "torque_on": bool(s and s.fingers[0].torque_on),
             "exploring": bool(ex and ex.running), "phase": ex.phase.value if ex else "idle",
             "episode": ex.episode if ex else 0, "lease_holder": self.lease.holder_name,
             "timing": self._timing_cache}, t_mono_ns=tick.start_ns)

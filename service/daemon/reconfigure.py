@@ -25,6 +25,7 @@ import numpy as np
 from firmware_if.backend import Backend
 from service.daemon.config import DaemonConfig
 from service.daemon.worker_link import WorkerLink
+from service.episode.hand_scenario import HandSettings
 from service.episode.scenario import RunSettings, Truth
 from service.errors import ConfigError, ServiceError
 from service.registry import BACKENDS
@@ -58,6 +59,7 @@ class Reconfiguration:
         self._world: dict[str, Any] | None = None
         self._thread: threading.Thread | None = None
         self.req = link.send("setup", settings=asdict(settings), backend=new.backend.name,
+                             scenario="hand" if isinstance(settings, HandSettings) else "finger",
                              cloud_points=new.loop.cloud_points)
 
     @property
@@ -126,10 +128,12 @@ class _ComputeRefusal(ServiceError):
         self.code = code
 
 
-def make_backend(config: DaemonConfig, settings: RunSettings, truth: Truth | None,
-                 world: dict[str, Any] | None) -> Backend:
+def make_backend(config: DaemonConfig, settings: RunSettings | HandSettings,
+                 truth: Truth | None, world: dict[str, Any] | None) -> Backend:
     """The configured backend, not yet opened. The simulator's world (the perturbed map
     and its contact surface) was built by the compute process and is mapped here."""
+    if isinstance(settings, HandSettings):
+        return _hand_backend(config, settings)
     cls = BACKENDS.load(config.backend.name)
     if config.backend.name != "sim":
         options = dict(config.backend.options)
@@ -152,3 +156,21 @@ def make_backend(config: DaemonConfig, settings: RunSettings, truth: Truth | Non
     sim = SimConfig(start=truth.as_tuple(), radius=settings.radius,
                     noise=settings.noise_spec, step_duration_s=config.backend.step_duration_s)
     return cls(world_map, sim, rng, surface=surface)
+
+
+def _hand_backend(config: DaemonConfig, settings: HandSettings) -> Backend:
+    """A hand holding the object: the seed's simulated hand (as `haptic run --object` runs
+    it) or `scenario.hand` on Dynamixel servos (as `haptic run --object --backend
+    dynamixel`)."""
+    if config.backend.name == "sim":
+        from service.episode.hand_episode import simulated_hand
+        from service.episode.hand_scenario import load_parts
+
+        return simulated_hand(settings, load_parts(settings),
+                              step_duration_s=config.backend.step_duration_s)[0]
+    from firmware_if.dynamixel_hand import DynamixelHand
+
+    try:
+        return DynamixelHand.from_cli(hand=settings.hand, **config.backend.options)
+    except TypeError as exc:
+        raise ConfigError(f"backend '{config.backend.name}' options for a hand: {exc}") from None

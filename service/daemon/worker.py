@@ -11,13 +11,19 @@ The two talk over a socket pair in the wire format (`service.wire.envelope`: msg
 as typed bytes, never pickle). Each request carries `req`; each reply echoes it, so the
 loop drops answers to requests it has moved past. Requests:
 
-    setup    {req, settings, backend, cloud_points}   -> ready {truth, world} | error
+    setup    {req, scenario, settings, backend, cloud_points} -> ready {truth, world} | error
     commit   {req}                  the prepared setup becomes the current one
     discard  {req}                  it is dropped
-    start    {req, truth}           -> belief {estimate, cloud, move, ...}
-    update   {req, measurement, blocked_here, displacement, decide} -> belief
+    start    {req, truth, reading}  -> belief
+    update   {req, step, reading}   -> belief
     cancel   {req}                  the episode under way is dropped
     exit     {}
+
+`scenario` is `finger` (RunSettings) or `hand` (HandSettings); a `reading` is the whole hand's
+(`Explorer._reading`). A belief is {estimate, topic, events, done, command, update_ms,
+poses, weights}: the estimate and the rest of the `estimate` topic, the events that
+happened (a step, the episode's end), and the next `HandCommand` as one [dx, dy, dz, roll]
+or None per finger.
 
 An update runs in slices (the localizers' anytime `work`); between slices the process
 looks at the pipe, so a `cancel` (or a new request) cuts a long update short.
@@ -26,111 +32,49 @@ looks at the pipe, so a `cancel` (or a new request) cuts a long update short.
 from __future__ import annotations
 
 import contextlib
-import json
 import logging
 import os
-import tempfile
-import time
 import traceback
-from dataclasses import dataclass
 from multiprocessing.connection import Connection
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
-from service.errors import InputError, MapError
+from service.errors import InputError
 from service.wire import envelope as wire
 
 log = logging.getLogger("hapticd.worker")
-SLICE_S = 0.02
-"""Longest localizer slice between looks at the pipe."""
 NICE = 5
 """The compute process yields the CPU to the control loop when both want it."""
 
 
-@dataclass
-class Scenario:
-    """One configured scenario: settings, the localizer's surface, the seeded streams."""
-
-    settings: Any
-    surface: Any
-    loc_rng: np.random.Generator
-    policy_rng: np.random.Generator
-    first: bool = True
-    """The next episode is the first after configure: it uses `haptic run`'s streams."""
-
-
 class Worker:
-    """The compute process's state and request handlers (also usable in-process, for tests)."""
+    """The compute process's state and request handlers (also usable in-process, for tests).
+    A scenario is a finger's on a map (`finger_compute`) or a hand's holding an object
+    (`hand_compute`); both answer the same requests."""
 
     def __init__(self, send: Any) -> None:
         self._send = send
-        self.current: Scenario | None = None
-        self.candidate: Scenario | None = None
+        self.current: Any = None
+        self.candidate: Any = None
         self.cloud_points = 500
-        self.localizer: Any = None
-        self.policy: Any = None
-        self.policy_rng: np.random.Generator | None = None
-        self.truth: tuple[float, float, float] | None = None
+        self.episode: Any = None
         self._files: list[Path] = []
 
     # -- configuration -----------------------------------------------------------------
     def setup(self, req: int, body: dict[str, Any]) -> None:
-        from service.episode.scenario import (
-            RunSettings,
-            draw_truth,
-            episode_streams,
-            for_backend,
-            prepare_localizers,
-            surface_for,
-        )
+        from service.daemon import finger_compute, hand_compute
 
         self._drop_files()  # a previous setup's, never mapped
         fields = dict(body["settings"])
-        if fields.get("start") is not None:
+        if fields.get("start") is not None:  # msgpack has no tuples
             fields["start"] = tuple(fields["start"])
-        settings = for_backend(RunSettings(**fields), body["backend"])
         self.cloud_points = int(body.get("cloud_points", 500))
-        try:
-            surface = surface_for(settings)
-        except MapError as exc:
-            raise _quiet_map_error(settings.map, exc) from None
-        truth_rng, world_rng, loc_rng, policy_rng = episode_streams(settings.seed)
-        prepare_localizers()
-        candidate = Scenario(settings, surface, loc_rng, policy_rng)
-        self._build(candidate, candidate.loc_rng)  # options and map checked now, not later
-        truth, world = None, None
-        if body["backend"] == "sim":
-            truth = draw_truth(settings, surface.map, truth_rng).as_tuple()
-            world = self._world(settings, surface, world_rng)
+        if body.get("scenario", "finger") == "hand":
+            candidate, ready = hand_compute.setup(fields, body["backend"])
+        else:
+            candidate, ready = finger_compute.setup(fields, body["backend"], self._files)
         self.candidate = candidate
-        self._send("ready", req, {"truth": None if truth is None else list(truth),
-                                  "world": world})
-
-    def _world(self, settings: Any, surface: Any, rng: np.random.Generator) -> dict[str, Any]:
-        """The simulated world (the map as the finger really meets it, perturbed by B2's
-        noise), built here and handed over as two memory-mapped arrays, with the state of
-        the world's random stream after the perturbation, so the loop's simulated finger
-        behaves as `haptic run`'s does."""
-        from service.localization.surface import contact_surface
-        from sim_backend.world import perturbed
-
-        noise = settings.noise_spec
-        world = perturbed(surface.map, noise.surface_sigma, noise.surface_correlation, rng)
-        centre = contact_surface(world, settings.radius).centre_heights
-        folder = Path(os.environ.get("HAPTIC_SHM", "/dev/shm"))
-        if not folder.is_dir():
-            folder = Path(tempfile.gettempdir())
-        paths = {}
-        for name, array in (("heights", world.heights), ("centre", centre)):
-            fd, path = tempfile.mkstemp(prefix=f"hapticd-{name}-", suffix=".npy", dir=folder)
-            with os.fdopen(fd, "wb") as f:
-                np.save(f, np.asarray(array), allow_pickle=False)
-            paths[name] = path
-            self._files.append(Path(path))
-        return {"paths": paths, "spacing": world.spacing, "name": world.name,
-                "rng": json.dumps(rng.bit_generator.state)}
+        self._send("ready", req, ready)
 
     def _drop_files(self) -> None:
         for path in self._files:
@@ -140,7 +84,7 @@ class Worker:
     def commit(self, req: int, body: dict[str, Any]) -> None:
         if self.candidate is not None:
             self.current, self.candidate = self.candidate, None
-            self.localizer = None
+            self.episode = None
         self._drop_files()
 
     def discard(self, req: int, body: dict[str, Any]) -> None:
@@ -148,115 +92,26 @@ class Worker:
         self._drop_files()
 
     # -- episodes ------------------------------------------------------------------------
-    def _build(self, scenario: Scenario, loc_rng: np.random.Generator) -> Any:
-        from service.episode.scenario import build_localizer, build_policy
-
-        localizer = build_localizer(scenario.settings, scenario.surface, loc_rng)
-        self.policy = build_policy(scenario.settings)
-        return localizer
-
     def start(self, req: int, body: dict[str, Any]) -> None:
-        from service.localization.localizers.base import Measurement
-
-        sc = self._scenario()
-        if sc.first:  # as `haptic run` seeds it; later episodes spawn fresh streams
-            loc_rng, self.policy_rng = sc.loc_rng, sc.policy_rng
-            sc.loc_rng = sc.loc_rng.spawn(1)[0]
-            sc.first = False
-        else:
-            loc_rng, self.policy_rng = sc.loc_rng.spawn(2)
-        self.localizer = self._build(sc, loc_rng)
-        self.truth = None if body.get("truth") is None else tuple(body["truth"])
-        t0 = time.monotonic_ns()
-        self.localizer.start(Measurement(step=0, displacement=np.zeros(3),
-                                         t_ns=int(body.get("t_ns", 0))))
-        self._belief(req, body, t0)
+        self.episode = self._scenario().episode(body.get("truth"), self.cloud_points)
+        self._send("belief", req, self.episode.start(body))
 
     def update(self, req: int, body: dict[str, Any], interrupted: Any) -> None:
-        from service.localization.localizers.base import Budget, Measurement
-
-        if self.localizer is None:
+        if self.episode is None:
             raise InputError("no episode under way")
-        m = body["measurement"]
-        measurement = Measurement(step=int(m["step"]), blocked=bool(m["blocked"]),
-                                  displacement=np.asarray(m["displacement"], dtype=float),
-                                  t_ns=int(m["t_ns"]), command=tuple(m["command"]))
-        t0 = time.monotonic_ns()
-        self.localizer.begin_update(measurement)
-        while not self.localizer.work(Budget.seconds(SLICE_S)):
-            if interrupted():
-                self.localizer = None  # cut short: the next request decides what follows
-                return
-        self._belief(req, body, t0)
+        belief = self.episode.update(body, interrupted)
+        if belief is None:
+            self.episode = None  # cut short: the next request decides what follows
+            return
+        self._send("belief", req, belief)
 
     def cancel(self, req: int, body: dict[str, Any]) -> None:
-        self.localizer = None
+        self.episode = None
 
-    def _belief(self, req: int, body: dict[str, Any], t0: int) -> None:
-        """Reply with the estimate, a cloud of the same moment and, if asked and the
-        episode goes on, the policy's next move."""
-        from service.localization.policies.base import PolicyInput
-
-        sc = self._scenario()
-        est = self.localizer.estimate()
-        update_ms = (time.monotonic_ns() - t0) / 1e6
-        hyp = self.localizer.hypotheses(limit=self.cloud_points)
-        move, policy_ms = None, 0.0
-        going_on = not (est.converged or est.candidates == 0)
-        if body.get("decide", True) and going_on:
-            t1 = time.perf_counter()
-            view = PolicyInput(hypotheses=self.localizer.hypotheses(),
-                               displacement=np.asarray(body.get("displacement", (0, 0)),
-                                                       dtype=float)[:2],
-                               blocked=frozenset(int(b) for b in body.get("blocked_here", [])),
-                               surface=sc.surface, step_length=sc.settings.step,
-                               rng=self.policy_rng, walls=sc.settings.walls, estimate=est)
-            move = int(self.policy.next_move(view))
-            policy_ms = (time.perf_counter() - t1) * 1e3
-        self._send("belief", req, {
-            "estimate": estimate_fields(est), "update_ms": update_ms, "policy_ms": policy_ms,
-            "move": move, "poses": hyp.poses.astype(np.float32),
-            "weights": hyp.weights.astype(np.float32),
-            "true_pose_eliminated": self._truth_eliminated(sc)})
-
-    def _truth_eliminated(self, sc: Scenario) -> bool | None:
-        """Whether a discrete localizer dropped the simulator's true pose (None elsewhere)."""
-        retains = getattr(self.localizer, "retains", None)
-        if retains is None or self.truth is None:
-            return None
-        kept = retains(self.truth, 1e-6 * sc.settings.step, 1e-6)
-        return None if kept is None else not kept
-
-    def _scenario(self) -> Scenario:
+    def _scenario(self) -> Any:
         if self.current is None:
             raise InputError("the compute process has no scenario: configure first")
         return self.current
-
-
-def estimate_fields(est: Any) -> dict[str, Any]:
-    """An Estimate as plain numbers (None for nothing or not finite)."""
-
-    def num(v: float | None) -> float | None:
-        return float(v) if v is not None and np.isfinite(v) else None
-
-    def pose(p: Any) -> list[float] | None:
-        return None if p is None else [float(v) for v in p]
-
-    return {"pose": pose(est.pose), "candidates": int(est.candidates),
-            "converged": bool(est.converged), "position_sd": num(est.position_sd),
-            "heading_sd": num(est.heading_sd), "mode_mass": num(est.mode_mass),
-            "runner_up": pose(est.runner_up),
-            "runner_up_mass": None if est.runner_up is None else num(est.runner_up_mass)}
-
-
-def _quiet_map_error(spec: str, exc: MapError) -> MapError:
-    """A map *file* error names the path only: what the file holds, and whether it exists,
-    is not the business of a remote client (the detail goes to the daemon's log)."""
-    if Path(spec).suffix.lower() not in (".npy", ".csv", ".txt") and "/" not in spec:
-        return exc  # a preset: its error says nothing about files
-    log.warning("map %s: %s", spec, exc)
-    return MapError(f"map file '{spec}' cannot be used: it is missing, unreadable or not a "
-                    f"grid of heights in metres (the daemon's log says which)")
 
 
 HANDLERS = ("setup", "commit", "discard", "start", "cancel")

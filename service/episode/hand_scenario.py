@@ -18,7 +18,7 @@ from service.errors import ConfigError
 from service.localization.grasp import GraspSpec, hand_quality, joint_torque
 from service.localization.localizers.base import Estimate, wrap_angle
 from service.localization.localizers.object_base import ObjectContext
-from service.localization.models import NoiseSpec, models_for
+from service.localization.models import HARDWARE_SENSOR_SIGMA, NoiseSpec, models_for
 from service.localization.objects.contour import Contour, check_fits
 from service.localization.objects.field import ContactField, contact_field
 from service.localization.objects.files import load_object
@@ -82,6 +82,14 @@ class HandSettings:
 
     def to_json(self) -> dict[str, Any]:
         return asdict(self)
+
+
+def hand_for_backend(settings: HandSettings, backend: str) -> HandSettings:
+    """`settings` for a run on `backend`: on servos, noise-free runs assume the encoders'
+    rounding (exact readings would eliminate the truth on it)."""
+    if backend == "sim" or settings.sensor_sigma is not None or settings.noise:
+        return settings
+    return dataclasses.replace(settings, sensor_sigma=HARDWARE_SENSOR_SIGMA)
 
 
 @dataclass(frozen=True)

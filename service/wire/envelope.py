@@ -22,8 +22,11 @@ if TYPE_CHECKING:
 
 from service.errors import InputError
 
-VERSION = 1
-"""Schema version carried in every envelope as `v`."""
+VERSION = 2
+"""Schema version carried in every envelope as `v`. Version 2 made the finger a hand of
+one: `state` carries `fingers`, `estimate` its `kind` and a hand's grasp quality."""
+READABLE_VERSIONS = (1, 2)
+"""Versions a recording may hold: `haptic replay` and `export` read older files too."""
 
 MAX_MESSAGE_BYTES = 64 * 1024
 """Default size limit of one decoded message (commands are small)."""
@@ -162,12 +165,17 @@ def _refuse_ext(code: int, data: bytes) -> Any:
     raise WireError("malformed", f"msgpack extension type {code} is not allowed")
 
 
-def check_envelope(obj: dict[str, Any], *, need_seq: bool = True) -> None:
-    """Raise WireError unless `obj` carries a valid envelope of our version."""
+def check_envelope(obj: dict[str, Any], *, need_seq: bool = True,
+                   versions: tuple[int, ...] = (VERSION,)) -> None:
+    """Raise WireError unless `obj` carries a valid envelope of our version (or one of
+    `versions`)."""
     v = obj.get("v")
-    if type(v) is not int or v != VERSION:  # `true` and `1.0` are not version 1
-        raise WireError("bad_version", f"schema version {v!r} is not supported; this "
-                        f"service speaks v={VERSION}")
+    if type(v) is not int or v not in versions:  # `true` and `2.0` are not version 2
+        raise WireError("bad_version", f"schema version {v!r} is not supported: this "
+                        f"service speaks protocol version {VERSION} only (v={VERSION}); "
+                        f"update the client to version {VERSION} (docs/protocol.md: `state` "
+                        "carries per-finger `fingers` instead of `centre`) and send "
+                        f"v={VERSION}")
     if not isinstance(obj.get("type"), str):
         raise WireError("malformed", "envelope field 'type' must be a string")
     if need_seq:
@@ -176,10 +184,11 @@ def check_envelope(obj: dict[str, Any], *, need_seq: bool = True) -> None:
                 raise WireError("malformed", f"envelope field '{key}' must be an integer")
 
 
-def decode(data: bytes, max_bytes: int = MAX_FRAME_BYTES, topic: str = "") -> Message:
+def decode(data: bytes, max_bytes: int = MAX_FRAME_BYTES, topic: str = "",
+           versions: tuple[int, ...] = (VERSION,)) -> Message:
     """Bytes from the stream to a Message (arrays as read-only numpy arrays)."""
     obj = unpack_map(data, max_bytes)
-    check_envelope(obj)
+    check_envelope(obj, versions=versions)
     body = {k: _from_wire(v) for k, v in obj.items()
             if k not in ("v", "type", "seq", "t_mono_ns", "t_wall_ns")}
     return Message(type=obj["type"], seq=obj["seq"], t_mono_ns=obj["t_mono_ns"],

@@ -41,7 +41,7 @@ def ask(sock: zmq.Socket, *frames: bytes) -> dict:
     sock.send_multipart(list(frames))
     assert sock.poll(5000), "no reply"
     reply = msgpack.unpackb(sock.recv())
-    assert reply["v"] == 1 and reply["type"] == "reply"
+    assert reply["v"] == 2 and reply["type"] == "reply"
     return reply
 
 
@@ -52,7 +52,7 @@ def snapshot(client: Client) -> tuple:
 
 
 def request(**fields: object) -> bytes:
-    return msgpack.packb({"v": 1, "type": "request", "id": 9, **fields})
+    return msgpack.packb({"v": 2, "type": "request", "id": 9, **fields})
 
 
 def test_garbage_gets_error_replies_and_changes_nothing(node: Node, raw: zmq.Socket) -> None:
@@ -63,7 +63,7 @@ def test_garbage_gets_error_replies_and_changes_nothing(node: Node, raw: zmq.Soc
             (os.urandom(200), "malformed"),
             (b"", "malformed"),
             (msgpack.packb([1, 2]), "malformed"),
-            (msgpack.packb({"v": 2, "type": "request", "id": 1, "cmd": "estop"}),
+            (msgpack.packb({"v": 1, "type": "request", "id": 1, "cmd": "estop"}),
              "bad_version"),
             (request(cmd="format_disk", client="x"), "unknown_command"),
             (request(cmd="estop", args={"reason": 3}), "bad_args"),
@@ -73,9 +73,9 @@ def test_garbage_gets_error_replies_and_changes_nothing(node: Node, raw: zmq.Soc
             (request(cmd="deactivate", client="intruder"), "lease_held"),
             (request(cmd="activate"), "lease_held"),  # another connection holds it
             (request(cmd=7), "malformed"),
-            (msgpack.packb({"v": 1, "type": "request", "id": [1], "cmd": "ping"}),
+            (msgpack.packb({"v": 2, "type": "request", "id": [1], "cmd": "ping"}),
              "malformed"),
-            (msgpack.packb({"v": 1, "type": "request", "id": 1, "cmd": "estop",
+            (msgpack.packb({"v": 2, "type": "request", "id": 1, "cmd": "estop",
                             "pad": "x" * 70_000}), "too_large"),
             (b"\x00" * (1 << 20), "too_large"),
             (msgpack.packb(msgpack.ExtType(1, b"\x80\x04")), "malformed"),
@@ -125,7 +125,7 @@ def test_lease_is_exclusive_and_estop_is_for_everyone(node: Node) -> None:
 
 
 def test_retry_with_same_id_does_not_run_twice(node: Node, raw: zmq.Socket) -> None:
-    payload = msgpack.packb({"v": 1, "type": "request", "id": "once", "cmd": "activate",
+    payload = msgpack.packb({"v": 2, "type": "request", "id": "once", "cmd": "activate",
                              "client": "retrier"})
     first = ask(raw, payload)
     second = ask(raw, payload)
@@ -146,7 +146,7 @@ def test_req_sockets_work_too(node: Node) -> None:
 
 def test_table_and_validator() -> None:
     assert "ping" in TABLE and not TABLE["estop"].lease and TABLE["activate"].lease
-    rid, cmd, client, args, spec = validate({"v": 1, "type": "request", "id": 3,
+    rid, cmd, client, args, spec = validate({"v": 2, "type": "request", "id": 3,
                                              "cmd": "set_map", "client": "c",
                                              "args": {"map": "peaks", "spacing": None}})
     assert (rid, cmd, args["map"]) == (3, "set_map", "peaks")
@@ -180,7 +180,7 @@ def test_configure_from_unconfigured() -> None:
         assert ctl.status()["state"] == "unconfigured"
         result = ctl.call("configure", changes={"scenario": {"map": "bumps:20:3", "seed": 4}})
         assert result["state"] == "inactive"
-        assert sub.wait_for(lambda m: m["state"] == "inactive" and m["centre"], 5.0)
+        assert sub.wait_for(lambda m: m["state"] == "inactive" and m["fingers"], 5.0)
         assert ctl.call("get_config")["scenario"]["map"] == "bumps:20:3"
 
 
@@ -231,7 +231,7 @@ INTS = st.integers(-(2**63), 2**64 - 1)
 def test_fuzzed_requests_always_get_a_reply(payload: bytes) -> None:
     server = fuzz_server()
     reply = msgpack.unpackb(server.handle(payload))
-    assert reply["v"] == 1 and reply["type"] == "reply" and isinstance(reply["ok"], bool)
+    assert reply["v"] == 2 and reply["type"] == "reply" and isinstance(reply["ok"], bool)
     if not reply["ok"]:
         assert reply["error"]["code"] in ERROR_CODES
 

@@ -34,7 +34,7 @@ def test_daemon_localizes_through_the_dynamixel_backend_on_the_emulator() -> Non
                 Subscriber(node.endpoints["pub"], ["estimate", "event", "state"]) as sub, \
                 Client(node.endpoints["cmd"], timeout_s=5.0) as ctl:
             assert ctl.status()["backend"] == "dynamixel"
-            assert sub.wait_for(lambda m: m.topic == "state" and m["centre"], 10.0)
+            assert sub.wait_for(lambda m: m.topic == "state" and m["fingers"], 10.0)
             ctl.call("activate")
             ctl.call("start_exploration")
             done = sub.wait_for(lambda m: m.topic == "event" and m["event"] in (

@@ -9,9 +9,9 @@ from dataclasses import asdict
 import numpy as np
 import pytest
 
-from firmware_if.backend import StepCommand
+from firmware_if.backend import HandCommand
 from service.daemon.explorer import Explorer, Phase
-from service.daemon.worker import estimate_fields
+from service.daemon.finger_compute import estimate_fields
 from service.daemon.worker_link import WorkerDied, WorkerLink
 from service.episode.runner import run_episode
 from service.episode.scenario import (
@@ -69,17 +69,18 @@ def test_exploration_matches_run_episode(link: WorkerLink, noise: bool) -> None:
     configure(link, settings)
     f = finger(settings, surface, 3)
     explorer = Explorer(link, settings)
-    commands: list[StepCommand] = []
+    commands: list[HandCommand] = []
 
-    def command(step: StepCommand) -> None:
+    def command(step: HandCommand) -> None:
         commands.append(step)
-        f.command_step(step)
+        f.command_hand(step)
 
-    explorer.start(f.read_state())
+    explorer.start(f.read_hand())
     while explorer.phase is not Phase.IDLE:
         waiting = explorer.phase in (Phase.DECIDE, Phase.UPDATING) and not explorer.paused
-        explorer.tick(f.read_state(), command, link.poll(60.0 if waiting else 0.0))
-    assert [(c.dx, c.dy) for c in commands] == [s.command for s in reference.steps]
+        explorer.tick(f.read_hand(), command, link.poll(60.0 if waiting else 0.0))
+    assert [(c.moves[0].dx, c.moves[0].dy) for c in commands] == [
+        s.command for s in reference.steps]
     assert explorer.estimate == estimate_fields(reference.estimate)
     assert explorer.steps == len(reference.steps)
 
@@ -90,13 +91,13 @@ def test_pause_holds_and_nothing_is_commanded(link: WorkerLink) -> None:
     surface = surface_for(settings)
     f = finger(settings, surface, 1)
     explorer = Explorer(link, settings)
-    explorer.start(f.read_state())
+    explorer.start(f.read_hand())
     explorer.paused = True
-    sent: list[StepCommand] = []
-    out = explorer.tick(f.read_state(), sent.append, link.poll(60.0))
+    sent: list[HandCommand] = []
+    out = explorer.tick(f.read_hand(), sent.append, link.poll(60.0))
     assert out.started  # the first belief arrived, and with it a move, held back
     for _ in range(20):
-        explorer.tick(f.read_state(), sent.append, link.poll())
+        explorer.tick(f.read_hand(), sent.append, link.poll())
     assert sent == [] and explorer.phase is Phase.DECIDE
     explorer.stop()
 
@@ -109,16 +110,16 @@ def test_a_move_held_back_by_a_pause_dies_with_its_episode(link: WorkerLink) -> 
     configure(link, settings)
     f = finger(settings, surface_for(settings), 1)
     explorer = Explorer(link, settings)
-    explorer.start(f.read_state())
+    explorer.start(f.read_hand())
     explorer.paused = True
-    sent: list[StepCommand] = []
-    assert explorer.tick(f.read_state(), sent.append, link.poll(60.0)).started
+    sent: list[HandCommand] = []
+    assert explorer.tick(f.read_hand(), sent.append, link.poll(60.0)).started
     explorer.stop()
-    explorer.start(f.read_state())
-    out = explorer.tick(f.read_state(), sent.append, [])
+    explorer.start(f.read_hand())
+    out = explorer.tick(f.read_hand(), sent.append, [])
     assert sent == [] and not out.started  # nothing until the new belief
     while not out.started:
-        out = explorer.tick(f.read_state(), sent.append, link.poll(60.0))
+        out = explorer.tick(f.read_hand(), sent.append, link.poll(60.0))
     assert len(sent) == 1 and explorer.phase is Phase.STEPPING
     explorer.stop()
 
@@ -132,7 +133,8 @@ def test_a_refused_setup_leaves_the_current_scenario(link: WorkerLink) -> None:
     # a file's content, and whether it exists, are not the client's business
     assert "missing, unreadable or not a grid" in error["message"]
     link.send("discard")
-    link.send("start", truth=None, t_ns=0, decide=False)
+    link.send("start", truth=None, reading={"t_ns": 0, "dropped": False, "fingers": [
+        {"centre": [0.0, 0.0, 0.0], "joints": [], "blocked": False}]})
     assert reply(link, "belief")["estimate"]["candidates"] > 0  # still the peaks scenario
 
 

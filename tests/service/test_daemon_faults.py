@@ -49,7 +49,7 @@ def rig(tmp_path: Path) -> Iterator[tuple]:
 
 def explore_until_moving(sub: Subscriber, ctl: Controller) -> None:
     assert sub.wait_for(lambda m: m.topic == "state" and m["state"] == "inactive"
-                        and m["centre"] is not None, 10.0)
+                        and m["fingers"], 10.0)
     ctl.call("activate")
     ctl.call("start_exploration", repeat=True)
     assert sub.wait_for(lambda m: m.topic == "state" and m["moving"], 20.0)

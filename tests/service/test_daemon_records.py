@@ -38,13 +38,13 @@ def test_every_cloud_is_one_moment_even_mid_update() -> None:
         assert link.poll(60.0)[0].type == "ready"
         link.send("commit")
         explorer = Explorer(link, settings)
-        explorer.start(f.read_state())
+        explorer.start(f.read_hand())
         count_after: dict[int, int] = {}
         clouds, mid_update = [], 0
         deadline = time.monotonic() + 120
         while explorer.phase is not Phase.IDLE and time.monotonic() < deadline:
             # a cloud is asked for in every tick, mid-update too
-            out = explorer.tick(f.read_state(), f.command_step, link.poll(0.002))
+            out = explorer.tick(f.read_hand(), f.command_hand, link.poll(0.002))
             for name, fields in out.events:
                 if name == "episode_started":
                     count_after[0] = fields["candidates"]
@@ -72,7 +72,7 @@ def events_of_one_episode(node, timeout_s: float = 60.0) -> list[dict]:
     """Every event from starting an episode on `node` to its end."""
     events = []
     with Subscriber(node.endpoints["pub"], ["state"]) as states:  # the finger is read
-        assert states.wait_for(lambda m: m["state"] == "inactive" and m["centre"], 10)
+        assert states.wait_for(lambda m: m["state"] == "inactive" and m["fingers"], 10)
     with Subscriber(node.endpoints["pub"], ["event"]) as sub, \
             Client(node.endpoints["cmd"]) as c:
         c.call("activate")

@@ -18,7 +18,7 @@ from service.wire.security import client_curve_options, generate_keys
 
 
 def raw_request(sock: zmq.Socket, cmd: str, client: str, rid: int, **args: object) -> dict:
-    sock.send(msgpack.packb({"v": 1, "type": "request", "id": rid, "cmd": cmd,
+    sock.send(msgpack.packb({"v": 2, "type": "request", "id": rid, "cmd": cmd,
                              "client": client, "args": args}))
     assert sock.poll(5000), "no reply"
     return msgpack.unpackb(sock.recv())

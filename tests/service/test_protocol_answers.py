@@ -39,7 +39,7 @@ class Raw:
         return msgpack.unpackb(self.sock.recv())
 
     def req(self, cmd: str, **args) -> dict:
-        return self.send_raw(msgpack.packb({"v": 1, "type": "request", "id": next(_ids),
+        return self.send_raw(msgpack.packb({"v": 2, "type": "request", "id": next(_ids),
                                             "cmd": cmd, "args": args}))
 
     def close(self) -> None:
@@ -57,12 +57,12 @@ def test_reply_seq_is_one_counter_across_connections(node: Node) -> None:
 def test_id_is_nil_only_when_it_could_not_be_read(node: Node) -> None:
     c = Raw(node.endpoints["cmd"])
     assert c.send_raw(b"\xc1garbage")["id"] is None
-    assert c.send_raw(msgpack.packb({"v": 1, "type": "request", "cmd": "ping"}))["id"] is None
-    big = msgpack.packb({"v": 1, "type": "request", "id": 5, "cmd": "ping",
+    assert c.send_raw(msgpack.packb({"v": 2, "type": "request", "cmd": "ping"}))["id"] is None
+    big = msgpack.packb({"v": 2, "type": "request", "id": 5, "cmd": "ping",
                          "args": {"x": "y" * 70_000}})
     reply = c.send_raw(big)
     assert reply["error"]["code"] == "too_large" and reply["id"] is None
-    reply = c.send_raw(msgpack.packb({"v": 2, "type": "request", "id": 6, "cmd": "ping"}))
+    reply = c.send_raw(msgpack.packb({"v": 1, "type": "request", "id": 6, "cmd": "ping"}))
     assert reply["error"]["code"] == "bad_version" and reply["id"] == 6
     c.close()
 
@@ -88,12 +88,12 @@ def _state_after(sub: Subscriber, t_mono_ns: int, timeout_s: float = 5.0):
 def test_a_reset_is_complete_when_a_later_state_shows_the_finger_read(node: Node) -> None:
     c = Raw(node.endpoints["cmd"])
     with Subscriber(node.endpoints["pub"], ["state"]) as sub:
-        assert sub.wait_for(lambda m: m["centre"] is not None, 5)
+        assert sub.wait_for(lambda m: m["fingers"], 5)
         assert c.req("estop", reason="drill")["result"]["state"] == "fault"
         reply = c.req("reset")
         assert reply["ok"] and reply["result"]["state"] == "inactive"
         ready = sub.wait_for(lambda m: m.t_mono_ns > reply["t_mono_ns"] and
-                             m["state"] == "inactive" and m["centre"] is not None
+                             m["state"] == "inactive" and m["fingers"]
                              and m["fault"] is None, 5)
         assert ready is not None
     assert c.req("activate")["result"]["state"] == "active"
@@ -104,7 +104,7 @@ def test_a_reset_is_complete_when_a_later_state_shows_the_finger_read(node: Node
 def test_the_holder_returning_during_the_hold(node: Node) -> None:
     first = Raw(node.endpoints["cmd"])
     with Subscriber(node.endpoints["pub"], ["state", "event"]) as sub:
-        assert sub.wait_for(lambda m: m.topic == "state" and m["centre"] is not None, 5)
+        assert sub.wait_for(lambda m: m.topic == "state" and m["fingers"], 5)
         assert first.req("activate")["ok"] and first.req("start_exploration")["ok"]
         # silent for longer than ttl_s: the lease ends and the finger holds
         assert sub.wait_for(lambda m: m.topic == "event" and m["event"] == "holding", 5)

@@ -37,7 +37,7 @@ class Plain:
 
     def call(self, cmd: str, **args: object) -> dict:
         self.next_id += 1
-        self.cmd.send(msgpack.packb({"v": 1, "type": "request", "id": self.next_id,
+        self.cmd.send(msgpack.packb({"v": 2, "type": "request", "id": self.next_id,
                                      "cmd": cmd, "client": "plain-client", "args": args}))
         assert self.cmd.poll(5000), "no reply"
         reply = msgpack.unpackb(self.cmd.recv())
@@ -69,9 +69,10 @@ def test_plain_client_reads_state_and_commands_the_service(endpoints) -> None:
     c = Plain(endpoints["pub"], endpoints["cmd"])
     try:
         state = c.next(b"state")
-        for key in ("v", "type", "seq", "t_mono_ns", "t_wall_ns", "state", "centre", "timing"):
+        for key in ("v", "type", "seq", "t_mono_ns", "t_wall_ns", "state", "fingers", "timing"):
             assert key in state
-        assert state["v"] == 1 and state["state"] == "inactive" and len(state["centre"]) == 3
+        assert state["v"] == 2 and state["state"] == "inactive"
+        assert len(state["fingers"]) == 1 and len(state["fingers"][0]["centre"]) == 3
         assert state["timing"]["rate_hz"] == 200.0
         later = c.next(b"state")
         assert later["seq"] > state["seq"] and later["t_mono_ns"] > state["t_mono_ns"]

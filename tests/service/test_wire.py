@@ -56,9 +56,9 @@ def test_unpack_refuses_garbage(data: bytes, code: str) -> None:
 
 
 def test_bad_envelopes() -> None:
-    good = {"v": 1, "type": "state", "seq": 1, "t_mono_ns": 1, "t_wall_ns": 1}
+    good = {"v": 2, "type": "state", "seq": 1, "t_mono_ns": 1, "t_wall_ns": 1}
     wire.check_envelope(good)
-    for change, code in [({"v": 2}, "bad_version"), ({"v": "1"}, "bad_version"),
+    for change, code in [({"v": 1}, "bad_version"), ({"v": "2"}, "bad_version"),
                          ({"type": 3}, "malformed"), ({"seq": "x"}, "malformed"),
                          ({"seq": True}, "malformed")]:
         with pytest.raises(wire.WireError) as err:

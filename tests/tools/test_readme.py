@@ -89,3 +89,18 @@ def test_the_daemon_section_works_as_written_three_times_on_a_busy_machine(tmp_p
             assert episode["converged"] and episode["success"] and episode["steps"]
             for made in ("view.png", "run.mcap", "episodes.json", "hapticd.log"):
                 (tmp_path / made).unlink()
+
+
+def test_the_hand_under_hapticd_section_works_as_written(tmp_path):
+    script = readme_block("### A hand under `hapticd`")
+    assert "config/hand.toml" in script and "kill %1" in script
+    (tmp_path / ".venv").symlink_to(ROOT / ".venv")
+    (tmp_path / "config").symlink_to(ROOT / "config")
+    env = {**os.environ, "HAPTIC_PUB": f"tcp://127.0.0.1:{free_port()}",
+           "HAPTIC_CMD": f"tcp://127.0.0.1:{free_port()}"}
+    done = run_block(script, tmp_path, env)
+    log = (tmp_path / "hapticd.log").read_text()
+    assert done.returncode == 0, (done.stdout, done.stderr, log[-2000:])
+    assert "finger 0 rolls" in done.stdout and "result    localized in" in done.stdout
+    assert "fingers 0: (" in done.stdout and "; 2: (" in done.stdout  # all three fingers
+    assert '"event": "shutdown"' in log

@@ -1,0 +1,138 @@
+"""hapticd runs a hand holding an object (issue 10): a client follows an episode to
+convergence over the wire, bad hand settings are refused with nothing changed, and a
+version-1 client is told to move to version 2."""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from collections.abc import Iterator
+
+import msgpack
+import numpy as np
+import pytest
+import zmq
+
+from service.daemon.config import DaemonConfig
+from service.daemon.harness import loopback_config, running_node
+from service.daemon.node import Node
+from service.daemon.worker import Worker
+from service.episode.hand_episode import simulate_hand, simulated_hand
+from service.episode.hand_scenario import UNIT
+from service.episode.hand_step import step_json
+from service.errors import ConfigError
+from service.wire.client import CommandFailed, Controller, Subscriber
+
+HAND = {"object": "blob", "hand": "three-finger", "noise": True, "seed": 0, "max_steps": 12}
+"""Seed 0 converges in 7 steps (`haptic run --object blob --hand three-finger --noise`)."""
+TIMINGS = ("compute_ms", "policy_ms")
+
+
+@pytest.fixture(scope="module")
+def node() -> Iterator[Node]:
+    with running_node(loopback_config({"scenario": HAND})) as n:
+        yield n
+
+
+def test_a_version_1_request_is_told_to_speak_version_2(node: Node) -> None:
+    sock = zmq.Context.instance().socket(zmq.DEALER)
+    sock.setsockopt(zmq.LINGER, 0)
+    sock.connect(node.endpoints["cmd"])
+    try:
+        sock.send(msgpack.packb({"v": 1, "type": "request", "id": 7, "cmd": "status"}))
+        assert sock.poll(5000), "no reply"
+        reply = msgpack.unpackb(sock.recv())
+    finally:
+        sock.close()
+    assert reply["v"] == 2 and reply["id"] == 7 and not reply["ok"]
+    assert reply["error"]["code"] == "bad_version"
+    assert "version 2" in reply["error"]["message"] and "v=2" in reply["error"]["message"]
+
+
+@pytest.mark.parametrize("changes, words", [
+    ({"hand": "seven-finger"}, "no hand preset or file 'seven-finger'"),
+    ({"object": "teapot"}, "teapot"),  # refused by the compute process, after a while
+    ({"localizer": "grid"}, "unknown algorithm 'grid'"),
+    ({"object": None, "hand": "two-finger"}, "set object too"),
+])
+def test_a_bad_hand_configure_is_refused_and_changes_nothing(node: Node, changes: dict,
+                                                             words: str) -> None:
+    with Controller(node.endpoints["cmd"]) as c:
+        before = c.call("get_config"), c.call("status")["object"]
+        with pytest.raises(CommandFailed) as err:
+            c.call("configure", changes={"scenario": changes})
+        assert err.value.code == "bad_config" and words in str(err.value)
+        assert (c.call("get_config"), c.call("status")["object"]) == before
+
+
+def test_a_client_follows_a_hand_episode_to_convergence(node: Node) -> None:
+    """The daemon's first episode is `haptic run --object`'s: its first step is the same."""
+    settings = DaemonConfig().updated({"scenario": HAND}).run_settings()
+    reference = simulate_hand(dataclasses.replace(settings, max_steps=1)).result.steps[0]
+    with Subscriber(node.endpoints["pub"], ["state", "estimate", "event"]) as sub, \
+            Controller(node.endpoints["cmd"]) as c:
+        state = sub.wait_for(lambda m: m.topic == "state" and m["fingers"], 10)
+        assert len(state["fingers"]) == 3 and not state["dropped"]
+        assert all(len(f["centre"]) == 3 and len(f["joints"]) == 2 for f in state["fingers"])
+        c.call("activate")
+        assert c.call("start_exploration")["candidates"] > 0
+        steps, estimates, done = [], [], None
+        end = time.monotonic() + 120
+        while done is None and time.monotonic() < end:
+            m = sub.recv(1.0)
+            if m is None or m.topic == "state":
+                continue
+            if m.topic == "estimate":
+                estimates.append(m.body)
+            elif m["event"] == "step":
+                steps.append(m.body)
+            elif m["event"] == "episode_done":
+                done = m.body
+        c.call("deactivate")
+    assert done is not None, "the episode did not end"
+    assert done["reason"] == "converged" and done["converged"] and not done["dropped"]
+    assert done["steps"] == len(steps) <= HAND["max_steps"]
+    first = {k: v for k, v in steps[0].items() if k not in (*TIMINGS, "episode", "event")}
+    assert first == {k: v for k, v in step_json(reference).items() if k not in TIMINGS}
+    assert all(s["kind"] in ("explore", "manipulate") and s["quality"] > 0 for s in steps)
+    final = estimates[-1]
+    assert final["kind"] == "hand" and final["converged"] and final["step"] == len(steps)
+    assert final["predicted_quality"] is not None and final["quality"] > 0
+    truth = steps[-1]["truth"]  # the object's true pose after the last step
+    assert np.hypot(*np.subtract(final["pose"][:2], truth[:2])) < 0.25 * UNIT
+
+
+def test_a_dropped_object_ends_the_episode_as_a_failure() -> None:
+    """After a drop the compute process says so (a `dropped` event, `episode_done` with
+    reason `dropped`) and asks for no further move."""
+    replies: list[tuple[str, dict]] = []
+    worker = Worker(lambda kind, req, fields: replies.append((kind, fields)))
+    settings = DaemonConfig().updated({"scenario": HAND}).run_settings()
+    worker.setup(1, {"scenario": "hand", "backend": "sim",
+                     "settings": dataclasses.asdict(settings)})
+    worker.commit(2, {})
+    hand = simulated_hand(settings, worker.current.parts)[0]
+    hand.open()
+    state = hand.read_hand()
+    reading = {"t_ns": 0, "dropped": False, "fingers": [
+        {"centre": list(f.centre), "joints": list(f.joints), "blocked": False}
+        for f in state.fingers]}
+    worker.start(3, {"truth": None, "reading": reading})
+    assert replies[-1][0] == "belief" and replies[-1][1]["command"] is not None
+    worker.update(4, {"step": 1, "reading": {**reading, "dropped": True}}, lambda: False)
+    belief = replies[-1][1]
+    assert belief["done"] and belief["command"] is None
+    names = [name for name, _ in belief["events"]]
+    assert names == ["step", "dropped", "episode_done"]
+    assert belief["events"][-1][1]["reason"] == "dropped"
+
+
+@pytest.mark.parametrize("scenario, words", [
+    ({"hand": "two-finger"}, "set object too"),
+    ({"object": "blob", "start": [0.1, 0.1, 0.0]}, "drawn from scenario.seed"),
+    ({"object": "blob", "localizer_options": {"work": 10}}, "not to a hand"),
+    ({"object": "blob", "roll": 0.5}, "scenario.roll"),
+])
+def test_hand_settings_are_checked_when_the_config_is(scenario: dict, words: str) -> None:
+    with pytest.raises(ConfigError, match=words):
+        DaemonConfig().updated({"scenario": scenario})
