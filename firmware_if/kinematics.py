@@ -121,10 +121,6 @@ def max_tip_force(hand: Chain, q: np.ndarray | tuple[float, ...], torque: float,
     """Largest force (newtons) the fingertip centre can push with along each unit direction
     (..., 3) when every joint's torque is bounded by `torque` (N m): the joint torques of a
     tip force f are J^T f, so along e the bound is torque / max_j |(J^T e)_j|."""
-    return tip_force_bound(jacobian(hand, q), torque, directions)
-
-
-def tip_force_bound(jac: np.ndarray, torque: float, directions: np.ndarray) -> np.ndarray:
-    """`max_tip_force` from the Jacobian (3, n) or (N, 3, n) at the joint angles."""
+    jac = jacobian(hand, q)  # (3, n)
     per_joint = np.abs(np.asarray(directions) @ jac)  # (..., n)
     return torque / np.maximum(per_joint.max(axis=-1), 1e-12)

@@ -13,7 +13,7 @@ Two measures:
   normal force. Zero without force closure. Geometry only: it ignores how hard the fingers
   can push and what the object weighs.
 * `quality` - what holds the object: the fingers push at most as hard as their joints'
-  goal current allows (through the Jacobian, `kinematics.tip_force_bound`), so each contact
+  goal current allows (through the Jacobian, `kinematics.max_tip_force`), so each contact
   can apply a bounded set of forces; the grasp can apply their Minkowski sum. Quality is
   the largest disturbance wrench (newtons) the grasp resists on top of the object's weight,
   negative when it cannot even carry that. The object slips - a drop - when it falls below
@@ -36,7 +36,7 @@ import numba
 import numpy as np
 from scipy.spatial import ConvexHull, QhullError
 
-from firmware_if.kinematics import Chain, tip_force_bound
+from firmware_if.kinematics import Chain
 from firmware_if.registers import NEWTON_METRES_PER_AMP
 from service.errors import ConfigError
 from service.localization import chain_kernels
@@ -130,9 +130,32 @@ def force_vertices(normals: np.ndarray, mu: float, limits: np.ndarray) -> np.nda
     return directions * limits[..., None]
 
 
-def unit_directions(normals: np.ndarray, mu: float) -> np.ndarray:
-    """(..., n, 3, 2) unit force directions whose limits `force_vertices` takes."""
-    return force_vertices(normals, mu, np.ones((*normals.shape[:-1], 3)))
+@numba.njit(cache=True, nogil=True)
+def _forces(normals: np.ndarray, jac: np.ndarray, torque: float, mu: float) -> np.ndarray:
+    """`force_vertices` (B, n, 3, 2) with each finger's limits along the unit directions
+    (`kinematics.max_tip_force`): `jac` (B or 1, n, 3, joints) is each finger's Jacobian
+    at its joint angles, zero-padded to the most joints."""
+    batch, n, joints = normals.shape[0], normals.shape[1], jac.shape[3]
+    out = np.empty((batch, n, 3, 2))
+    for b in range(batch):
+        jb = 0 if jac.shape[0] == 1 else b
+        for i in range(n):
+            nx, nz = normals[b, i, 0], normals[b, i, 1]
+            for v in range(3):
+                if v == 1:  # straight in
+                    dx, dz = -nx, -nz
+                else:  # a cone edge, -n -/+ mu t with t = (-nz, nx), made unit
+                    sign = -1.0 if v == 0 else 1.0
+                    dx, dz = -nx + sign * (mu * -nz), -nz + sign * (mu * nx)
+                    norm = math.sqrt(dx * dx + dz * dz)
+                    dx, dz = dx / norm, dz / norm
+                most = 0.0
+                for j in range(joints):
+                    most = max(most, abs(dx * jac[jb, i, 0, j] + dz * jac[jb, i, 2, j]))
+                bound = torque / max(most, 1e-12)
+                out[b, i, v, 0] = dx * bound
+                out[b, i, v, 1] = dz * bound
+    return out
 
 
 @numba.njit(cache=True, nogil=True)
@@ -299,18 +322,6 @@ def quality(points: np.ndarray, origins: np.ndarray, forces: np.ndarray, rho: fl
     return out.reshape(shape)
 
 
-def finger_limits(finger: Chain, q: np.ndarray, torque: float, directions: np.ndarray
-                  ) -> np.ndarray:
-    """Newtons one finger at joint angles q can push its tip with along each unit direction
-    (..., 2) of the hand plane, its joints bounded by `torque` N m (goal current times the
-    servo's torque per ampere)."""
-    d = np.asarray(directions, dtype=np.float64)
-    spatial = np.stack([d[..., 0], np.zeros(d.shape[:-1]), d[..., 1]], axis=-1)
-    q = np.asarray(q, dtype=np.float64)
-    jac = chain_kernels.jacobians(finger, q.reshape(-1, q.shape[-1]))
-    return tip_force_bound(jac[0] if q.ndim == 1 else jac, torque, spatial)
-
-
 def joint_torque(goal_current_a: float, model: str) -> float:
     """N m a joint pushes with at its goal-current bound."""
     return goal_current_a * NEWTON_METRES_PER_AMP[model]
@@ -323,9 +334,10 @@ def hand_quality(field: ContactField, poses: np.ndarray, centres: np.ndarray,
     (B, 3), finger i at joint angles `joint_angles[i]` ((B, joints) or (joints,))."""
     radii = np.array([f.radius for f in fingers])
     points, normals = contacts(field, poses, centres, radii)
-    directions = unit_directions(normals, spec.mu)  # (B, n, 3, 2)
-    limits = np.stack([finger_limits(f, np.asarray(q), torque, directions[:, i])
-                       for i, (f, q) in enumerate(zip(fingers, joint_angles, strict=True))],
-                      axis=1)
-    return quality(points, poses[:, :2], directions * limits[..., None],
+    angles = [np.asarray(q, dtype=np.float64) for q in joint_angles]
+    rows = max((len(q) for q in angles if q.ndim == 2), default=1)
+    jac = np.zeros((rows, len(fingers), 3, max(q.shape[-1] for q in angles)))
+    for i, (finger, q) in enumerate(zip(fingers, angles, strict=True)):
+        jac[:, i, :, :q.shape[-1]] = chain_kernels.jacobians(finger, q.reshape(-1, q.shape[-1]))
+    return quality(points, poses[:, :2], _forces(normals, jac, float(torque), float(spec.mu)),
                    field.contour.max_radius, spec.load)

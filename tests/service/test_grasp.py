@@ -14,6 +14,9 @@ from firmware_if import kinematics as kin
 from firmware_if.hand import load_hand
 from service.errors import ConfigError
 from service.localization import grasp as g
+from service.localization.objects.field import contact_field
+from service.localization.objects.presets import preset_object
+from service.localization.objects.rolling import contacts
 
 
 def on_disc(angles_deg, radius=0.025):
@@ -73,15 +76,44 @@ def test_weight_and_force_bounds_lower_the_quality():
     np.testing.assert_allclose(batch, free)
 
 
-def test_finger_limits_saturate_a_joint():
+def test_tip_force_limits_saturate_a_joint():
     finger = load_hand("two-finger").fingers[0]
     q = np.array(finger.home)
-    directions = np.array([[1.0, 0.0], [0.0, 1.0], [0.6, -0.8]])
-    limits = g.finger_limits(finger, q, 0.2, directions)
-    jac = kin.jacobian(finger, q)[[0, 2]]  # the hand plane's x and z rows
-    torques = np.abs((directions * limits[:, None]) @ jac)
+    directions = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.6, 0.0, -0.8]])
+    limits = kin.max_tip_force(finger, q, 0.2, directions)
+    torques = np.abs((directions * limits[:, None]) @ kin.jacobian(finger, q))
     np.testing.assert_allclose(torques.max(axis=1), 0.2)
     assert g.joint_torque(0.15, "XM430-W350") == pytest.approx(0.15 * 4.1 / 2.3)
+
+
+@pytest.mark.parametrize("name", ["two-finger", "three-finger"])
+def test_hand_quality_pushes_each_finger_to_its_joint_limits(name):
+    """The compiled hand quality is the numpy composition: contacts, the cone edges and
+    straight in at each finger's `max_tip_force`, the Minkowski-sum distance."""
+    hand = load_hand(name)
+    field = contact_field(preset_object("blob:3"))
+    rng = np.random.default_rng(4)
+    batch, n = 30, len(hand.fingers)
+    poses = np.column_stack([rng.normal(0, 0.002, (batch, 2)), rng.uniform(-np.pi, np.pi,
+                                                                            batch)])
+    angles = [rng.uniform(f.lower, f.upper, (batch, len(f.lower))) for f in hand.fingers]
+    angles[0] = np.array(hand.fingers[0].home)  # one finger's angles shared by every row
+    centres = np.stack([kin.forward(f, q)[..., [0, 2]] * np.ones((batch, 1))
+                        for f, q in zip(hand.fingers, angles, strict=True)], axis=1)
+    spec = g.GraspSpec()
+    got = g.hand_quality(field, poses, centres, hand.fingers, angles, 0.4, spec)
+    radii = np.array([f.radius for f in hand.fingers])
+    points, normals = contacts(field, poses, centres, radii)
+    directions = g.force_vertices(normals, spec.mu, np.ones((batch, n, 3)))
+    spatial = np.stack([directions[..., 0], np.zeros((batch, n, 3)), directions[..., 1]],
+                       axis=-1)
+    limits = np.array([[kin.max_tip_force(f, q[b] if q.ndim == 2 else q, 0.4, spatial[b, i])
+                        for i, (f, q) in enumerate(zip(hand.fingers, angles, strict=True))]
+                       for b in range(batch)])  # (batch, n, 3), one joint vector at a time
+    reference = g.quality(points, poses[:, :2], directions * limits.reshape(batch, n, 3, 1),
+                          field.contour.max_radius, spec.load)
+    np.testing.assert_allclose(got, reference, rtol=1e-12, atol=1e-12)
+    assert np.ptp(got) > 0.1  # the batch spans weak and strong grasps
 
 
 @pytest.mark.parametrize(("kwargs", "message"), [

@@ -173,29 +173,32 @@ class GraspGatedPolicy:
         poses, w, self._guard = _with_spread(poses, w, view.spread)
         if self._certified is None:
             self._certified = (view.centres.copy(), view.joints)
-        poses, w, now = self._held(view, poses, w)
+        poses, w, now, start = self._held(view, poses, w)
         if self.gate:  # fill the gaps between the poses that hold, then keep what holds
             cover = _with_cover(view, poses)
             poses, w = np.vstack([poses, cover]), np.concatenate([w, np.zeros(len(cover))])
             self._guard = np.concatenate([self._guard, np.ones(len(cover), dtype=bool)])
-            poses, w, now = self._held(view, poses, w)
+            poses, w, now, _ = self._held(view, poses, w, (now, start))
         self._now = now
         return poses, w / w.sum()
 
-    def _held(self, view: HandView, poses: np.ndarray, w: np.ndarray
-              ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def _held(self, view: HandView, poses: np.ndarray, w: np.ndarray,
+              known: tuple[np.ndarray, np.ndarray] = (np.empty(0), np.empty(0))
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """The poses (and weights, guard mask) under which the grasp holds the object now
         and the grasp the hand last started from kept the threshold, with the quality now
-        under each; failing that, those under which it holds now; failing that, all."""
+        and at that start under each; failing that, those under which it holds now;
+        failing that, all. `known` are those qualities for the first poses already."""
         assert self._certified is not None
-        now = self._quality(view, poses, view.centres, view.joints)
-        start = self._quality(view, poses, *self._certified)
+        rest = poses[len(known[0]):]
+        now = np.concatenate([known[0], self._quality(view, rest, view.centres, view.joints)])
+        start = np.concatenate([known[1], self._quality(view, rest, *self._certified)])
         for keep in ((now >= view.grasp.margin_n) & (start >= view.grasp.threshold_n),
                      now >= view.grasp.margin_n):
             if keep.any() and w[keep].sum() > 0:
                 self._guard = self._guard[keep]
-                return poses[keep], w[keep], now[keep]
-        return poses, w, now
+                return poses[keep], w[keep], now[keep], start[keep]
+        return poses, w, now, start
 
     def _quality(self, view: HandView, poses: np.ndarray, centres: np.ndarray,
                  joints: tuple[np.ndarray, ...]) -> np.ndarray:
@@ -222,19 +225,22 @@ class GraspGatedPolicy:
         h = len(poses)
         here = rolling.settle(view.field, poses, np.broadcast_to(view.centres, (h, n, 2)).copy(),
                               radii)  # the fingers that hold, under each pose
-        checks, targets = [], []
-        for f, d, part in options:
-            delta = d * part * view.step_length * tangents[f]
-            aims = []
-            for share in (0.5, 1.0):  # the middle and the end of the move
-                moved = np.broadcast_to(view.centres[f] + share * delta, (h, 1, 2)).copy()
-                centres = here.copy()
-                centres[:, f] = rolling.settle(view.field, poses, moved, radii[f:f + 1])[:, 0]
-                aims.append(centres)
-            checks.append(aims)
-            targets.append(view.centres[f] + delta)
-        readings = np.stack([aims[1][:, f] for aims, (f, _, _) in zip(checks, options,
-                                                                       strict=True)])
+        deltas = [d * part * view.step_length * tangents[f] for f, d, part in options]
+        targets = [view.centres[f] + delta for (f, _, _), delta in zip(options, deltas,
+                                                                      strict=True)]
+        weighed = weights > 0  # weightless poses add nothing to the information
+        told = np.flatnonzero(weighed | (np.arange(h) == 0))  # and the leader tells novelty
+
+        def aims(k: int, rows: np.ndarray | slice, share: float) -> np.ndarray:
+            """Fingertip centres (rows, n, 2) at `share` of move k, settled under poses."""
+            f = options[k][0]
+            centres = here[rows].copy()
+            moved = np.broadcast_to(view.centres[f] + share * deltas[k],
+                                    (len(centres), 1, 2)).copy()
+            centres[:, f] = rolling.settle(view.field, poses[rows], moved, radii[f:f + 1])[:, 0]
+            return centres
+
+        readings = np.stack([aims(k, told, 1.0)[:, f] for k, (f, _, _) in enumerate(options)])
         reach: dict[int, tuple[bool, np.ndarray]] = {}
         quality: dict[int, np.ndarray] = {}
 
@@ -246,24 +252,23 @@ class GraspGatedPolicy:
             return reach[k]
 
         def quality_of(k: int, rows: slice = slice(None)) -> np.ndarray:
-            """Least predicted quality over the move's checkpoints, per plausible pose."""
+            """Least predicted quality over the move's middle and end, per plausible pose."""
             if view.fixed:
                 return np.full(h, np.inf)[rows]
             if k in quality:
                 return quality[k][rows]
             f = options[k][0]
             angles = reach_of(k)[1]  # (end, middle)
-            q = np.minimum(*(self._checkpoint_quality(view, poses[rows], checks[k][part][rows],
+            q = np.minimum(*(self._checkpoint_quality(view, poses[rows], aims(k, rows, share),
                                                       f, angles[1 - part])
-                             for part in range(2)))
+                             for part, share in enumerate((0.5, 1.0))))
             if rows == slice(None):
                 quality[k] = q
             return q
 
         gated = self.gate and not view.fixed
         s = max(view.sigma, 1e-4)
-        weighed = weights > 0  # weightless poses add nothing to the information
-        gain = information(readings[:, weighed], weights[weighed], s)
+        gain = information(readings[:, weighed[told]], weights[weighed], s)
         novel = np.array([self._novel(readings[k][:1], poses[0]) for k in range(len(options))])
         larger = np.array([part for _, _, part in options])
         score = gain + NOVELTY * novel + 1e-3 * larger  # ties: the longer step
