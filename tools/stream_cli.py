@@ -164,6 +164,9 @@ def cmd_watch(args: argparse.Namespace) -> int:
         except KeyboardInterrupt:
             pass  # Ctrl-C is how a watch ends
         gaps = sum(sub.gaps.values())
+        if sub.rejected:
+            print(f"# {sub.rejected} messages could not be read: {sub.rejection}",
+                  file=sys.stderr)
     print(f"# {n} messages, {gaps} missed (sequence gaps)", file=sys.stderr)
     return 0
 

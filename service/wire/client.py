@@ -1,7 +1,9 @@
 """The client library: the daemon's stream as Python objects, its commands as calls.
 
-    with Subscriber("tcp://127.0.0.1:5560", ["estimate"]) as sub:
+    with Subscriber("tcp://127.0.0.1:5560", ["state", "estimate"]) as sub:
         msg = sub.recv(timeout_s=1.0)          # a service.wire.envelope.Message, or None
+        # state: msg["fingers"], one map per finger (protocol version 2; a finger is a
+        # hand of one); estimate: msg["kind"] is "finger" or "hand"
     with Controller("tcp://127.0.0.1:5561") as c:   # holds the lease while open
         c.call("activate"); c.call("start_exploration")
 
@@ -91,6 +93,9 @@ class Subscriber:
         """Messages missed per topic, from jumps in the sequence numbers."""
         self.received: dict[str, int] = dict.fromkeys(TOPICS, 0)
         self.rejected = 0
+        self.rejection: str | None = None
+        """Why the last rejected message could not be read (e.g. a daemon of another
+        protocol version: its `bad_version` message names both)."""
 
     def recv_raw(self, timeout_s: float | None = None) -> tuple[str, bytes] | None:
         """The next (topic, payload) without decoding, or None on timeout."""
@@ -116,8 +121,9 @@ class Subscriber:
             topic, payload = raw
             try:
                 msg = wire.decode(payload, topic=topic)
-            except wire.WireError:
+            except wire.WireError as exc:
                 self.rejected += 1
+                self.rejection = str(exc)
                 continue
             self._count(topic, msg.seq)
             return msg

@@ -136,3 +136,35 @@ def test_a_dropped_object_ends_the_episode_as_a_failure() -> None:
 def test_hand_settings_are_checked_when_the_config_is(scenario: dict, words: str) -> None:
     with pytest.raises(ConfigError, match=words):
         DaemonConfig().updated({"scenario": scenario})
+
+
+def test_watch_shows_every_finger_and_a_drop() -> None:
+    from service.wire import envelope as wire
+    from tools.stream_cli import format_message
+
+    fingers = [{"centre": [0.001 * i, 0.0, 0.03], "joints": [0.1, 0.2], "moving": i == 1,
+                "blocked": False} for i in range(3)]
+    msg = wire.decode(wire.encode("state", 5, {
+        "state": "active", "fault": None, "fingers": fingers, "moving": True, "dropped": True,
+        "steps_done": 4, "phase": "stepping", "timing": {}}), topic="state")
+    line = format_message(msg)
+    assert "0: (+0.00, +0.00, +30.00) mm; 1: (+1.00, +0.00, +30.00) mm moving; 2:" in line
+    assert "DROPPED" in line
+
+
+def test_a_subscriber_says_why_a_version_1_stream_cannot_be_read() -> None:
+    ctx = zmq.Context.instance()
+    pub = ctx.socket(zmq.PUB)
+    pub.setsockopt(zmq.LINGER, 0)
+    port = pub.bind_to_random_port("tcp://127.0.0.1")
+    old = msgpack.packb({"v": 1, "type": "state", "seq": 1, "t_mono_ns": 1, "t_wall_ns": 1,
+                         "state": "inactive", "centre": [0.0, 0.0, 0.0]})
+    try:
+        with Subscriber(f"tcp://127.0.0.1:{port}", ["state"]) as sub:
+            end = time.monotonic() + 10
+            while not sub.rejected and time.monotonic() < end:  # until the SUB has joined
+                pub.send_multipart([b"state", old])
+                assert sub.recv(0.05) is None
+            assert sub.rejected and "protocol version 2" in sub.rejection
+    finally:
+        pub.close()
