@@ -8,6 +8,7 @@ import trimesh
 from shapely.geometry import Point
 
 from service.errors import ObjectError
+from service.localization.objects import kernels, rolling
 from service.localization.objects.contour import check_fits, make_contour
 from service.localization.objects.field import contact_field
 from service.localization.objects.files import load_object
@@ -136,3 +137,16 @@ def test_mesh_section_through_a_plane(tmp_path):
     with pytest.raises(ObjectError, match="junk.stl"):
         load_object(str(tmp_path / "junk.stl"))
 
+
+
+def test_carrying_one_pose_uses_the_warmed_up_kernel():
+    """A single pose's fingertips broadcast to a batch of one are a read-only array: the
+    motion model still calls the kernel variant warmed up at start, so no update compiles
+    (one did, inside the first update that carried a single track)."""
+    kernels.warm_up()
+    variants = len(kernels.carry.signatures)
+    field = contact_field(preset_object("blob:2"))
+    tips = np.broadcast_to(np.array([[0.03, 0.0], [-0.03, 0.0]]), (1, 2, 2))
+    poses, _ = rolling.carry(field, np.zeros((1, 3)), tips, np.full(2, 0.01),
+                             np.zeros((2, 2)), np.array([0.1, -0.1]), 2)
+    assert poses.shape == (1, 3) and len(kernels.carry.signatures) == variants

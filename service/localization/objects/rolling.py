@@ -79,11 +79,10 @@ def carry(field: ContactField, poses: np.ndarray, centres: np.ndarray, radii: np
     centre by `moves` (n, 2) and turns its tip by `rolls` (n,), from `poses` with tips at
     `centres` (B, n, 2) (`kernels.carry`). With `noise` (and `rng`) each pose strays on its
     own draw; `on_substep(poses, centres)` sees every intermediate state."""
-    poses = np.ascontiguousarray(poses, dtype=np.float64)
-    centres = np.ascontiguousarray(centres, dtype=np.float64)
-    moves = np.ascontiguousarray(moves, dtype=np.float64)
-    rolls = np.ascontiguousarray(rolls, dtype=np.float64)
-    radii = np.ascontiguousarray(radii, dtype=np.float64)
+    # writable C arrays always: a broadcast view of one row is contiguous but read-only, a
+    # type of its own that would compile the kernel again inside an update
+    poses, centres, moves, rolls, radii = (np.require(a, np.float64, ("C", "W")) for a in (
+        poses, centres, moves, rolls, radii))
     draws = (rng.standard_normal((len(poses), substeps, 3)) if noise.any and rng is not None
              else np.zeros((len(poses), substeps, 3)))
     if on_substep is None:
