@@ -160,8 +160,10 @@ def _signals_interrupt() -> Iterator[None]:
     if threading.current_thread() is not threading.main_thread():
         yield
         return
-    previous = {sig: signal.signal(sig, _on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
-    try:
+    previous = {}
+    try:  # a signal may land between the two installs: the first is restored all the same
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            previous[sig] = signal.signal(sig, _on_signal)
         yield
     finally:
         for sig, handler in previous.items():
@@ -218,23 +220,23 @@ def _name(argv: list[str]) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
-    with _signals_interrupt(), _one_blas_thread():
-        try:
+    try:  # around the set-up too: a signal can land while the handlers are being installed
+        with _signals_interrupt(), _one_blas_thread():
             args = build_parser().parse_args(argv)
             return int(args.handler(args) or 0)
-        except (InputError, FirmwareError) as exc:
-            print(f"haptic {_name(argv)}: error: {exc}", file=sys.stderr)
-            return 2
-        except ServiceError as exc:
-            print(f"haptic {_name(argv)}: error: {exc}", file=sys.stderr)
-            return 1
-        except BrokenPipeError:
-            _quiet_broken_pipe()
-            return 0
-        except KeyboardInterrupt as exc:
-            signum = getattr(exc, "signum", signal.SIGINT)
-            print(f"haptic {_name(argv)}: interrupted", file=sys.stderr)
-            return 128 + int(signum)
+    except (InputError, FirmwareError) as exc:
+        print(f"haptic {_name(argv)}: error: {exc}", file=sys.stderr)
+        return 2
+    except ServiceError as exc:
+        print(f"haptic {_name(argv)}: error: {exc}", file=sys.stderr)
+        return 1
+    except BrokenPipeError:
+        _quiet_broken_pipe()
+        return 0
+    except KeyboardInterrupt as exc:
+        signum = getattr(exc, "signum", signal.SIGINT)
+        print(f"haptic {_name(argv)}: interrupted", file=sys.stderr)
+        return 128 + int(signum)
 
 
 if __name__ == "__main__":

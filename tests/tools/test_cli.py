@@ -129,6 +129,26 @@ def test_a_signal_during_start_up_is_a_clean_interruption() -> None:
     assert "Traceback" not in err
 
 
+def test_a_signal_while_the_command_sets_up_is_a_clean_interruption(monkeypatch, capsys
+                                                                   ) -> None:
+    """SIGTERM landing after the handlers are in but before the command's own set-up ends
+    (a background `watch` killed at once: exit 1 with a traceback, once in 60 tries)."""
+    from contextlib import contextmanager
+
+    import tools.cli as cli
+
+    @contextmanager
+    def interrupted_set_up():
+        cli._on_signal(signal.SIGTERM, None)  # what the handler does as the signal lands
+        yield
+
+    before = signal.getsignal(signal.SIGTERM)
+    monkeypatch.setattr(cli, "_one_blas_thread", interrupted_set_up)
+    assert main(["watch", "--pub", "tcp://127.0.0.1:1"]) == 128 + signal.SIGTERM
+    assert "haptic watch: interrupted" in capsys.readouterr().err
+    assert signal.getsignal(signal.SIGTERM) is before
+
+
 def test_a_closed_pipe_ends_quietly(tmp_path: Path) -> None:
     from service.wire import envelope as wire
 
