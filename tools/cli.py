@@ -146,7 +146,19 @@ class Interrupted(KeyboardInterrupt):
         self.signum = signum
 
 
+_seen: dict[str, int | None] = {"signum": None}
+
+
+def interrupted() -> bool:
+    """Whether SIGINT or SIGTERM has arrived during this command. Waiting loops check it
+    besides catching Interrupted: raised while Python runs a weakref callback or a __del__
+    (an import's lock clean-up, say), an exception is printed and dropped, and the signal
+    with it (a background `watch` ran on after its SIGTERM, once in ~500 tries)."""
+    return _seen["signum"] is not None
+
+
 def _on_signal(signum: int, frame: object) -> None:
+    _seen["signum"] = signum
     if _hold["depth"]:
         _hold["pending"] = signum  # raised when the held block ends
         return
@@ -161,6 +173,7 @@ def _signals_interrupt() -> Iterator[None]:
         yield
         return
     previous = {}
+    _seen["signum"] = None
     try:  # a signal may land between the two installs: the first is restored all the same
         for sig in (signal.SIGINT, signal.SIGTERM):
             previous[sig] = signal.signal(sig, _on_signal)

@@ -24,6 +24,7 @@ from service.localization.surface import HeightMap
 from sim_backend.emulator import ServoBus
 from sim_backend.emulator.hand_plant import HandPlant
 from sim_backend.emulator.plant import FingerPlant, hand_bus_servos
+from tools.cli import interrupted
 from tools.hand_cli import add_object_world_options, hand_settings
 from tools.scenario_options import add_scenario_options, settings_from_args
 
@@ -106,7 +107,7 @@ def run(args: argparse.Namespace, *, ready: Callable[[str], None] | None = None,
               f"heading={np.degrees(truth.heading):.1f} deg; Ctrl-C to stop", flush=True)
         if ready:
             ready(bus.port)
-        while not stop.wait(0.5):
+        while not stop.wait(0.5) and not interrupted():
             pass
     except KeyboardInterrupt:
         pass

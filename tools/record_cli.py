@@ -20,7 +20,7 @@ from typing import Any
 from service.errors import InputError
 from service.wire import envelope as wire
 from service.wire.client import CommandFailed, CommandTimeout
-from tools.cli import signals_held
+from tools.cli import interrupted, signals_held
 from tools.stream_cli import (
     add_stream_options,
     client_from,
@@ -58,7 +58,8 @@ def cmd_record(args: argparse.Namespace) -> int:
     end, next_state = deadline(args.duration), 0.0
     with subscriber_from(args, topics) as sub, McapRecorder(args.file) as rec:
         try:
-            while time.monotonic() < end and (args.count is None or rec.count < args.count):
+            while (time.monotonic() < end and (args.count is None or rec.count < args.count)
+                   and not interrupted()):
                 msg = sub.recv(min(0.5, max(0.0, end - time.monotonic())))
                 if msg is None:
                     continue

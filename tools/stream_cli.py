@@ -23,6 +23,7 @@ from service.wire.client import (
     default_endpoint,
 )
 from service.wire.stream import TOPICS
+from tools.cli import interrupted
 from tools.words import belief_text, pose_text, quality_text
 
 CURVE_ENV = {"server": "HAPTIC_CURVE_SERVER_KEY", "client": "HAPTIC_CURVE_CLIENT_KEY"}
@@ -151,7 +152,8 @@ def cmd_watch(args: argparse.Namespace) -> int:
     end, n, next_state = deadline(args.duration), 0, 0.0
     with subscriber_from(args, parse_topics(args.topics)) as sub:
         try:
-            while time.monotonic() < end and (args.count is None or n < args.count):
+            while (time.monotonic() < end and (args.count is None or n < args.count)
+                   and not interrupted()):
                 msg = sub.recv(min(0.5, max(0.0, end - time.monotonic())))
                 if msg is None:
                     continue

@@ -9,6 +9,7 @@ from typing import Any
 
 from service.errors import InputError
 from service.wire.client import CommandFailed, CommandTimeout
+from tools.cli import interrupted
 from tools.stream_cli import add_endpoint_options, client_from, deadline, subscriber_from
 
 
@@ -101,7 +102,7 @@ def cmd_view(args: argparse.Namespace) -> int:
         plt.ion()
         colour_bar = None
         try:
-            while plt.fignum_exists(fig.number):
+            while plt.fignum_exists(fig.number) and not interrupted():
                 end = time.monotonic() + 0.2
                 while (left := end - time.monotonic()) > 0:
                     msg = sub.recv(left)
