@@ -20,7 +20,7 @@ from firmware_if.registers import (
     OPERATING_MODES,
     ticks_to_rad,
 )
-from tools.cli import signals_held
+from tools.signals import signals_held
 
 MODEL_NAMES = {number: name for name, (number, _) in MODELS.items()}
 

@@ -19,12 +19,12 @@ import importlib
 import os
 import signal
 import sys
-import threading
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 
 from firmware_if.errors import FirmwareError
 from service.errors import InputError, ServiceError
+from tools.signals import signals_interrupt
 
 COMMANDS: dict[str, tuple[str, str]] = {
     "run": ("tools.run_cli", "localize a simulated (or real) finger once, step by step"),
@@ -138,51 +138,6 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-class Interrupted(KeyboardInterrupt):
-    """SIGINT or SIGTERM: unwinds like Ctrl-C so files are closed and torque released."""
-
-    def __init__(self, signum: int) -> None:
-        super().__init__(signal.Signals(signum).name)
-        self.signum = signum
-
-
-_seen: dict[str, int | None] = {"signum": None}
-
-
-def interrupted() -> bool:
-    """Whether SIGINT or SIGTERM has arrived during this command. Waiting loops check it
-    besides catching Interrupted: raised while Python runs a weakref callback or a __del__
-    (an import's lock clean-up, say), an exception is printed and dropped, and the signal
-    with it (a background `watch` ran on after its SIGTERM, once in ~500 tries)."""
-    return _seen["signum"] is not None
-
-
-def _on_signal(signum: int, frame: object) -> None:
-    _seen["signum"] = signum
-    if _hold["depth"]:
-        _hold["pending"] = signum  # raised when the held block ends
-        return
-    raise Interrupted(signum)
-
-
-@contextmanager
-def _signals_interrupt() -> Iterator[None]:
-    """SIGINT and SIGTERM raise Interrupted in the main thread, even in a background job
-    (where the shell starts us with SIGINT ignored), until the command returns."""
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-    previous = {}
-    _seen["signum"] = None
-    try:  # a signal may land between the two installs: the first is restored all the same
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            previous[sig] = signal.signal(sig, _on_signal)
-        yield
-    finally:
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
-
-
 @contextmanager
 def _one_blas_thread() -> Iterator[None]:
     """One BLAS thread, as in the daemon: at our sizes threads only add handover stalls.
@@ -196,25 +151,6 @@ def _one_blas_thread() -> Iterator[None]:
 
     with threadpool_limits(limits=1):
         yield
-
-
-_hold = {"depth": 0, "pending": None}
-"""While `signals_held` is open: the signal that arrived meanwhile, raised when it closes."""
-
-
-@contextmanager
-def signals_held() -> Iterator[None]:
-    """SIGINT and SIGTERM wait until the block is done (a packet exchange on a bus, a record
-    written whole), then end the command as usual."""
-    _hold["depth"] += 1
-    try:
-        yield
-    finally:
-        _hold["depth"] -= 1
-        signum = _hold["pending"]
-        if signum is not None and _hold["depth"] == 0:
-            _hold["pending"] = None
-            raise Interrupted(signum)
 
 
 def _quiet_broken_pipe() -> None:
@@ -234,7 +170,7 @@ def _name(argv: list[str]) -> str:
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
     try:  # around the set-up too: a signal can land while the handlers are being installed
-        with _signals_interrupt(), _one_blas_thread():
+        with signals_interrupt(), _one_blas_thread():
             args = build_parser().parse_args(argv)
             return int(args.handler(args) or 0)
     except (InputError, FirmwareError) as exc:

@@ -24,9 +24,9 @@ from service.localization.surface import HeightMap
 from sim_backend.emulator import ServoBus
 from sim_backend.emulator.hand_plant import HandPlant
 from sim_backend.emulator.plant import FingerPlant, hand_bus_servos
-from tools.cli import interrupted
 from tools.hand_cli import add_object_world_options, hand_settings
 from tools.scenario_options import add_scenario_options, settings_from_args
+from tools.signals import interrupted
 
 
 def register(p: argparse.ArgumentParser) -> None:

@@ -20,7 +20,7 @@ from typing import Any
 from service.errors import InputError
 from service.wire import envelope as wire
 from service.wire.client import CommandFailed, CommandTimeout
-from tools.cli import interrupted, signals_held
+from tools.signals import interrupted, signals_held
 from tools.stream_cli import (
     add_stream_options,
     client_from,

@@ -23,7 +23,7 @@ from service.wire.client import (
     default_endpoint,
 )
 from service.wire.stream import TOPICS
-from tools.cli import interrupted
+from tools.signals import interrupted
 from tools.words import belief_text, pose_text, quality_text
 
 CURVE_ENV = {"server": "HAPTIC_CURVE_SERVER_KEY", "client": "HAPTIC_CURVE_CLIENT_KEY"}

@@ -9,7 +9,7 @@ from typing import Any
 
 from service.errors import InputError
 from service.wire.client import CommandFailed, CommandTimeout
-from tools.cli import interrupted
+from tools.signals import interrupted
 from tools.stream_cli import add_endpoint_options, client_from, deadline, subscriber_from
 
 

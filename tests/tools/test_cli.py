@@ -136,10 +136,11 @@ def test_a_signal_while_the_command_sets_up_is_a_clean_interruption(monkeypatch,
     from contextlib import contextmanager
 
     import tools.cli as cli
+    from tools.signals import _on_signal
 
     @contextmanager
     def interrupted_set_up():
-        cli._on_signal(signal.SIGTERM, None)  # what the handler does as the signal lands
+        _on_signal(signal.SIGTERM, None)  # what the handler does as the signal lands
         yield
 
     before = signal.getsignal(signal.SIGTERM)
@@ -154,12 +155,12 @@ def test_a_signal_whose_exception_python_drops_still_ends_a_watch(monkeypatch) -
     """Raised while Python runs a __del__ or a weakref callback (an import's lock clean-up),
     the handler's exception is printed and dropped: the watch must end all the same (it ran
     on after `kill`, once in ~500 tries)."""
-    import tools.cli as cli
     from service.wire.client import Subscriber
+    from tools.signals import _on_signal
 
     class LandsInADestructor:
         def __del__(self) -> None:
-            cli._on_signal(signal.SIGTERM, None)
+            _on_signal(signal.SIGTERM, None)
 
     calls = []
 
