@@ -133,10 +133,11 @@ class DynamixelBackend(HandOfOne):
         self.bus.torque(False)
         self.bus.configure(self.servo_settings(), verify=True)
         self.bus.detect_fast_read()
-        self._state = self._first_read()
+        self._state = self._tolerant_read()
 
-    def _first_read(self) -> FingerState:
-        """The first reading, allowing the bus's usual tolerance of missed cycles."""
+    def _tolerant_read(self) -> FingerState:
+        """A reading outside the control cycle (the first, the one torque on starts from),
+        allowing the bus's usual tolerance of missed cycles."""
         for attempt in range(self.settings.failure_tolerance):
             try:
                 return self._read()
@@ -169,7 +170,7 @@ class DynamixelBackend(HandOfOne):
             return
         if self._fault:
             raise HardwareFault(f"cannot enable torque while faulted: {self._fault}; reset first")
-        state = self._read()
+        state = self._tolerant_read()  # one missed reply (a loaded host) fails nothing else
         self.bus.write_goals(self._goal_ticks(np.asarray(state.joints)))
         self.bus.torque(True)
         self._torque = True

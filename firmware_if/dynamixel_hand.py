@@ -90,7 +90,7 @@ class DynamixelHand(PlanarHand, DynamixelBackend):  # type: ignore[misc]
             return
         if self._fault:
             raise HardwareFault(f"cannot enable torque while faulted: {self._fault}; reset first")
-        state = self._read()
+        state = self._tolerant_read()
         goals: dict[int, int] = {}
         for i, (finger, f) in enumerate(zip(self.fingers, state.fingers, strict=True)):
             q = np.asarray(f.joints)
