@@ -48,6 +48,10 @@ FAST_READ_MIN_FIRMWARE = 45
 SETUP_TIMEOUT_MS = 34.0
 """Packet timeout outside the control cycle (setup, scan, single reads): the SDK's own."""
 _TIMEOUT_RESULTS = (-3001,)  # COMM_RX_TIMEOUT
+SETUP_ATTEMPTS = 3
+"""Tries of a single read or write outside the control cycle before its timeout counts: a
+reply can miss its window on a loaded host or a noisy line (make test under load: a
+configure's read-back failed), and reading or writing a register again is harmless."""
 PORT_ERRORS = (OSError, termios.error)
 """What a failing serial port raises (pyserial's SerialException is an OSError)."""
 T = TypeVar("T")
@@ -187,16 +191,22 @@ class DxlBus:
     def read(self, servo_id: int, name: str) -> int:
         """Read one control-table item (raw value)."""
         reg = REG[name]
-        data, result, error = self._sdk(f"read {name}", self._ph.readTxRx, self._require(),
-                                        servo_id, reg.address, reg.size)
+        for _ in range(SETUP_ATTEMPTS):
+            data, result, error = self._sdk(f"read {name}", self._ph.readTxRx,
+                                            self._require(), servo_id, reg.address, reg.size)
+            if result not in _TIMEOUT_RESULTS:
+                break
         self._check(result, error, (servo_id,), f"read {name}")
         return reg.decode(bytes(data))
 
     def write(self, servo_id: int, name: str, value: int) -> None:
         """Write one control-table item (raw value), checked by the servo's status."""
         reg = REG[name]
-        result, error = self._sdk(f"write {name}", self._ph.writeTxRx, self._require(),
-                                  servo_id, reg.address, reg.size, list(reg.encode(value)))
+        for _ in range(SETUP_ATTEMPTS):
+            result, error = self._sdk(f"write {name}", self._ph.writeTxRx, self._require(),
+                                      servo_id, reg.address, reg.size, list(reg.encode(value)))
+            if result not in _TIMEOUT_RESULTS:
+                break
         self._check(result, error, (servo_id,), f"write {name}={value}")
 
     def reboot(self, servo_id: int) -> None:

@@ -104,6 +104,18 @@ def test_a_late_reply_is_a_timeout_within_the_budget(emulator, bus):
     bus.cycle()  # the stale reply is flushed; the next cycle is clean
 
 
+def test_a_single_read_or_write_outlives_missed_replies_but_not_a_silent_servo(emulator,
+                                                                               bus):
+    emulator.fault(2).drop = 2  # two replies miss their window; the third comes
+    assert bus.read(2, "operating_mode") == 5
+    emulator.fault(2).drop = 2
+    bus.write(2, "return_delay_time", 0)
+    assert emulator.stats["dropped"] == 4
+    emulator.fault(2).mute = True
+    with pytest.raises(BusTimeoutError, match="servo 2: read operating_mode"):
+        bus.read(2, "operating_mode")
+
+
 def test_hardware_error_latches_a_fault_and_reset_reboots(emulator, bus):
     bus.torque(True)
     emulator.inject_hardware_error(2, 0x20)
