@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import sys
 import time
 from pathlib import Path
 
@@ -78,8 +79,14 @@ def cmd_read(args: argparse.Namespace) -> int:
         next_t = time.monotonic()
         while args.count <= 0 or n < args.count:
             with signals_held():  # Ctrl-C between exchanges, never inside one
-                readings = bus.cycle()
-            print("  ||  ".join(_finger_line(f, readings) for f in hand.fingers), flush=True)
+                try:
+                    readings = bus.cycle()
+                except CommunicationError as exc:  # a missed cycle; a latched fault ends it
+                    readings = None
+                    print(f"# cycle {n + 1} missed: {exc}", file=sys.stderr, flush=True)
+            if readings is not None:
+                print("  ||  ".join(_finger_line(f, readings) for f in hand.fingers),
+                      flush=True)
             n += 1
             next_t += args.interval
             time.sleep(max(0.0, next_t - time.monotonic()))
