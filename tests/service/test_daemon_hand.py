@@ -102,6 +102,24 @@ def test_a_client_follows_a_hand_episode_to_convergence(node: Node) -> None:
     assert np.hypot(*np.subtract(final["pose"][:2], truth[:2])) < 0.25 * UNIT
 
 
+def test_after_a_drop_the_stream_says_so_and_exploring_waits_for_a_configure(
+        node: Node) -> None:
+    """The simulated hand is made to lose the object (as a move past the grasp's margin
+    does): `state` says `dropped`, `start_exploration` is refused with what to do, and a
+    configure puts the object back."""
+    with Subscriber(node.endpoints["pub"], ["state"]) as sub, \
+            Controller(node.endpoints["cmd"]) as c:
+        node.backend._dropped = True  # fault injection: one flag the loop's reads report
+        assert sub.wait_for(lambda m: m["dropped"], 10) is not None
+        c.call("activate")
+        with pytest.raises(CommandFailed, match="dropped: put it back") as err:
+            c.call("start_exploration")
+        assert err.value.code == "bad_state"
+        c.call("deactivate")
+        c.call("configure")
+        assert sub.wait_for(lambda m: m["fingers"] and not m["dropped"], 10) is not None
+
+
 def test_a_dropped_object_ends_the_episode_as_a_failure() -> None:
     """After a drop the compute process says so (a `dropped` event, `episode_done` with
     reason `dropped`) and asks for no further move."""
