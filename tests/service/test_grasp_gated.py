@@ -157,6 +157,18 @@ def test_two_fingers_hold_where_the_hypotheses_left_gaps(name, seed):
     assert not report.result.dropped and not report.score.wrong_declaration
 
 
+@pytest.mark.xfail(strict=True, reason="known drop, open in issue 10: the truth has left "
+                   "the object localizer's pool (nearest plausible pose 1.9-3.2 mm and 3-6 "
+                   "degrees off, weight <= 3e-4), so the gate predicts for the wrong poses")
+def test_two_fingers_hold_when_the_truth_leaves_the_pool():
+    """B6 at 50 runs per cell dropped this one at step 5 (`--noise`); every move looked
+    safe under the plausible poses while the true quality fell to 0.15 N. A fix belongs in
+    the localizer (a global check of the object's pose); this test then passes."""
+    report = simulate_hand(HandSettings(object="rounded:39", hand="two-finger", seed=39,
+                                        noise=True, max_steps=6))
+    assert not report.result.dropped
+
+
 @given(scores=st.lists(st.sampled_from([0.0, -0.0, 0.5, 1.0, 1.0, -np.inf, np.inf, np.nan])
                        | st.floats(-2, 2), max_size=12),
        allowed=st.lists(st.booleans(), min_size=12, max_size=12))
