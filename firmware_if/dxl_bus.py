@@ -188,25 +188,29 @@ class DxlBus:
                 out[sid] = info
         return out
 
+    def _patient(self, what: str, call: Callable[..., Any], *args: Any) -> Any:
+        """One exchange outside the control cycle (`call(port, *args)`, which returns its
+        result code second to last), tried up to `SETUP_ATTEMPTS` times while it times
+        out."""
+        for _ in range(SETUP_ATTEMPTS):
+            out = self._sdk(what, call, self._require(), *args)
+            if out[-2] not in _TIMEOUT_RESULTS:
+                break
+        return out
+
     def read(self, servo_id: int, name: str) -> int:
         """Read one control-table item (raw value)."""
         reg = REG[name]
-        for _ in range(SETUP_ATTEMPTS):
-            data, result, error = self._sdk(f"read {name}", self._ph.readTxRx,
-                                            self._require(), servo_id, reg.address, reg.size)
-            if result not in _TIMEOUT_RESULTS:
-                break
+        data, result, error = self._patient(f"read {name}", self._ph.readTxRx, servo_id,
+                                            reg.address, reg.size)
         self._check(result, error, (servo_id,), f"read {name}")
         return reg.decode(bytes(data))
 
     def write(self, servo_id: int, name: str, value: int) -> None:
         """Write one control-table item (raw value), checked by the servo's status."""
         reg = REG[name]
-        for _ in range(SETUP_ATTEMPTS):
-            result, error = self._sdk(f"write {name}", self._ph.writeTxRx, self._require(),
-                                      servo_id, reg.address, reg.size, list(reg.encode(value)))
-            if result not in _TIMEOUT_RESULTS:
-                break
+        result, error = self._patient(f"write {name}", self._ph.writeTxRx, servo_id,
+                                      reg.address, reg.size, list(reg.encode(value)))
         self._check(result, error, (servo_id,), f"write {name}={value}")
 
     def reboot(self, servo_id: int) -> None:
