@@ -17,6 +17,7 @@ from typing import Any
 from firmware_if.errors import HandConfigError
 from firmware_if.hand import load_hand
 from service.bounds import check_fields, check_keywords, same_as, setting
+from service.daemon.quiet_files import quiet_hand_error
 from service.episode.hand_scenario import HandSettings, hand_for_backend
 from service.episode.scenario import RunSettings, for_backend
 from service.errors import ConfigError
@@ -109,7 +110,8 @@ class ScenarioConfig:
         try:
             load_hand(self.hand_name)
         except HandConfigError as exc:
-            raise ConfigError(f"scenario.hand: {exc}") from None
+            raise ConfigError(f"scenario.hand: {quiet_hand_error(self.hand_name, exc)}"
+                              ) from None
         try:
             self.hand_settings()
         except ConfigError as exc:

@@ -19,6 +19,7 @@ from typing import Any
 
 import numpy as np
 
+from service.daemon.quiet_files import is_map_file, quiet_file_error
 from service.errors import MapError
 
 SLICE_S = 0.02
@@ -68,7 +69,10 @@ def setup(fields: dict[str, Any], backend: str, files: list[Path]
     try:
         surface = surface_for(settings)
     except MapError as exc:
-        raise _quiet_map_error(settings.map, exc) from None
+        if not is_map_file(settings.map):
+            raise  # a preset: its error says nothing about files
+        raise quiet_file_error("map", settings.map, exc, "a grid of heights in metres",
+                               MapError) from None
     truth_rng, world_rng, loc_rng, policy_rng = episode_streams(settings.seed)
     prepare_localizers()
     scenario = FingerScenario(settings, surface, loc_rng, policy_rng)
@@ -237,15 +241,3 @@ def estimate_fields(est: Any) -> dict[str, Any]:
             "heading_sd": num(est.heading_sd), "mode_mass": num(est.mode_mass),
             "runner_up": pose(est.runner_up),
             "runner_up_mass": None if est.runner_up is None else num(est.runner_up_mass)}
-
-
-def _quiet_map_error(spec: str, exc: MapError) -> MapError:
-    """A map *file* error names the path only: what the file holds, and whether it exists,
-    is not the business of a remote client (the detail goes to the daemon's log)."""
-    import logging
-
-    if Path(spec).suffix.lower() not in (".npy", ".csv", ".txt") and "/" not in spec:
-        return exc  # a preset: its error says nothing about files
-    logging.getLogger("hapticd.worker").warning("map %s: %s", spec, exc)
-    return MapError(f"map file '{spec}' cannot be used: it is missing, unreadable or not a "
-                    f"grid of heights in metres (the daemon's log says which)")

@@ -21,7 +21,8 @@ import numpy as np
 from firmware_if.backend import FingerState, HandState
 from firmware_if.errors import HandConfigError
 from service.daemon.finger_compute import SLICE_S, estimate_fields
-from service.errors import ConfigError
+from service.daemon.quiet_files import is_object_file, quiet_file_error, quiet_hand_error
+from service.errors import ObjectError
 
 
 @dataclass
@@ -57,7 +58,13 @@ def setup(fields: dict[str, Any], backend: str) -> tuple[HandScenario, dict[str,
     try:
         parts = load_parts(settings)
     except HandConfigError as exc:  # a hand file that does not load
-        raise ConfigError(str(exc)) from None
+        raise quiet_hand_error(settings.hand, exc) from None
+    except ObjectError as exc:
+        if not is_object_file(settings.object):
+            raise  # a preset: its error says nothing about files
+        raise quiet_file_error("object", settings.object, exc, "an outline this hand can "
+                               "hold (x,z rows in metres, closed, or a mesh the plane cuts)",
+                               ObjectError) from None
     truth_rng, _, loc_rng, _ = streams(settings.seed)
     truth = draw_truth(settings, parts, truth_rng) if backend == "sim" else None
     return HandScenario(settings, parts, loc_rng), {

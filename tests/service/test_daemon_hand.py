@@ -50,7 +50,7 @@ def test_a_version_1_request_is_told_to_speak_version_2(node: Node) -> None:
 
 
 @pytest.mark.parametrize("changes, words", [
-    ({"hand": "seven-finger"}, "no hand preset or file 'seven-finger'"),
+    ({"hand": "seven-finger"}, "presets are planar, spatial, three-finger, two-finger"),
     ({"object": "teapot"}, "teapot"),  # refused by the compute process, after a while
     ({"localizer": "grid"}, "unknown algorithm 'grid'"),
     ({"object": None, "hand": "two-finger"}, "set object too"),
@@ -62,6 +62,30 @@ def test_a_bad_hand_configure_is_refused_and_changes_nothing(node: Node, changes
         with pytest.raises(CommandFailed) as err:
             c.call("configure", changes={"scenario": changes})
         assert err.value.code == "bad_config" and words in str(err.value)
+        assert (c.call("get_config"), c.call("status")["object"]) == before
+
+
+def test_a_file_that_cannot_be_used_tells_a_client_nothing_about_the_daemons_files(
+        node: Node, tmp_path) -> None:
+    """A remote client naming a file learns that it cannot be used, never whether it
+    exists or what it holds (a CSV's first cell, a TOML file's line and column); the
+    daemon's log says which, and nothing changes."""
+    secret = tmp_path / "secret.csv"
+    secret.write_text("hunter2,x\n")
+    hand = tmp_path / "hand.toml"
+    hand.write_text('name = "x"\nhunter2 = \n')
+    asked = [({"object": str(secret)}, "object"), ({"object": str(tmp_path / "no.stl")}, "object"),
+             ({"hand": str(hand)}, "hand"), ({"hand": str(tmp_path / "no.toml")}, "hand")]
+    with Controller(node.endpoints["cmd"]) as c:
+        before = c.call("get_config"), c.call("status")["object"]
+        for changes, what in asked:
+            with pytest.raises(CommandFailed) as err:
+                c.call("configure", changes={"scenario": changes})
+            message = str(err.value)
+            assert err.value.code == "bad_config"
+            assert f"{what} file '{next(iter(changes.values()))}' cannot be used" in message
+            for leak in ("hunter2", "exist", "at line", "column", "float"):
+                assert leak not in message, (changes, message)
         assert (c.call("get_config"), c.call("status")["object"]) == before
 
 

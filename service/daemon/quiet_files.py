@@ -1,0 +1,41 @@
+"""What a remote client learns when a file it named cannot be used: that it cannot, and
+nothing about the daemon's files. Whether a path exists, and what a file holds (a CSV's
+first cell, a TOML file's line and column), are not the business of a client; the detail
+goes to the daemon's log, where the lab that runs it reads it. Presets are not files, and
+their errors pass unchanged. The command-line tools keep the full message."""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+from firmware_if.hand import presets
+from service.errors import ConfigError, InputError
+
+MAP_SUFFIXES = frozenset({".npy", ".csv", ".txt"})
+OBJECT_SUFFIXES = frozenset({".csv", ".stl", ".obj", ".ply"})
+
+
+def is_map_file(spec: str) -> bool:
+    return Path(spec).suffix.lower() in MAP_SUFFIXES or "/" in spec
+
+
+def is_object_file(spec: str) -> bool:
+    return Path(spec).suffix.lower() in OBJECT_SUFFIXES
+
+
+def quiet_file_error(what: str, spec: str, exc: Exception, expected: str,
+                     error: type[InputError], hint: str = "") -> InputError:
+    """`error` saying only that the `what` file `spec` cannot be used, and what it must be
+    (`expected`), then `hint`; `exc`, the reason, is logged."""
+    logging.getLogger("hapticd.worker").warning("%s %s: %s", what, spec, exc)
+    return error(f"{what} file '{spec}' cannot be used: it is missing, unreadable or not "
+                 f"{expected} (the daemon's log says which){hint}")
+
+
+def quiet_hand_error(spec: str, exc: Exception) -> ConfigError:
+    """A hand that does not load: a preset's error as it is, a file's quieted."""
+    if spec in presets():
+        return ConfigError(str(exc))
+    return quiet_file_error("hand", spec, exc, "a hand description in TOML", ConfigError,
+                            hint=f"; the presets are {', '.join(presets())}")
