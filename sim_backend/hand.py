@@ -35,6 +35,7 @@ from firmware_if.backend import (
 from firmware_if.errors import NotReadyError
 from firmware_if.hand import Finger, Hand
 from service.errors import ConfigError
+from service.localization import chain_kernels
 from service.localization.grasp import GraspSpec, hand_quality, joint_torque
 from service.localization.models import NoiseSpec
 from service.localization.objects import kernels, rolling
@@ -274,11 +275,16 @@ class SimulatedHand(PlanarHand, FaultLatch):
                                   q, self._torque_nm, self.config.grasp)[0])
 
     def _ik(self, i: int, centre: np.ndarray, q0: np.ndarray) -> np.ndarray:
-        return kin.inverse(self.fingers[i], np.array([centre[0], 0.0, centre[1]]), q0).q
+        """`kinematics.inverse`, compiled: the physics of a step is mostly IK, and it runs
+        in the daemon's tick."""
+        q, _ = chain_kernels.inverse(self.fingers[i], np.array([[centre[0], 0.0, centre[1]]]),
+                                     np.asarray(q0, dtype=np.float64)[None])
+        return q[0]
 
     def _reachable(self, targets: np.ndarray) -> bool:
-        return all(bool(kin.inverse(f, np.array([t[0], 0.0, t[1]]), q, iterations=200
-                                    ).reachable)
+        return all(bool(chain_kernels.inverse(f, np.array([[t[0], 0.0, t[1]]]),
+                                              np.asarray(q, dtype=np.float64)[None],
+                                              iterations=200)[1][0])
                    for f, t, q in zip(self.fingers, targets, self._q, strict=True))
 
     def _finish_step_if_due(self) -> None:
