@@ -18,7 +18,7 @@ perturbation. Every random draw comes from the generator given, so a seed fixes 
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -139,6 +139,8 @@ class SimulatedHand(PlanarHand, FaultLatch):
         self._blocked = False
         self._steps_done = 0
         self._busy_until: int | None = None
+        self._motion: Iterator[None] | None = None
+        """The step under way, a substep per `next`."""
         self.quality = float("nan")
         """The grasp's true quality now (newtons): for scoring and figures, not the service."""
         self.min_quality = float("inf")
@@ -194,6 +196,7 @@ class SimulatedHand(PlanarHand, FaultLatch):
     # -- I/O -------------------------------------------------------------------------------
     def read_hand(self) -> HandState:
         self._require_open()
+        self._advance(everything=False)
         self._finish_step_if_due()
         moving = self._busy_until is not None
         fingers = tuple(
@@ -206,6 +209,9 @@ class SimulatedHand(PlanarHand, FaultLatch):
         return HandState(t_ns=self._clock.now_ns(), fingers=fingers, dropped=self._dropped)
 
     def command_hand(self, command: HandCommand) -> None:
+        """Start a step: checked and its reach tested now; its motion worked out one
+        substep per `read_hand` (the daemon reads once a tick, so no tick carries a whole
+        step's physics), and all of what is left once the step is due."""
         self._require_open()
         check_hand_command(command, hand=self.hand.name, fingers=len(self.fingers),
                            fault=self._fault, torque_on=self._torque,
@@ -213,20 +219,31 @@ class SimulatedHand(PlanarHand, FaultLatch):
         moving = command.moving
         moves = np.array([[0.0, 0.0] if m is None else [m.dx, m.dz] for m in command.moves])
         rolls = np.array([0.0 if m is None else m.roll for m in command.moves])
+        explore = len(moving) == 1 and rolls[moving[0]] == 0.0
+        if not explore and self.config.fixed:
+            raise NotReadyError("the object is clamped in place: it cannot be manipulated")
         self._blocked = not self._reachable(self._centres + moves)
         if not self._blocked:
-            try:
-                if len(moving) == 1 and rolls[moving[0]] == 0.0:
-                    self._explore(moving[0], moves[moving[0]])
-                else:
-                    self._manipulate(moves, rolls)
-            except _Dropped:
-                self._dropped = True
+            self._motion = (self._explore(moving[0], moves[moving[0]]) if explore
+                            else self._manipulate(moves, rolls))
         self._busy_until = self._clock.now_ns() + int(self.config.step_duration_s * 1e9)
         self._finish_step_if_due()
 
     # -- physics ---------------------------------------------------------------------------
-    def _explore(self, i: int, move: np.ndarray) -> None:
+    def _advance(self, *, everything: bool) -> None:
+        """One substep of the motion under way, or all that is left."""
+        while self._motion is not None:
+            try:
+                next(self._motion)
+            except StopIteration:
+                self._motion = None
+            except _Dropped:
+                self._dropped, self._motion = True, None
+            if not everything:
+                return
+
+    def _explore(self, i: int, move: np.ndarray) -> Iterator[None]:
+        """Finger i's step, a substep per iteration; the noise is drawn at the first."""
         noise = self.config.noise
         length = np.hypot(*move) * (1 + noise.step_length_fraction * self._rng.standard_normal())
         heading = np.arctan2(move[1], move[0]) + noise.step_direction_sigma * \
@@ -240,24 +257,26 @@ class SimulatedHand(PlanarHand, FaultLatch):
                                         self._radii[i:i + 1])[0, 0]
             q[i] = self._ik(i, centres[i], q[i])
             self._check(self._pose, centres, q)
+            if k < self.config.substeps:
+                yield
         self._rolls[i] += float(np.hypot(*(centres[i] - start))) / self._radii[i]
         self._centres, self._q = centres, q
 
-    def _manipulate(self, moves: np.ndarray, rolls: np.ndarray) -> None:
-        if self.config.fixed:
-            raise NotReadyError("the object is clamped in place: it cannot be manipulated")
+    def _manipulate(self, moves: np.ndarray, rolls: np.ndarray) -> Iterator[None]:
+        """Every finger's move carrying the object, a substep per iteration."""
         q = list(self._q)
-
-        def check(poses: np.ndarray, centres: np.ndarray) -> None:
+        noise = self.config.noise
+        steps = rolling.carry_steps(
+            self._field, self._pose[None], self._centres[None], self._radii, moves, rolls,
+            substeps=self.config.substeps, rng=self._rng,
+            noise=rolling.TwistNoise(noise.step_length_fraction, noise.step_direction_sigma))
+        poses, centres = self._pose[None], self._centres[None]
+        for k, (poses, centres) in enumerate(steps):
             for i in range(len(self.fingers)):
                 q[i] = self._ik(i, centres[0, i], q[i])
             self._check(poses[0], centres[0], q)
-
-        noise = self.config.noise
-        poses, centres = rolling.carry(
-            self._field, self._pose[None], self._centres[None], self._radii, moves, rolls,
-            substeps=self.config.substeps, rng=self._rng, on_substep=check,
-            noise=rolling.TwistNoise(noise.step_length_fraction, noise.step_direction_sigma))
+            if k < self.config.substeps - 1:
+                yield
         self._pose, self._centres, self._q = poses[0], centres[0], q
         self._rolls += rolls
 
@@ -290,6 +309,7 @@ class SimulatedHand(PlanarHand, FaultLatch):
     def _finish_step_if_due(self) -> None:
         if self._busy_until is None or self._clock.now_ns() < self._busy_until:
             return
+        self._advance(everything=True)
         self._busy_until = None
         self._steps_done += 1
         self._measure()

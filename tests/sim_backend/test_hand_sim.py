@@ -13,6 +13,7 @@ from service.localization.models import NoiseSpec
 from service.localization.objects import kernels, rolling
 from service.localization.objects.field import contact_field
 from service.localization.objects.presets import preset_object
+from sim_backend.clock import ManualClock
 from sim_backend.hand import HandSimConfig, SimulatedHand
 
 TWO = load_hand("two-finger")
@@ -129,3 +130,54 @@ def test_same_seed_same_readings_and_noise_at_b2_level():
     np.testing.assert_array_equal(centres(a), centres(b))
     errors = gaps(a.pose, centres(a))
     assert 1e-6 < np.max(np.abs(errors)) < 1e-3
+
+
+@pytest.mark.parametrize("command", [
+    HandCommand((FingerMove(dz=0.003), None)),
+    HandCommand((FingerMove(dz=0.001, roll=0.05), FingerMove(dz=0.001, roll=-0.05))),
+], ids=["explore", "manipulate"])
+def test_a_timed_step_works_out_a_substep_per_read_and_ends_where_an_instant_one_does(
+        command):
+    """hapticd reads the hand once a tick: a step's physics is spread over the reads (no
+    tick carries a whole step), and draws the same noise, so it ends bitwise where a step
+    worked out at once ends."""
+    noise = NoiseSpec(measurement_sigma=2e-4, step_length_fraction=0.05,
+                      step_direction_sigma=0.05)
+    clock = ManualClock()
+    timed = SimulatedHand(TWO, BLOB, HandSimConfig(pose=POSE, noise=noise,
+                                                   step_duration_s=0.05),
+                          np.random.default_rng(3), clock)
+    timed.open()
+    timed.set_torque(True)
+    instant = opened(noise=noise, seed=3)
+    instant.command_hand(command)
+    timed.command_hand(command)
+    start = (timed.pose, timed.centres)
+    substeps = timed.config.substeps
+    for _ in range(substeps - 1):  # the motion is under way, not yet over
+        timed.read_hand()
+        assert (timed.pose, timed.centres.tolist()) == (start[0], start[1].tolist())
+    timed.read_hand()  # the last substep: the object and fingers are where they went
+    assert timed.pose == instant.pose
+    np.testing.assert_array_equal(timed.centres, instant.centres)
+    assert timed.read_hand().fingers[0].moving and timed.steps_done == 0  # not due yet
+    clock.advance(0.05)
+    state = timed.read_hand()
+    assert not state.fingers[0].moving and timed.steps_done == instant.steps_done == 1
+    np.testing.assert_array_equal(centres(timed), centres(instant))
+
+
+def test_a_step_due_before_its_substeps_were_read_is_finished_at_once():
+    """A late tick (reads slower than the substeps) finishes what is left in one read."""
+    clock = ManualClock()
+    timed = SimulatedHand(TWO, BLOB, HandSimConfig(pose=POSE, step_duration_s=0.05),
+                          np.random.default_rng(0), clock)
+    timed.open()
+    timed.set_torque(True)
+    instant = opened()
+    for sim in (timed, instant):
+        sim.command_hand(HandCommand((FingerMove(dz=0.003), None)))
+    timed.read_hand()
+    clock.advance(0.06)
+    assert not timed.read_hand().fingers[0].moving
+    np.testing.assert_array_equal(centres(timed), centres(instant))

@@ -18,7 +18,7 @@ the world's noise.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 
 import numpy as np
@@ -79,22 +79,44 @@ def carry(field: ContactField, poses: np.ndarray, centres: np.ndarray, radii: np
     centre by `moves` (n, 2) and turns its tip by `rolls` (n,), from `poses` with tips at
     `centres` (B, n, 2) (`kernels.carry`). With `noise` (and `rng`) each pose strays on its
     own draw; `on_substep(poses, centres)` sees every intermediate state."""
-    # writable C arrays always: a broadcast view of one row is contiguous but read-only, a
-    # type of its own that would compile the kernel again inside an update
-    poses, centres, moves, rolls, radii = (np.require(a, np.float64, ("C", "W")) for a in (
-        poses, centres, moves, rolls, radii))
-    draws = (rng.standard_normal((len(poses), substeps, 3)) if noise.any and rng is not None
-             else np.zeros((len(poses), substeps, 3)))
     if on_substep is None:
+        poses, centres, moves, rolls, radii = _writable(poses, centres, moves, rolls, radii)
         return kernels.carry(*field.args, poses, centres, radii, moves, rolls, substeps,
-                             draws, noise.fraction, noise.direction_sigma)
+                             _draws(len(poses), substeps, noise, rng), noise.fraction,
+                             noise.direction_sigma)
+    state = (poses, centres)
+    for state in carry_steps(field, poses, centres, radii, moves, rolls, substeps, noise,
+                             rng):
+        on_substep(*state)
+    return state
+
+
+def carry_steps(field: ContactField, poses: np.ndarray, centres: np.ndarray,
+                radii: np.ndarray, moves: np.ndarray, rolls: np.ndarray, substeps: int = 8,
+                noise: TwistNoise = EXACT, rng: np.random.Generator | None = None
+                ) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+    """`carry` one substep at a time: the poses and centres after each (the same draws, so
+    the same end), for a caller that spreads a motion's work over time."""
+    poses, centres, moves, rolls, radii = _writable(poses, centres, moves, rolls, radii)
+    draws = _draws(len(poses), substeps, noise, rng)
     for k in range(substeps):
         poses, centres = kernels.carry(*field.args, poses, centres, radii, moves / substeps,
                                        rolls / substeps, 1,
                                        np.ascontiguousarray(draws[:, k:k + 1]),
                                        noise.fraction, noise.direction_sigma)
-        on_substep(poses, centres)
-    return poses, centres
+        yield poses, centres
+
+
+def _writable(*arrays: np.ndarray) -> tuple[np.ndarray, ...]:
+    """Writable C float arrays always: a broadcast view of one row is contiguous but
+    read-only, a type of its own that would compile the kernel again inside an update."""
+    return tuple(np.require(a, np.float64, ("C", "W")) for a in arrays)
+
+
+def _draws(count: int, substeps: int, noise: TwistNoise, rng: np.random.Generator | None
+           ) -> np.ndarray:
+    return (rng.standard_normal((count, substeps, 3)) if noise.any and rng is not None
+            else np.zeros((count, substeps, 3)))
 
 
 def plan_turn(field: ContactField, pose: np.ndarray, centres: np.ndarray, radii: np.ndarray,
