@@ -163,6 +163,7 @@ class SimulatedHand(PlanarHand, FaultLatch):
                               f"'{self.contour.name}' at pose {np.round(self._pose, 4)}: "
                               f"grasp quality {self.quality:.3f} N is below the margin")
         self.min_quality = self.quality
+        self._reachable(self._centres)  # loads the compiled IK now, not in a step's tick
         self._measure()
 
     def close(self) -> None:
