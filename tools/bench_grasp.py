@@ -228,8 +228,9 @@ def grasp_figure(table: dict, hands, families, kinds, path: Path) -> None:
         axes[0].bar(x + 2 * width, np.array(ablation) / runs * 100, width, color="tab:red",
                     alpha=0.35, label="drops without the gate")
     axes[0].set_xticks(x, labels, fontsize=8)
-    axes[0].set(ylabel="% of runs", title="B6: success, drops and wrong declarations")
-    axes[0].legend(fontsize=7)
+    axes[0].set(ylabel="% of runs", title="B6: success, drops and wrong declarations",
+                ylim=(0, 125))  # room above 100 % for the legend, clear of the bars
+    axes[0].legend(fontsize=7, ncol=4, loc="upper center")
     steps = [r["steps_median"] for r in rows]
     axes[1].bar(x - 0.15, steps, 0.3, label="hand (gated)")
     if "single" in kinds:
@@ -237,7 +238,8 @@ def grasp_figure(table: dict, hands, families, kinds, path: Path) -> None:
         axes[1].bar(x + 0.15, single, 0.3, label="one finger, object clamped")
     axes[1].set_xticks(x, labels, fontsize=8)
     axes[1].set(ylabel="median steps", title="steps to a declaration (or the step limit)")
-    axes[1].legend(fontsize=7)
+    axes[1].set_ylim(0, 1.25 * max([*steps, *(single if "single" in kinds else [])], default=1))
+    axes[1].legend(fontsize=7, ncol=2, loc="upper center")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
