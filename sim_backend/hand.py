@@ -148,6 +148,7 @@ class SimulatedHand(PlanarHand, FaultLatch):
 
     # -- lifecycle -------------------------------------------------------------------------
     def open(self) -> None:
+        self._motion, self._busy_until = None, None  # opened again without a close
         noise = self.config.noise
         world = perturbed_contour(self.contour, noise.surface_sigma, noise.surface_correlation,
                                   self._rng)
@@ -167,8 +168,10 @@ class SimulatedHand(PlanarHand, FaultLatch):
         self._measure()
 
     def close(self) -> None:
+        """Torque off; a step under way ends here, undone (it never happens)."""
         self._torque = False
         self._field = None
+        self._motion, self._busy_until = None, None
 
     @property
     def pose(self) -> tuple[float, float, float]:

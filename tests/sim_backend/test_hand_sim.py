@@ -181,3 +181,27 @@ def test_a_step_due_before_its_substeps_were_read_is_finished_at_once():
     clock.advance(0.06)
     assert not timed.read_hand().fingers[0].moving
     np.testing.assert_array_equal(centres(timed), centres(instant))
+
+
+def test_a_step_under_way_when_the_hand_closes_is_gone_when_it_opens_again():
+    """Closing mid-step (hapticd's reset, a reconfigure) ends the step: the hand opens
+    again holding the object as a fresh one does, with nothing of the old step left to
+    move it."""
+    clock = ManualClock()
+    sim = SimulatedHand(TWO, BLOB, HandSimConfig(pose=POSE, step_duration_s=0.05),
+                        np.random.default_rng(0), clock)
+    sim.open()
+    sim.set_torque(True)
+    sim.command_hand(HandCommand((FingerMove(dz=0.003), None)))
+    sim.read_hand()  # one substep done, the rest under way
+    sim.close()
+    sim.open()
+    sim.set_torque(True)
+    fresh = opened()
+    for _ in range(sim.config.substeps + 1):
+        state = sim.read_hand()
+    clock.advance(0.1)
+    state = sim.read_hand()
+    assert not state.fingers[0].moving and sim.steps_done == 0
+    np.testing.assert_array_equal(sim.centres, fresh.centres)
+    sim.command_hand(HandCommand((FingerMove(dz=0.003), None)))  # not refused as busy
