@@ -23,7 +23,13 @@ from service.errors import InputError, ServiceError
 from service.wire.client import Client, CommandFailed, CommandTimeout, Subscriber
 from service.wire.commands import TABLE
 from tools.stream_cli import add_endpoint_options, client_from, subscriber_from
-from tools.words import belief_text, hand_step_text, pose_text, why_not_converged
+from tools.words import (
+    NO_SAFE_MOVE,
+    belief_text,
+    hand_step_text,
+    pose_text,
+    why_not_converged,
+)
 
 NO_REPLY = 3
 """Exit status when hapticd does not answer."""
@@ -340,8 +346,7 @@ class Follower:
             print(f"result    localized in {steps} steps")
             return 0
         if est.get("reason") == "stuck":
-            print(f"result    not localized after {steps} steps: no safe move left (every "
-                  "move would weaken the grasp below its threshold)")
+            print(f"result    not localized after {steps} steps: {NO_SAFE_MOVE}")
             return 1
         why = why_not_converged(candidates=int(est.get("candidates", 0)), steps=steps,
                                 max_steps=self.max_steps, pose=est.get("pose"),

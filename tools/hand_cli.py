@@ -11,7 +11,7 @@ import math
 from pathlib import Path
 
 from service.errors import ConfigError
-from tools.words import hand_step_text, pose_text
+from tools.words import NO_SAFE_MOVE, hand_step_text, pose_text
 
 DEFAULT_HAND = "two-finger"
 
@@ -169,7 +169,7 @@ def _print_summary(report, on_servos: bool = False) -> None:
         print(f"result    WRONG: converged after {steps} steps on a pose "
               f"{s.position_error * 1e3:.1f} mm / {math.degrees(s.heading_error):.1f} deg away")
     elif report.result.stuck:
-        print(f"result    not localized: no safe move left after {steps} steps")
+        print(f"result    not localized after {steps} steps: {NO_SAFE_MOVE}")
     else:
         print(f"result    not localized after {steps} steps")
     if math.isfinite(report.min_quality):

@@ -10,6 +10,7 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
+from matplotlib.ticker import MaxNLocator  # noqa: E402
 
 from firmware_if import kinematics as kin  # noqa: E402
 from service.episode.hand_episode import HandEpisodeReport  # noqa: E402
@@ -88,7 +89,9 @@ def draw_quality(ax: plt.Axes, report: HandEpisodeReport) -> None:
     ax.axhline(report.settings.threshold_n, color="tab:green", ls="--", label="gate threshold")
     ax.axhline(report.settings.margin_n, color="tab:red", ls="--", label="drop margin")
     ax.set(xlabel="step (purple: manipulation)", ylabel="N",
-           title="grasp quality: disturbance resisted beyond the weight")
+           title="grasp quality: disturbance resisted beyond the weight",
+           xlim=(-0.5, max(index) + 0.5))  # whole steps, even for an episode of none
+    ax.xaxis.set_major_locator(MaxNLocator(integer=True))
     ax.legend(fontsize=7)
 
 
@@ -97,8 +100,9 @@ def hand_figure(report: HandEpisodeReport, path: Path) -> None:
     draw_hand(left, report)
     result = ("DROPPED" if report.result.dropped else "localized" if report.score.success
               else "WRONG" if report.score.wrong_declaration else "not localized")
+    why = ": no safe move left" if report.result.stuck and result == "not localized" else ""
     left.set_title(f"{report.parts.contour.name} in {report.parts.hand.name}: {result} "
-                   f"after {len(report.result.steps)} steps")
+                   f"after {len(report.result.steps)} steps{why}")
     draw_quality(right, report)
     fig.tight_layout()
     fig.savefig(path, dpi=110)

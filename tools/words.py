@@ -9,6 +9,10 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 
+NO_SAFE_MOVE = ("no safe move left (under a pose the readings still allow, every roll "
+                "and turn in reach would weaken the grasp below its threshold)")
+"""Why a hand's episode stopped undecided (`stuck`): an honest "not yet", not a fault."""
+
 
 def mm(value: float | None, spec: str = ".1f") -> str:
     return "?" if value is None or not math.isfinite(value) else f"{value * 1e3:{spec}} mm"
