@@ -62,3 +62,15 @@ def test_user_errors_are_one_line(argv, message, capsys):
     assert main(["run", *argv]) == 2
     err = capsys.readouterr().err
     assert message in err and err.count("\n") == 1
+
+
+def test_a_hand_with_no_safe_move_says_why_and_draws_it(tmp_path, capsys):
+    """Two fingers on rounded:39 (seed 39) find every move too risky from the start: the run
+    ends undecided, says why in words, and still draws its figure, of an episode of no
+    steps."""
+    fig = tmp_path / "stuck.png"
+    main(["run", "--object", "rounded:39", "--hand", "two-finger", "--noise", "--seed", "39",
+          "--plot", str(fig)])
+    text = capsys.readouterr().out
+    assert "not localized after 0 steps: no safe move left (under a pose the readings" in text
+    assert fig.stat().st_size > 10_000
