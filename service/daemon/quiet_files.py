@@ -11,17 +11,16 @@ from pathlib import Path
 
 from firmware_if.hand import presets
 from service.errors import ConfigError, InputError
-
-MAP_SUFFIXES = frozenset({".npy", ".csv", ".txt"})
-OBJECT_SUFFIXES = frozenset({".csv", ".stl", ".obj", ".ply"})
+from service.localization.maps import MAP_FILE_SUFFIXES
+from service.localization.objects.files import OBJECT_FILE_SUFFIXES
 
 
 def is_map_file(spec: str) -> bool:
-    return Path(spec).suffix.lower() in MAP_SUFFIXES or "/" in spec
+    return Path(spec).suffix.lower() in MAP_FILE_SUFFIXES or "/" in spec
 
 
 def is_object_file(spec: str) -> bool:
-    return Path(spec).suffix.lower() in OBJECT_SUFFIXES
+    return Path(spec).suffix.lower() in OBJECT_FILE_SUFFIXES
 
 
 def quiet_file_error(what: str, spec: str, exc: Exception, expected: str,

@@ -14,10 +14,14 @@ from service.localization.surface import HeightMap
 __all__ = ["SAMPLES_PER_UNIT", "UNIT", "bumps", "eggcrate", "load_map", "peaks", "preset"]
 
 
+MAP_FILE_SUFFIXES = frozenset({".npy", ".csv", ".txt"})
+"""What makes a map spec a file rather than a preset name."""
+
+
 def load_map(spec: str, spacing: float | None = None) -> HeightMap:
     """A preset name, or a `.npy` / `.csv` / `.txt` grid of heights in metres with `spacing`."""
     path = Path(spec)
-    if path.suffix.lower() not in {".npy", ".csv", ".txt"}:
+    if path.suffix.lower() not in MAP_FILE_SUFFIXES:
         if spacing is not None:
             raise MapError("--spacing applies to map files, not presets")
         return preset(spec)

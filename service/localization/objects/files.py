@@ -23,6 +23,8 @@ from service.localization.objects.contour import Contour, make_contour
 from service.localization.objects.presets import preset_object
 
 MESH_SUFFIXES = {".stl", ".obj", ".ply"}
+OBJECT_FILE_SUFFIXES = frozenset(MESH_SUFFIXES | {".csv"})
+"""What makes an object spec a file rather than a preset name."""
 UNITS = {"m": 1.0, "mm": 0.001}
 
 
@@ -32,7 +34,7 @@ def load_object(spec: str, *, plane: str | None = None, units: str = "m") -> Con
         raise ObjectError(f"object units must be one of {', '.join(UNITS)}, got '{units}'")
     path = Path(spec)
     suffix = path.suffix.lower()
-    if suffix not in MESH_SUFFIXES | {".csv"}:
+    if suffix not in OBJECT_FILE_SUFFIXES:
         if plane is not None:
             raise ObjectError("--plane applies to mesh files (.stl, .obj, .ply), not presets")
         return preset_object(spec)

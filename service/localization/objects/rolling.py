@@ -18,7 +18,7 @@ the world's noise.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from dataclasses import dataclass
 
 import numpy as np
@@ -72,23 +72,16 @@ EXACT = TwistNoise()
 
 def carry(field: ContactField, poses: np.ndarray, centres: np.ndarray, radii: np.ndarray,
           moves: np.ndarray, rolls: np.ndarray, substeps: int = 8,
-          noise: TwistNoise = EXACT, rng: np.random.Generator | None = None,
-          on_substep: Callable[[np.ndarray, np.ndarray], None] | None = None
+          noise: TwistNoise = EXACT, rng: np.random.Generator | None = None
           ) -> tuple[np.ndarray, np.ndarray]:
     """Poses (B, 3) and settled fingertip centres (B, n, 2) after every finger moves its
     centre by `moves` (n, 2) and turns its tip by `rolls` (n,), from `poses` with tips at
     `centres` (B, n, 2) (`kernels.carry`). With `noise` (and `rng`) each pose strays on its
-    own draw; `on_substep(poses, centres)` sees every intermediate state."""
-    if on_substep is None:
-        poses, centres, moves, rolls, radii = _writable(poses, centres, moves, rolls, radii)
-        return kernels.carry(*field.args, poses, centres, radii, moves, rolls, substeps,
-                             _draws(len(poses), substeps, noise, rng), noise.fraction,
-                             noise.direction_sigma)
-    state = (poses, centres)
-    for state in carry_steps(field, poses, centres, radii, moves, rolls, substeps, noise,
-                             rng):
-        on_substep(*state)
-    return state
+    own draw; `carry_steps` gives every intermediate state."""
+    poses, centres, moves, rolls, radii = _writable(poses, centres, moves, rolls, radii)
+    return kernels.carry(*field.args, poses, centres, radii, moves, rolls, substeps,
+                         _draws(len(poses), substeps, noise, rng), noise.fraction,
+                         noise.direction_sigma)
 
 
 def carry_steps(field: ContactField, poses: np.ndarray, centres: np.ndarray,

@@ -45,6 +45,7 @@ from firmware_if.hand import Finger
 from service.localization import chain_kernels
 from service.localization.grasp import GraspSpec, hand_quality
 from service.localization.localizers.base import Hypotheses
+from service.localization.localizers.convergence import distinct
 from service.localization.objects import rolling
 from service.localization.objects.field import ContactField
 from service.localization.policies.info_gain import information
@@ -342,11 +343,10 @@ class GraspGatedPolicy:
             if not all(self._reach(view, f, (view.centres[f] + moves[f])[None])[0]
                        for f in range(n)):
                 continue
-            states: list[tuple[np.ndarray, np.ndarray]] = []
             tips = np.broadcast_to(view.centres, (h, n, 2))
-            final_poses, final = rolling.carry(
-                view.field, poses, tips, radii, moves, rolls, self.substeps,
-                on_substep=lambda p, c, states=states: states.append((p.copy(), c.copy())))
+            states = [(p.copy(), c.copy()) for p, c in rolling.carry_steps(
+                view.field, poses, tips, radii, moves, rolls, self.substeps)]
+            final_poses, final = states[-1]
             angles = self._turn_angles(view, states)
             if angles is None:
                 continue
@@ -412,7 +412,7 @@ def _with_spread(poses: np.ndarray, weights: np.ndarray, spread: tuple[float, fl
     weaker (rounded:9, seed 9, three fingers: the estimate 2.7 degrees off, the grasp
     predicted sound, the object dropped). Every mode, not only the leader's: the truth
     may lie in a mode of a few percent (rounded:39, seed 39, two fingers: its mode held
-    2-5 %, its own spread took the grasp from 1.7 to 0.15 N). The sd is the leader's.
+    1.7-4.5 %, its own spread took the grasp from 1.7 to 0.15 N). The sd is the leader's.
     Returns poses, weights and the mask of the neighbours."""
     position, heading = spread
     guard = np.zeros(len(poses), dtype=bool)
@@ -432,18 +432,8 @@ def _with_spread(poses: np.ndarray, weights: np.ndarray, spread: tuple[float, fl
 def _modes(poses: np.ndarray, weights: np.ndarray) -> np.ndarray:
     """Indices of the heaviest pose of each distinct mode (`MODE_CELL` apart) holding at
     least `MODE_SHARE` of the weight, at most `MODES`, the leader first."""
-    order = np.flatnonzero(weights >= MODE_SHARE * weights.sum())
-    order = order[np.argsort(-weights[order], kind="stable")]
-    kept: list[int] = []
-    for i in order:
-        if len(kept) == MODES:
-            break
-        if not kept or not np.any(
-                (np.hypot(*(poses[kept, :2] - poses[i, :2]).T) <= MODE_CELL[0])
-                & (np.abs(np.angle(np.exp(1j * (poses[kept, 2] - poses[i, 2]))))
-                   <= MODE_CELL[1])):
-            kept.append(int(i))
-    return np.array(kept, dtype=np.int64)
+    heavy = np.flatnonzero(weights >= MODE_SHARE * weights.sum())
+    return heavy[distinct(poses[heavy], weights[heavy], *MODE_CELL)][:MODES]
 
 
 def _with_cover(view: HandView, poses: np.ndarray) -> np.ndarray:
@@ -507,10 +497,10 @@ def _best_allowed(score: np.ndarray, allowed: Callable[[int], bool]) -> int | No
 
 
 def _ambiguous(poses: np.ndarray, weights: np.ndarray) -> bool:
-    """Whether a plausible pose of any weight lies outside the leader's mode (2.5 mm, 5
-    degrees): then more readings where they agree cannot settle it."""
-    far = (np.hypot(*(poses[:, :2] - poses[0, :2]).T) > 0.0025) | (
-        np.abs(np.angle(np.exp(1j * (poses[:, 2] - poses[0, 2])))) > np.deg2rad(5.0))
+    """Whether a plausible pose of any weight lies outside the leader's mode (`MODE_CELL`):
+    then more readings where they agree cannot settle it."""
+    far = (np.hypot(*(poses[:, :2] - poses[0, :2]).T) > MODE_CELL[0]) | (
+        np.abs(np.angle(np.exp(1j * (poses[:, 2] - poses[0, 2])))) > MODE_CELL[1])
     return bool(np.any(far & (weights >= 1e-3 * weights[0])))
 
 
