@@ -27,27 +27,46 @@ EDGE_STEP_SLACK = 0.1
 still have been stopped by it: the step's length and direction noise."""
 
 
+@numba.njit(inline="always", **_JIT)
+def _locate(size: int, spacing: float, v: float) -> tuple[int, float]:
+    """The sample at or below `v` along an axis of `size` samples (clamped at the edge) and
+    the fraction of the way to the next."""
+    f = min(max(v / spacing, 0.0), size - 1.0)
+    i = min(int(f), size - 2)
+    return i, f - i
+
+
 @numba.njit(**_JIT)
 def _bilinear(grid: np.ndarray, spacing: float, x: float, y: float
               ) -> tuple[float, float, float]:
     """Height and gradient (d/dx, d/dy) at (x, y), clamped at the edge; a one-row grid is
     a profile along x."""
     rows, cols = grid.shape
-    fx = min(max(x / spacing, 0.0), cols - 1.0)
-    ix = min(int(fx), cols - 2)
-    tx = fx - ix
+    ix, tx = _locate(cols, spacing, x)
     if rows == 1:
         v0, v1 = grid[0, ix], grid[0, ix + 1]
         return v0 + tx * (v1 - v0), (v1 - v0) / spacing, 0.0
-    fy = min(max(y / spacing, 0.0), rows - 1.0)
-    iy = min(int(fy), rows - 2)
-    ty = fy - iy
+    iy, ty = _locate(rows, spacing, y)
     v00, v01 = grid[iy, ix], grid[iy, ix + 1]
     v10, v11 = grid[iy + 1, ix], grid[iy + 1, ix + 1]
     top = v00 + tx * (v01 - v00)
     bottom = v10 + tx * (v11 - v10)
     gx = ((1 - ty) * (v01 - v00) + ty * (v11 - v10)) / spacing
     return top + ty * (bottom - top), gx, (bottom - top) / spacing
+
+
+@numba.njit(inline="always", **_JIT)
+def _height(grid: np.ndarray, spacing: float, x: float, y: float) -> float:
+    """`_bilinear`'s height alone, bit for bit: the screens' inner loops never need the
+    gradient, and computing it cost the sweep a quarter of its time."""
+    rows, cols = grid.shape
+    ix, tx = _locate(cols, spacing, x)
+    if rows == 1:
+        return grid[0, ix] + tx * (grid[0, ix + 1] - grid[0, ix])
+    iy, ty = _locate(rows, spacing, y)
+    top = grid[iy, ix] + tx * (grid[iy, ix + 1] - grid[iy, ix])
+    bottom = grid[iy + 1, ix] + tx * (grid[iy + 1, ix + 1] - grid[iy + 1, ix])
+    return top + ty * (bottom - top)
 
 
 @numba.njit(**_JIT)
@@ -94,11 +113,11 @@ def relative_residuals(grid: np.ndarray, spacing: float, extent: tuple[float, fl
     for i in range(n):
         px, py = poses[i, 0], poses[i, 1]
         c, s = math.cos(poses[i, 2]), math.sin(poses[i, 2])
-        z0 = _bilinear(grid, spacing, px, py)[0]
+        z0 = _height(grid, spacing, px, py)
         for j in range(k):
             x = px + c * readings[j, 0] - s * readings[j, 1]
             y = py + s * readings[j, 0] + c * readings[j, 1]
-            resid[i, j] = _bilinear(grid, spacing, x, y)[0] - z0 - readings[j, 2]
+            resid[i, j] = _height(grid, spacing, x, y) - z0 - readings[j, 2]
             on_map[i, j] = (_inside(x, y, extent, profile, margin)
                             and _edge_explains(px, py, c, s, readings[j], extent, profile,
                                                margin))
@@ -120,7 +139,7 @@ def offset_residuals(grid: np.ndarray, spacing: float, extent: tuple[float, floa
         for j in range(k):
             x = poses[i, 0] + c * history[j, 0] - s * history[j, 1]
             y = poses[i, 1] + s * history[j, 0] + c * history[j, 1]
-            resid[i, j] = _bilinear(grid, spacing, x, y)[0] - history[j, 2]
+            resid[i, j] = _height(grid, spacing, x, y) - history[j, 2]
             on_map[i, j] = (_inside(x, y, extent, profile, margin)
                             and _edge_explains(poses[i, 0], poses[i, 1], c, s, history[j],
                                                extent, profile, margin))
@@ -197,6 +216,7 @@ def gauss_newton(grid: np.ndarray, spacing: float, poses: np.ndarray, history: n
     w = weights / weights.sum()
     out = poses.copy()
     jac = np.empty((4, k))  # d/dx, d/dy, d/dheading, and the height residual
+    normal = np.empty((3, 4))  # [A | b] of the normal equations
     for i in range(n):
         for _ in range(iterations):
             c, s = math.cos(out[i, 2]), math.sin(out[i, 2])
@@ -213,7 +233,6 @@ def gauss_newton(grid: np.ndarray, spacing: float, poses: np.ndarray, history: n
                     mean += jac[r, j] * w[j]
                 for j in range(k):
                     jac[r, j] -= mean
-            normal = np.zeros((3, 4))  # [A | b] of the normal equations
             for a in range(3):
                 for b in range(a, 4):
                     acc = 0.0
@@ -225,15 +244,16 @@ def gauss_newton(grid: np.ndarray, spacing: float, poses: np.ndarray, history: n
             bump = damping * (1.0 + normal[0, 0] + normal[1, 1] + normal[2, 2]) / 3
             for a in range(3):
                 normal[a, a] += bump
-            step = (np.array([normal[0, 3] / normal[0, 0], 0.0, 0.0]) if profile
-                    else _solve3(normal))
+            if profile:
+                sx, sy, sh = normal[0, 3] / normal[0, 0], 0.0, 0.0
+            else:
+                sx, sy, sh = _solved3(normal)
             if max_move > 0:
-                scale = max(math.hypot(step[0], step[1]) / max_move,
-                            abs(step[2]) * lever / max_move, 1.0)
-                step /= scale
-            out[i, 0] -= step[0]
-            out[i, 1] -= step[1]
-            out[i, 2] -= step[2]
+                scale = max(math.hypot(sx, sy) / max_move, abs(sh) * lever / max_move, 1.0)
+                sx, sy, sh = sx / scale, sy / scale, sh / scale
+            out[i, 0] -= sx
+            out[i, 1] -= sy
+            out[i, 2] -= sh
         out[i, 2] = (out[i, 2] + math.pi) % (2 * math.pi) - math.pi
     return out
 
@@ -241,6 +261,13 @@ def gauss_newton(grid: np.ndarray, spacing: float, poses: np.ndarray, history: n
 @numba.njit(**_JIT)
 def _solve3(m: np.ndarray) -> np.ndarray:
     """Solve the symmetric 3 x 3 system m[:, :3] x = m[:, 3] by Cramer's rule."""
+    x0, x1, x2 = _solved3(m)
+    return np.array([x0, x1, x2])
+
+
+@numba.njit(inline="always", **_JIT)
+def _solved3(m: np.ndarray) -> tuple[float, float, float]:
+    """`_solve3` as three numbers: no array to allocate in an inner loop."""
     c00 = m[1, 1] * m[2, 2] - m[1, 2] * m[2, 1]
     c01 = m[1, 2] * m[2, 0] - m[1, 0] * m[2, 2]
     c02 = m[1, 0] * m[2, 1] - m[1, 1] * m[2, 0]
@@ -251,9 +278,8 @@ def _solve3(m: np.ndarray) -> np.ndarray:
     c12 = m[0, 1] * m[2, 0] - m[0, 0] * m[2, 1]
     c22 = m[0, 0] * m[1, 1] - m[0, 1] * m[1, 0]
     b0, b1, b2 = m[0, 3], m[1, 3], m[2, 3]
-    return np.array([(c00 * b0 + c01 * b1 + c02 * b2) / det,
-                     (c01 * b0 + c11 * b1 + c12 * b2) / det,
-                     (c02 * b0 + c12 * b1 + c22 * b2) / det])
+    return ((c00 * b0 + c01 * b1 + c02 * b2) / det, (c01 * b0 + c11 * b1 + c12 * b2) / det,
+            (c02 * b0 + c12 * b1 + c22 * b2) / det)
 
 
 @numba.njit(**_JIT)
@@ -388,65 +414,83 @@ def sweep_screen(grid: np.ndarray, slopes: np.ndarray, block: float, spacing: fl
     cannot, so most cells cost a reading or two.
     """
     side = TILE
+    area = side * side
     tiles_x = (shape[0] + side - 1) // side
     tiles = tiles_x * ((shape[1] + side - 1) // side)
-    per_tile = side * side * shape[2]
+    per_tile = area * shape[2]
     k = history.shape[0]
     # each heading's rotation of each reading, once: a cell then costs additions
+    heading = np.empty(shape[2])
+    cos_h, sin_h = np.empty(shape[2]), np.empty(shape[2])
     turned = np.empty((shape[2], k, 2))
     for ih in range(shape[2]):
-        heading = origin[2] + (ih + 0.5) * pitch[2]
-        co, si = math.cos(heading), math.sin(heading)
+        heading[ih] = origin[2] + (ih + 0.5) * pitch[2]
+        co, si = math.cos(heading[ih]), math.sin(heading[ih])
+        cos_h[ih], sin_h[ih] = co, si
         for j in range(k):
             turned[ih, j, 0] = co * history[j, 0] - si * history[j, 1]
             turned[ih, j, 1] = si * history[j, 0] + co * history[j, 1]
     walled = np.zeros(k, dtype=np.bool_)
     for j in range(k):
         walled[j] = history.shape[1] >= 5 and (history[j, 3] != 0.0 or history[j, 4] != 0.0)
+    # a tile's positions, shared by its headings: centre, first-contact height, its variance
+    at_x, at_y = np.empty(area), np.empty(area)
+    at_z, at_var = np.empty(area), np.empty(area)
+    on = np.zeros(area, dtype=np.bool_)
     poses = np.empty((keep, 3))
     misfit = np.empty(keep)
     held, worst = 0, 0
     bound = limit
-    for c in range(first, first + count):
-        tile = ((c // per_tile) * stride) % tiles
-        within = c % per_tile
-        ih = within // (side * side)
-        ix = (tile % tiles_x) * side + within % side
-        iy = (tile // tiles_x) * side + (within // side) % side
-        if ix >= shape[0] or iy >= shape[1]:
-            continue  # past the map's edge in an edge tile
-        px = origin[0] + (ix + 0.5) * pitch[0]
-        py = origin[1] + (iy + 0.5) * pitch[1]
-        z0 = _bilinear(grid, spacing, px, py)[0]
-        var0 = sigma * sigma + (_block(slopes, block, px, py) * spread[0]) ** 2
-        total = 0.0
-        for j in range(1, k):
-            x, y = px + turned[ih, j, 0], py + turned[ih, j, 1]
-            heading = origin[2] + (ih + 0.5) * pitch[2]
-            if not _inside(x, y, extent, profile, margin) or (walled[j] and not _edge_explains(
-                    px, py, math.cos(heading), math.sin(heading), history[j], extent,
-                    profile, margin)):
-                total += cap
-            else:
-                r = _bilinear(grid, spacing, x, y)[0] - z0 - history[j, 2]
-                g = _block(slopes, block, x, y) * spread[j]
-                total += min(r * r / (var0 + g * g), cap)
-            if total > bound:
-                break
-        if total > bound:
-            continue
-        slot = held if held < keep else worst
-        poses[slot, 0], poses[slot, 1] = px, py
-        poses[slot, 2] = origin[2] + (ih + 0.5) * pitch[2]
-        misfit[slot] = total
-        if held < keep:
-            held += 1
-        if held == keep:  # the bar is now the worst held
-            worst = 0
-            for i in range(1, keep):
-                if misfit[i] > misfit[worst]:
-                    worst = i
-            bound = min(limit, misfit[worst])
+    c, end = first, first + count
+    while c < end:  # one tile's stretch per pass: no division per cell
+        order_in_sweep = c // per_tile
+        tile = (order_in_sweep * stride) % tiles
+        for q in range(area):
+            ix = (tile % tiles_x) * side + q % side
+            iy = (tile // tiles_x) * side + q // side
+            on[q] = ix < shape[0] and iy < shape[1]  # not past the map's edge
+            if on[q]:
+                at_x[q] = origin[0] + (ix + 0.5) * pitch[0]
+                at_y[q] = origin[1] + (iy + 0.5) * pitch[1]
+                at_z[q] = _height(grid, spacing, at_x[q], at_y[q])
+                at_var[q] = sigma * sigma + (
+                    _block(slopes, block, at_x[q], at_y[q]) * spread[0]) ** 2
+        within = c - order_in_sweep * per_tile
+        ih, q = within // area, within % area
+        stop = min(end, (order_in_sweep + 1) * per_tile)
+        while c < stop:
+            if on[q]:
+                px, py, z0, var0 = at_x[q], at_y[q], at_z[q], at_var[q]
+                total = 0.0
+                for j in range(1, k):
+                    x, y = px + turned[ih, j, 0], py + turned[ih, j, 1]
+                    if not _inside(x, y, extent, profile, margin) or (
+                            walled[j] and not _edge_explains(px, py, cos_h[ih], sin_h[ih],
+                                                             history[j], extent, profile,
+                                                             margin)):
+                        total += cap
+                    else:
+                        r = _height(grid, spacing, x, y) - z0 - history[j, 2]
+                        g = _block(slopes, block, x, y) * spread[j]
+                        total += min(r * r / (var0 + g * g), cap)
+                    if total > bound:
+                        break
+                if total <= bound:
+                    slot = held if held < keep else worst
+                    poses[slot, 0], poses[slot, 1], poses[slot, 2] = px, py, heading[ih]
+                    misfit[slot] = total
+                    if held < keep:
+                        held += 1
+                    if held == keep:  # the bar is now the worst held
+                        worst = 0
+                        for i in range(1, keep):
+                            if misfit[i] > misfit[worst]:
+                                worst = i
+                        bound = min(limit, misfit[worst])
+            c += 1
+            q += 1
+            if q == area:
+                q, ih = 0, ih + 1
     order = np.argsort(misfit[:held])
     return poses[:held][order], misfit[:held][order]
 

@@ -84,6 +84,15 @@ def test_a_profile_ignores_y(profile):
 
 
 @pytest.mark.parametrize("which", ["surface", "profile"])
+def test_the_height_alone_is_the_bilinear_height_bit_for_bit(which, request):
+    """The screens read `_height`, the fits `_bilinear`: one map, one height, edges too."""
+    surface = request.getfixturevalue(which)
+    grid, h = surface.centre_heights, surface.map.spacing
+    for x, y in zip(*_points(surface, 500, seed=7), strict=True):
+        assert kernels._height(grid, h, x, y) == kernels._bilinear(grid, h, x, y)[0]
+
+
+@pytest.mark.parametrize("which", ["surface", "profile"])
 def test_relative_residuals_are_heights_along_the_path_minus_the_readings(which, request):
     surface = request.getfixturevalue(which)
     poses, history = _poses(surface, 300, seed=3), _history(6, seed=4)

@@ -125,3 +125,26 @@ def test_no_wrong_declaration_where_one_was_found(surface, seed, why):
     report = simulate(RunSettings(map=surface, seed=seed, noise=True, max_steps=60),
                       load_map(surface))
     assert not report.score.wrong_declaration, why
+
+
+@pytest.mark.xfail(strict=True, reason="not fixed: the sweep's hand-over saturates (below)")
+@pytest.mark.parametrize("surface, seed, why", [
+    ("pattern:20:7", 1, "a quarter turn, 21 mm off: the truth's refined fit (chi-square 5.6 "
+                        "on 15 readings) beat the declared one's (5.9), but it never "
+                        "entered the pool"),
+    ("plate:20:5", 5, "a quarter turn, 60 mm off"),
+    ("shell:20:5", 11, "3.1 mm and 0.8 degrees off"),
+])
+def test_no_wrong_declaration_on_surfaces_no_benchmark_uses(surface, seed, why):
+    """Map seeds 3-8, which no benchmark runs: 3 wrong declarations in 540 runs
+    (`haptic bench objects --map-seeds 0,...,8`). The sweep's cells are coarse, so near any
+    feature a block of them fits at almost no misfit: the 64 an update hands over are
+    nearly tied (their worst misfit 0.0-0.4 on every surface measured), and which of them
+    make the cut decides whether the truth's region is ever polished. Handing over one
+    cell per neighbourhood, or 128, or ranking ties by place, each moved the wrong
+    declarations to other runs (2-6 in the same 720) rather than removing them."""
+    from service.localization.maps import load_map
+
+    report = simulate(RunSettings(map=surface, seed=seed, noise=True, max_steps=60),
+                      load_map(surface))
+    assert not report.score.wrong_declaration, why

@@ -112,11 +112,13 @@ def _fit_at(surface: ContactSurface, history: np.ndarray, params: np.ndarray,
     in sigmas, and the covariance their Jacobian implies."""
     r, j = _model(surface, history, params)
     r, j = r / sigma, j / sigma[:, np.newaxis]
-    cov = np.zeros((4, 4))
-    free = _free(surface)
-    cov[np.ix_(free, free)] = _covariance(j)
-    normal = np.zeros((4, 4))
-    normal[np.ix_(free, free)] = j.T @ j
+    seen = j.T @ j
+    if surface.map.is_profile:  # x0 and the offset only: y0 and heading are not fitted
+        cov, normal = np.zeros((4, 4)), np.zeros((4, 4))
+        free = np.ix_(_free(surface), _free(surface))
+        cov[free], normal[free] = _inverse(seen), seen
+    else:
+        cov, normal = _inverse(seen), seen
     offset = normal[3, 3] if normal[3, 3] > 0 else np.inf
     information = normal[:3, :3] - np.outer(normal[:3, 3], normal[3, :3]) / offset
     return Fit(pose=(float(params[0]), float(params[1]), float(wrap_angle(params[2]))),
@@ -127,11 +129,15 @@ def _fit_at(surface: ContactSurface, history: np.ndarray, params: np.ndarray,
 
 
 def _covariance(jac: np.ndarray) -> np.ndarray:
-    """(J^T J)^-1 of a Jacobian scaled by the readings' sd. A direction the readings do not
-    see at all (along a straight rib, across a flat patch) has unbounded variance: the
-    inverse raises there, and the answer is infinity, never the pseudo-inverse's zero,
-    which once declared a plate pose 23 mm off along a rib (plate:20:1, seed 0)."""
-    normal = jac.T @ jac
+    """(J^T J)^-1 of a Jacobian scaled by the readings' sd (`_inverse`)."""
+    return _inverse(jac.T @ jac)
+
+
+def _inverse(normal: np.ndarray) -> np.ndarray:
+    """The covariance of normal equations J^T J. A direction the readings do not see at
+    all (along a straight rib, across a flat patch) has unbounded variance: the inverse
+    raises there, and the answer is infinity, never the pseudo-inverse's zero, which once
+    declared a plate pose 23 mm off along a rib (plate:20:1, seed 0)."""
     try:
         cov = np.linalg.inv(normal)
     except np.linalg.LinAlgError:

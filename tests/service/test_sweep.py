@@ -1,0 +1,54 @@
+"""The global sweep (`sweep.py`): slicing never changes what it hands over."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from service.localization.localizers.fitting import sample
+from service.localization.localizers.sweep import Sweep, SweepSettings
+from service.localization.maps import load_map
+from service.localization.surface import contact_surface
+
+STEP = 0.01
+PATH = np.array([[0.0, 0.0], [0.0, 1.0], [1.0, 1.0], [1.0, 0.0], [1.0, -1.0], [0.0, -1.0],
+                 [0.0, -2.0], [-1.0, -2.0], [-1.0, -3.0]]) * STEP
+
+
+def _readings(surface, start: np.ndarray) -> np.ndarray:
+    """Noise-free readings (K, 3) of a finger that starts at `start` and walks PATH."""
+    c, s = np.cos(start[2]), np.sin(start[2])
+    x = start[0] + c * PATH[:, 0] - s * PATH[:, 1]
+    y = start[1] + s * PATH[:, 0] + c * PATH[:, 1]
+    z = sample(surface, x, y)[0]
+    return np.column_stack([PATH, z - z[0]])
+
+
+def _hand_over(sweep: Sweep, history: np.ndarray, take: int | None) -> np.ndarray:
+    """The starts one update of `sweep` hands over."""
+    starts = [s for _, s in sweep.run(history, take) if len(s)]
+    return starts[-1] if starts else np.empty((0, 3))
+
+
+@pytest.fixture(scope="module")
+def pattern():
+    return contact_surface(load_map("pattern:20:7"), 0.008)
+
+
+@pytest.mark.xfail(strict=True, reason="not fixed: equal misfits rank by slice (below)")
+@pytest.mark.parametrize("take", [777, 4096])
+def test_slicing_never_changes_what_a_sweep_hands_over(pattern, take):
+    """`sweep.py` promises the same hand-over however an update is sliced, so that the
+    daemon's budgeted updates match `haptic run`'s whole ones. A noise-free walk on a plain
+    gives many cells the same misfit, and then it does not: within a slice the later of
+    two equal cells wins, across slices the earlier. Ranking by (misfit, place in the
+    sweep) fixes it, but changes which cells are handed over in noisy runs too, and on
+    `haptic bench objects --map-seeds 0,...,8` it moved the wrong declarations (3 to 6 in
+    720 runs, see test_localizers_convergence), so it waits for the hand-over's fix."""
+    history = _readings(pattern, np.array([0.05, 0.15, -2.0]))
+    whole, sliced = (Sweep(pattern, STEP, 0.0002, 0.0005, SweepSettings(cells_per_update=9000))
+                     for _ in range(2))
+    for _ in range(3):  # three updates: the bar each leaves carries into the next
+        a, b = _hand_over(whole, history, None), _hand_over(sliced, history, take)
+        assert np.array_equal(a, b)
+        assert whole.bar == sliced.bar and whole.cursor == sliced.cursor
