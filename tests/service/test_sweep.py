@@ -8,7 +8,7 @@ import pytest
 from service.localization.localizers.fitting import sample
 from service.localization.localizers.sweep import Sweep, SweepSettings
 from service.localization.maps import load_map
-from service.localization.surface import contact_surface
+from service.localization.surface import HeightMap, contact_surface
 
 STEP = 0.01
 PATH = np.array([[0.0, 0.0], [0.0, 1.0], [1.0, 1.0], [1.0, 0.0], [1.0, -1.0], [0.0, -1.0],
@@ -52,3 +52,25 @@ def test_slicing_never_changes_what_a_sweep_hands_over(pattern, take):
         a, b = _hand_over(whole, history, None), _hand_over(sliced, history, take)
         assert np.array_equal(a, b)
         assert whole.bar == sliced.bar and whole.cursor == sliced.cursor
+
+
+def test_a_pose_turned_about_a_square_pocket_is_found_anywhere():
+    """A square pocket reads the same turned a quarter about its centre: `Sweep.turned`
+    finds that pose, though no symmetry of the whole plate relates the two (a boss off to
+    one side breaks it)."""
+    axis = np.arange(0.0, 0.2001, 0.001)
+    x, y = np.meshgrid(axis, axis)
+    heights = np.where((np.abs(x - 0.07) <= 0.015) & (np.abs(y - 0.07) <= 0.015), -0.005, 0.0)
+    heights = heights + np.where(np.hypot(x - 0.15, y - 0.15) <= 0.01, 0.005, 0.0)
+    surface = contact_surface(HeightMap(heights, 0.001), 0.008)
+    start = np.array([0.062, 0.066, 0.3])
+    centre, quarter = np.array([0.07, 0.07]), np.pi / 2
+    turn = np.array([[np.cos(quarter), -np.sin(quarter)], [np.sin(quarter), np.cos(quarter)]])
+    expected = np.append(centre + turn @ (start[:2] - centre), start[2] + quarter)
+    sweep = Sweep(surface, STEP, 0.0002, 0.0005)
+    readings = _readings(surface, start)
+    found = np.vstack([sweep.turned(readings, start[2], first, 8192, 64)
+                       for first in range(0, sweep.turned_cells, 8192)])
+    gap = np.hypot(found[:, 0] - expected[0], found[:, 1] - expected[1])
+    turned = np.abs(np.angle(np.exp(1j * (found[:, 2] - expected[2]))))
+    assert np.any((gap <= 0.3 * STEP) & (turned <= 1e-9))

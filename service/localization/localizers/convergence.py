@@ -66,7 +66,7 @@ def group_modes(poses: np.ndarray, weights: np.ndarray, position_tol: float,
         if not free.any():
             break
         best = int(np.argmax(np.where(free, w, -np.inf)))
-        near = free & _near(sub, sub[best], position_tol, heading_tol)
+        near = free & within(sub, sub[best], position_tol, heading_tol)
         labels[idx[near]] = m
         free &= ~near
         centres.append(sub[best])
@@ -84,8 +84,9 @@ def distinct(centres: np.ndarray, score: np.ndarray, position_tol: float, headin
     return order[kernels.first_of_each_mode(ordered, position_tol, heading_tol)]
 
 
-def _near(poses: np.ndarray, centre: np.ndarray, position_tol: float, heading_tol: float
-          ) -> np.ndarray:
+def within(poses: np.ndarray, centre: np.ndarray, position_tol: float, heading_tol: float
+           ) -> np.ndarray:
+    """Mask of the poses (N, 3) within tolerance of `centre` (3,), in place and heading."""
     d_pos = np.hypot(poses[:, 0] - centre[0], poses[:, 1] - centre[1])
     d_head = np.abs(wrap_angle(poses[:, 2] - centre[2]))
     return (d_pos <= position_tol) & (d_head <= heading_tol)
@@ -290,7 +291,7 @@ def judge(surface: ContactSurface, history: np.ndarray, modes: Modes, *, sigma: 
             margin)
         # with noise it must also agree with where the previous update put it: a pose that
         # still jumps between updates is not settled, however tight its covariance looks
-        converged &= not noisy or previous is not None and bool(_near(
+        converged &= not noisy or previous is not None and bool(within(
             np.asarray([fit.pose]), np.asarray(previous),
             SETTLED * rule.max_position_sd * step_length, SETTLED * rule.max_heading_sd)[0])
     return Verdict(fit, centres[order], mass, runner,
@@ -342,7 +343,7 @@ def _neighbours(surface: ContactSurface, history: np.ndarray, pose: np.ndarray,
         starts = pose + np.column_stack([dx.ravel(), dy.ravel(), dh.ravel()])
     ends = gauss_newton(surface, starts, history, 1.0 / sds**2, iterations=4,
                         max_move=position_tol)
-    away = ~_near(ends, pose, position_tol, heading_tol)
+    away = ~within(ends, pose, position_tol, heading_tol)
     ends = ends[away]
     if len(ends) == 0:
         return np.empty((0, 3))

@@ -42,6 +42,11 @@ from service.localization.surface import ContactSurface
 
 CAP = 9.0
 """A reading's largest share of a cell's misfit (3 sigmas): one slip cannot fail a cell."""
+TURN = 45.0
+"""Degrees: `Sweep.turned` screens the headings a multiple of this from a pose's."""
+TURNED_CELL = 0.3
+"""Step lengths between the positions `Sweep.turned` screens (at most `TURNED_CELLS`)."""
+TURNED_CELLS = 32768
 
 
 @dataclass(frozen=True)
@@ -68,7 +73,7 @@ class Sweep:
 
     def __init__(self, surface: ContactSurface, step_length: float, sensor_sigma: float,
                  margin: float, settings: SweepSettings | None = None) -> None:
-        self.surface = surface
+        self.surface, self.step_length = surface, step_length
         self.settings = s = settings or SweepSettings()
         # without noise a reading still differs from the map by what its samples miss
         self.sensor_sigma = max(sensor_sigma, FLOOR * step_length)
@@ -90,6 +95,8 @@ class Sweep:
         self.slope = typical_slope(surface)
         self.start_reach = self.reach[0]
         """How far (metres) a start handed over can lie from a pose its cell stands for."""
+        self._turned_grid = self._turned_shape()
+        self.turned_cells = kernels.sweep_cells(self._turned_grid[0])
         self.reset()
 
     def reset(self) -> None:
@@ -146,6 +153,45 @@ class Sweep:
         best = np.argsort(misfit, kind="stable")[:self.settings.keep]
         self.bar = float(misfit[best[-1]]) if len(best) == self.settings.keep else np.inf
         yield 0, self._starts(poses[best], offset)
+
+    def turned(self, history: np.ndarray, heading: float, first: int, count: int, best: int
+               ) -> np.ndarray:
+        """Of turned cells `first` .. `first + count` (of `turned_cells`), the start poses
+        of the `best` that fit the readings best, best first: every position on the map, at
+        `heading` turned by each multiple of `TURN` (a half turn on a profile). Where a part
+        repeats a feature turned (a square pocket, four alike holes), such a pose reads what
+        a pose at `heading` reads.
+
+        A screen over positions only, `TURNED_CELL` steps apart (further on a map too large
+        for `TURNED_CELLS` of them), at exact headings: no cell stands for a range of
+        headings, so readings far from the start are not blurred by one, as the sweep's
+        are, and every reading counts."""
+        shape, pitch = self._turned_grid
+        origin = np.array([0.0, 0.0, heading + (np.pi if self.surface.map.is_profile
+                                                else pitch[2]) - 0.5 * pitch[2]])
+        spread = np.full(len(history), float(np.hypot(*pitch[:2])) / 2)
+        poses, _ = kernels.sweep_screen(
+            self.surface.centre_heights, self.slopes, STEEP_BLOCK * self.surface.map.spacing,
+            self.surface.map.spacing, self.surface.map.extent, self.surface.map.is_profile,
+            first, min(count, self.turned_cells - first), 1, shape, origin, pitch, history,
+            self.sensor_sigma, spread, self.margin, CAP, np.inf, best)
+        return on_pose_space(self.surface, poses)
+
+    def _turned_shape(self) -> tuple[np.ndarray, np.ndarray]:
+        """The grid `turned` screens: positions (x, y) and turns, and their pitch."""
+        profile = self.surface.map.is_profile
+        turns = 1 if profile else int(round(360.0 / TURN)) - 1
+        x_max, y_max = self.surface.map.extent
+        area = x_max * (1.0 if profile else y_max) * turns
+        # coarser on a large map: the work is bounded, as every update's is
+        width = max(TURNED_CELL * self.step_length,
+                    area / TURNED_CELLS if profile else np.sqrt(area / TURNED_CELLS))
+        shape = np.array([max(1, int(np.ceil(x_max / width))),
+                          1 if profile else max(1, int(np.ceil(y_max / width))), turns],
+                         dtype=np.int64)
+        pitch = np.array([x_max / shape[0], 0.0 if profile else y_max / shape[1],
+                          np.deg2rad(TURN)])
+        return shape, pitch
 
     def _anchor(self, history: np.ndarray) -> tuple[int, np.ndarray]:
         """The reading to judge cells from, and the `readings` others nearest it.
