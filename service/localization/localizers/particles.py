@@ -131,6 +131,10 @@ class Particles:
         self.head_floor = np.deg2rad(0.5)
         self.cells = (0.1 * step, np.deg2rad(2.0))
         self.mode_cells = (0.5 * step, np.deg2rad(15.0))
+        self.same_pose = (0.25 * step, np.deg2rad(5.0))
+        """Position and heading within which two polished poses are one mode."""
+        self.fit_sd = max(self.sigma, 0.002 * step)
+        """Reading sd at which polished poses are compared (floored: noise-free, 0.1 um)."""
         self.mode_drop = 20.0
         self.kept_modes = kept_modes
         self.outlier_p = float(getattr(ctx.sensor, "outlier_probability", 0.0))
@@ -152,18 +156,14 @@ class Particles:
         self._judge_ns = 0
         """How long the last judgement took: a hint for slicing, never for results."""
         self._sd_cache: tuple[tuple[int, float, float] | None, np.ndarray] = (None, np.empty(0))
-        self._turned_heading: float | None = None
-        """The heading whose turned check is under way (`_turned_step`)."""
-        self._turned_cursor = 0
-        self._turned_rivals = np.empty((0, 3))
+        self._restart_turned(None)
 
     # -- updates ---------------------------------------------------------------------------
     def start(self, first: Measurement) -> None:
         """The initial pool: uniform over the map and every heading."""
         self.history = np.zeros((1, READING_COLUMNS))
         self._sd_cache = (None, np.empty(0))
-        self._turned_heading, self._turned_cursor = None, 0
-        self._turned_rivals = np.empty((0, 3))
+        self._restart_turned(None)
         self.tracks = ModeTracks()
         self.sweep.reset()
         self.poses = self._random(self.initial)
@@ -221,6 +221,11 @@ class Particles:
                                           self.pos_range, self.head_range))
         return self._sd_cache[1]
 
+    def _reading_weights(self) -> np.ndarray:
+        """Gauss-Newton's weight of every reading, first contact included: 1 / sd^2 at the
+        current ranges."""
+        return 1.0 / np.concatenate([[self.sigma], self._sd()]) ** 2
+
     def _reweight(self) -> None:
         self.ll = log_likelihood(self.resid, self.on_map, self._sd(), self.outlier_p,
                                  self.outlier_range)
@@ -253,7 +258,7 @@ class Particles:
             return
         k = min(self.polish, len(self.poses))
         top = np.sort(np.argpartition(-self.ll, k - 1)[:k])
-        w = 1.0 / np.concatenate([[self.sigma], self._sd()]) ** 2
+        w = self._reading_weights()
         max_move = max(2 * self.pos_range, 0.05 * self.ctx.step_length)
         cursor = 0
         while cursor < len(top):
@@ -313,7 +318,7 @@ class Particles:
         """This update's share of the global sweep (`sweep.py`): the cells that could
         explain the readings, each polished onto them within its own reach, join the pool.
         However the truth was lost, it is back once a sweep has passed its cell."""
-        w = 1.0 / np.concatenate([[self.sigma], self._sd()]) ** 2
+        w = self._reading_weights()
         for screened, centres in self.sweep.run(self.history, take=job.take(CHUNK)):
             if len(centres):
                 self._add(gauss_newton(self.ctx.surface, centres, self.history, w,
@@ -387,8 +392,8 @@ class Particles:
             self.mode_mass = float(group_modes(self.poses, self._weights(), step,
                                                np.deg2rad(20.0), 1).masses[0])
             return
-        track = dict(sd=max(self.sigma, 0.002 * step), position_tol=0.25 * step,
-                     heading_tol=np.deg2rad(5.0), margin=self.margin,
+        track = dict(sd=self.fit_sd, position_tol=self.same_pose[0],
+                     heading_tol=self.same_pose[1], margin=self.margin,
                      outlier_probability=self.outlier_p, outlier_range=self.outlier_range)
         leaders = self.poses[self._leaders(self.rivals)]
         lead = self.tracks.centres[0] if len(self.tracks.centres) else leaders[0]
@@ -416,9 +421,16 @@ class Particles:
         self.runner_up, self.runner_up_mass = v.runner_up, v.runner_up_mass
         if v.fit is not None:  # the polished modes and the fit join the pool
             self._add(np.vstack([self.tracks.centres[:self.rivals], [v.fit.pose]]))
-        if v.fit is not None:  # the leader turned: rivals the sweep may have passed over
+            # then the leader turned: rivals the sweep may have passed over
             self._turned_step(np.asarray(v.fit.pose))
             self.converged = self.converged and self._turned_clear(np.asarray(v.fit.pose))
+
+    def _restart_turned(self, heading: float | None) -> None:
+        """Start the turned check of `heading` (None: no check under way): the cells
+        screened so far and the rivals found are those of the heading checked."""
+        self._turned_heading = heading
+        self._turned_cursor = 0
+        self._turned_rivals = np.empty((0, 3))
 
     def _turned_step(self, pose: np.ndarray) -> None:
         """This update's share of the turned check: `TURNED_SLICE` cells of `pose` turned by
@@ -434,20 +446,18 @@ class Particles:
         a turn of the declared pose about a feature, never joined the pool."""
         if self._turned_heading is None or abs(wrap_angle(pose[2] - self._turned_heading)) \
                 > TURNED_DRIFT:
-            self._turned_heading, self._turned_cursor = float(pose[2]), 0
-            self._turned_rivals = np.empty((0, 3))
+            self._restart_turned(float(pose[2]))
         if self._turned_cursor >= self.sweep.turned_cells:
             return
-        step, surface = self.ctx.step_length, self.ctx.surface
-        w = 1.0 / np.concatenate([[self.sigma], self._sd()]) ** 2
-        sd = max(self.sigma, 0.002 * step)
+        surface, w = self.ctx.surface, self._reading_weights()
 
         def polished(poses: np.ndarray, iterations: int) -> tuple[np.ndarray, np.ndarray]:
             """Poses a few more steps on, and how far below `pose` each then scores."""
             poses = gauss_newton(surface, poses, self.history, w, iterations=iterations,
                                  max_move=self.sweep.start_reach)
-            ll = fit_log_likelihood(surface, np.vstack([[pose], poses]), self.history, sd,
-                                    self.margin, self.outlier_p, self.outlier_range)
+            ll = fit_log_likelihood(surface, np.vstack([[pose], poses]), self.history,
+                                    self.fit_sd, self.margin, self.outlier_p,
+                                    self.outlier_range)
             return poses, ll[0] - ll[1:]
 
         screened = self.sweep.turned(self.history, self._turned_heading, self._turned_cursor,
@@ -457,7 +467,7 @@ class Particles:
         found, below = polished(screened, TRIAL_STEPS)
         best = np.sort(np.argsort(below, kind="stable")[:TURNED_POLISHED])
         found, below = polished(found[best], SWEEP_STEPS - TRIAL_STEPS)
-        found = found[(below <= LOOSE) & ~within(found, pose, 0.25 * step, np.deg2rad(5.0))]
+        found = found[(below <= LOOSE) & ~within(found, pose, *self.same_pose)]
         if len(found):
             self._add(found)
             self._turned_rivals = np.vstack([self._turned_rivals, found])[-TURNED:]
@@ -468,14 +478,12 @@ class Particles:
         weighed as the refinement weighs it."""
         if self._turned_cursor < self.sweep.turned_cells:
             return False
-        rivals = self._turned_rivals[~within(self._turned_rivals, pose,
-                                             0.25 * self.ctx.step_length, np.deg2rad(5.0))]
+        rivals = self._turned_rivals[~within(self._turned_rivals, pose, *self.same_pose)]
         if len(rivals) == 0:
             return True
         # at one sd for all, a wall's readings made the truth 17 nats worse than a quarter
         # turn whose fit was in fact poorer (plate:20:5, seed 5)
-        ll = self._slope_weighed(np.vstack([[pose], rivals]),
-                                 max(self.sigma, 0.002 * self.ctx.step_length))
+        ll = self._slope_weighed(np.vstack([[pose], rivals]), self.fit_sd)
         share = self.rule.mode_mass
         return not np.any(ll[1:] >= ll[0] + np.log((1.0 - share) / share))
 

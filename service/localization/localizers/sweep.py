@@ -20,7 +20,9 @@ The sweep runs in a fixed order that spreads any stretch of it over the whole ma
 number of cells per update, so an update's cost does not grow with the map: a bigger map
 takes more updates to cover. A sweep begun once the readings are selective
 (`start_readings`) and carried to its end is a check; sweeps repeat with the readings of
-their time. The result is a pure function of the readings: the same however it is sliced.
+their time. The result is a pure function of the readings, the same however it is sliced,
+except between cells of equal misfit, which rank by slice (a strict xfail in
+tests/service/test_sweep.py).
 """
 
 from __future__ import annotations
@@ -166,9 +168,8 @@ class Sweep:
         for `TURNED_CELLS` of them), at exact headings: no cell stands for a range of
         headings, so readings far from the start are not blurred by one, as the sweep's
         are, and every reading counts."""
-        shape, pitch = self._turned_grid
-        origin = np.array([0.0, 0.0, heading + (np.pi if self.surface.map.is_profile
-                                                else pitch[2]) - 0.5 * pitch[2]])
+        shape, pitch, first_turn = self._turned_grid
+        origin = np.array([0.0, 0.0, heading + first_turn - 0.5 * pitch[2]])
         spread = np.full(len(history), float(np.hypot(*pitch[:2])) / 2)
         poses, _ = kernels.sweep_screen(
             self.surface.centre_heights, self.slopes, STEEP_BLOCK * self.surface.map.spacing,
@@ -177,8 +178,9 @@ class Sweep:
             self.sensor_sigma, spread, self.margin, CAP, np.inf, best)
         return on_pose_space(self.surface, poses)
 
-    def _turned_shape(self) -> tuple[np.ndarray, np.ndarray]:
-        """The grid `turned` screens: positions (x, y) and turns, and their pitch."""
+    def _turned_shape(self) -> tuple[np.ndarray, np.ndarray, float]:
+        """The grid `turned` screens: positions (x, y) and turns, their pitch, and the first
+        turn (radians; the next ones follow a pitch apart)."""
         profile = self.surface.map.is_profile
         turns = 1 if profile else int(round(360.0 / TURN)) - 1
         x_max, y_max = self.surface.map.extent
@@ -191,7 +193,7 @@ class Sweep:
                          dtype=np.int64)
         pitch = np.array([x_max / shape[0], 0.0 if profile else y_max / shape[1],
                           np.deg2rad(TURN)])
-        return shape, pitch
+        return shape, pitch, np.pi if profile else float(pitch[2])
 
     def _anchor(self, history: np.ndarray) -> tuple[int, np.ndarray]:
         """The reading to judge cells from, and the `readings` others nearest it.
