@@ -30,7 +30,13 @@ from service.localization.localizers.fitting import (
     gauss_newton,
     offset_residuals,
 )
-from service.localization.localizers.refine import Fit, assess, reading_sigmas, refine
+from service.localization.localizers.refine import (
+    Fit,
+    assess,
+    correlated_spread,
+    reading_sigmas,
+    refine,
+)
 from service.localization.localizers.symmetry import images
 from service.localization.surface import ContactSurface
 
@@ -120,7 +126,7 @@ class ConvergenceRule:
     (`max_abs_for`), so a plate read 27 times is not refused for one 3.07-sigma edge."""
     max_abs: float = 6.0
     """Largest acceptable single residual, in sensor sigmas (noise-free)."""
-    max_position_sd: float = 0.06
+    max_position_sd: float = 0.08
     max_heading_sd: float = float(np.deg2rad(1.5))
 
     @classmethod
@@ -369,7 +375,7 @@ def _with_floored_spread(surface: ContactSurface, history: np.ndarray, fit: Fit,
     """
     floor = max(sigma, FLOOR * step_length)
     if floor <= sigma:
-        return _with_model_error(fit, history, step_length)
+        return _with_model_error(surface, history, fit, sigma, position_sigma, step_length)
     spread = assess(surface, history, np.asarray(fit.pose),
                     reading_sigmas(surface, history, np.asarray(fit.pose), floor,
                                    position_sigma))
@@ -377,17 +383,21 @@ def _with_floored_spread(surface: ContactSurface, history: np.ndarray, fit: Fit,
                                heading_sd=spread.heading_sd)
 
 
-def _with_model_error(fit: Fit, history: np.ndarray, step_length: float) -> Fit:
+def _with_model_error(surface: ContactSurface, history: np.ndarray, fit: Fit, sigma: float,
+                      position_sigma: float, step_length: float) -> Fit:
     """`fit` (with noise) with its spread widened for what independent noise misses.
 
     The map is never the object: a machined part, a mesh or a perturbed world differs
-    from it smoothly, over about a step, so readings within a step of each other err
-    together and count as one; and a fit worse than the noise (RMS above one sigma) says
-    the errors are larger than assumed. The spread grows by sqrt(readings / places) and by
-    the RMS: on a gently curved profile a fit 3 mm off the truth claimed 0.46 mm
-    (profile:terrain:20:2, seed 1) and was declared.
+    from it smoothly, by about the reading noise over about a step, so nearby readings err
+    together (`refine.correlated_spread`); and a fit worse than the noise (RMS above one
+    sigma) says the errors are larger than assumed, so the spread grows by the RMS too: on
+    a gently curved profile a fit 3 mm off the truth claimed 0.46 mm (profile:terrain:20:2,
+    seed 1) and was declared.
     """
-    places = distinct_places(history, step_length)
-    factor = max(1.0, fit.rms) * np.sqrt(len(history) / max(places, 1))
-    return dataclasses.replace(fit, position_sd=fit.position_sd * factor,
-                               heading_sd=fit.heading_sd * factor)
+    pose = np.asarray(fit.pose)
+    sds = reading_sigmas(surface, history, pose, sigma, position_sigma)
+    position_sd, heading_sd = correlated_spread(surface, history, pose, sds, sigma,
+                                                step_length)
+    factor = max(1.0, fit.rms)
+    return dataclasses.replace(fit, position_sd=max(fit.position_sd, position_sd) * factor,
+                               heading_sd=max(fit.heading_sd, heading_sd) * factor)

@@ -128,6 +128,31 @@ def _fit_at(surface: ContactSurface, history: np.ndarray, params: np.ndarray,
                readings=len(history), information=information)
 
 
+def correlated_spread(surface: ContactSurface, history: np.ndarray, pose: np.ndarray,
+                      sigma: np.ndarray, error_sd: float, length: float
+                      ) -> tuple[float, float]:
+    """Position and heading sd of the least-squares pose (`refine`, weighted by `sigma`)
+    when the map also differs from the object by a smooth error of sd `error_sd` that
+    readings `length` apart share (a Gaussian correlation): the fit's own covariance
+    assumes every reading errs alone, and on a gently curved shell a shared error of
+    0.2 mm moves the fit by millimetres (shell:20:5, seed 2: declared 4.2 mm off with a
+    claimed sd of 0.6 mm). The estimator is unchanged; its covariance is the sandwich
+    A^-1 J^T W S W J A^-1, S the readings' covariance, A = J^T W J."""
+    params = np.array([*np.asarray(pose, dtype=np.float64), 0.0])
+    _, j = _model(surface, history, params)
+    weighed = j / sigma[:, np.newaxis] ** 2  # W J
+    d2 = np.sum((history[:, None, :2] - history[None, :, :2]) ** 2, axis=-1)
+    shared = error_sd**2 * np.exp(-0.5 * d2 / length**2)
+    normal = j.T @ weighed  # A, over the fitted parameters (`_free`)
+    inner = normal + weighed.T @ shared @ weighed  # J^T W (diag(sigma^2) + shared) W J
+    bread = _inverse(normal)
+    free = np.ix_(_free(surface), _free(surface))
+    cov = np.zeros((4, 4))
+    cov[free] = bread @ inner @ bread if np.all(np.isfinite(bread)) else bread
+    return (float(np.sqrt(max(cov[0, 0] + cov[1, 1], 0.0))),
+            float(np.sqrt(max(cov[2, 2], 0.0))))
+
+
 def _covariance(jac: np.ndarray) -> np.ndarray:
     """(J^T J)^-1 of a Jacobian scaled by the readings' sd (`_inverse`)."""
     return _inverse(jac.T @ jac)
