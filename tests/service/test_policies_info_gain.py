@@ -98,6 +98,30 @@ def test_walks_several_steps_to_the_feature_that_decides():
         d = d + MOVES[move] * 0.01
 
 
+def _long_plain_with_a_hill() -> HeightMap:
+    """40 x 20 cm, flat but for one round hill at (250, 100) mm."""
+    y, x = np.mgrid[0:201, 0:401] * 0.001
+    return HeightMap(0.006 * np.exp(-((x - 0.25) ** 2 + (y - 0.1) ** 2) / (2 * 0.008**2)),
+                     0.001, name="long-plain-with-a-hill")
+
+
+@pytest.mark.parametrize("far_reach, heads_there", [(24, True), (0, False)])
+def test_walks_to_a_feature_beyond_its_plan_when_nothing_in_it_tells(far_reach, heads_there):
+    """Two equally likely modes read the same everywhere within the plan's six steps; 13
+    steps along +x one of them meets the hill (as four alike holes and the one corner that
+    tells their turns apart, pattern:20:0). The far search walks there; a plan that looks
+    only six steps ahead wanders among the places near the start."""
+    surface = contact_surface(_long_plain_with_a_hill(), 0.008)
+    poses = np.array([[0.10, 0.10, 0.0], [0.10, 0.05, 0.0]])
+    policy = InfoGainPolicy(far_reach=far_reach)
+    d, moves = np.zeros(2), []
+    for _ in range(8):
+        move = policy.next_move(_view(surface, poses, displacement=tuple(d)))
+        moves.append(move)
+        d = d + MOVES[move] * 0.01
+    assert (moves == [0] * 8) == heads_there, moves
+
+
 def test_never_dithers_between_two_places_when_the_hypotheses_agree():
     """One hypothesis left on a profile: every move goes somewhere new until the map's
     end, and then back past everything read (the evidence a declaration needs)."""
@@ -179,3 +203,13 @@ def test_paper_policy_samples_only_candidates_with_weight():
                        blocked=frozenset(), surface=contact_surface(peaks(), 0.008),
                        step_length=0.01, rng=np.random.default_rng(0))
     assert PaperPolicy().next_move(view) in range(4)
+
+
+def test_localizes_four_alike_holes_whose_deciding_corner_lies_beyond_the_plan():
+    """pattern:20:0, seed 5: with a plan of six steps, 60 steps near the start left the
+    pattern's quarter turns equally likely; the far search reads the corner that decides."""
+    from service.localization.maps import load_map
+
+    report = simulate(RunSettings(map="pattern:20:0", seed=5, noise=True, max_steps=60),
+                      load_map("pattern:20:0"))
+    assert report.score.success

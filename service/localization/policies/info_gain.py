@@ -18,6 +18,11 @@ between two. Places not read yet earn a little credit (`NOVELTY`): where the hyp
 agree, new places still add the evidence a declaration needs, where shuttling between two
 read places adds none.
 
+When no unread place within `reach` tells the main modes apart (four alike holes, whose
+quarter turns differ only at the one corner that breaks the pattern), a far search looks
+`far_reach` steps out for the place that does, at the best rate per step, and walks there
+until it is read or tells them apart no more (`_far_target`).
+
 Where the map's edge is what blocks a step (`PolicyInput.walls`), a hypothesis that puts a
 place off the map predicts a blocked step there: an outcome of its own, which the
 localizers use as evidence, so it counts as information. Elsewhere a blocked step tells
@@ -25,12 +30,15 @@ nothing, and is predicted as a reading of where the finger stands. Moves found b
 from here are never taken again.
 
 The work per decision is bounded: the one-step scores use at most `samples` hypotheses,
-the plan at most `modes` distinct ones over at most 2 reach (reach + 1) + 1 places.
+the plan at most `modes` distinct ones over at most 2 reach (reach + 1) + 1 places, the far
+search at most `FAR_MODES` over 2 far_reach (far_reach + 1) + 1.
 """
 
 from __future__ import annotations
 
+import functools
 from collections import Counter
+from collections.abc import Iterable
 from typing import ClassVar
 
 import numpy as np
@@ -57,17 +65,28 @@ PRIOR_HEADING = np.deg2rad(30.0)
 """How loose a heading no reading has constrained is taken to be, for `_precision`."""
 KEEP_TARGET = 1.5
 """A new target must promise this many times the rate of the current one to replace it."""
+FAR_MODES = 8
+"""Most modes the far search (`_far_target`) tells apart."""
+MAIN_SHARE = 0.5
+"""Share of the leader's weight a mode needs to count as a main mode in the far search."""
+MAIN_CELL = (2.0, np.deg2rad(30.0))
+"""Steps and radians apart that two poses are distinct main modes: poses a fraction of a
+step apart differ at every edge in reach, and telling them apart is the plan's job, not a
+reason to walk away."""
 
 
 class InfoGainPolicy:
     name: ClassVar[str] = "info-gain"
 
     def __init__(self, samples: int = 200, reach: int = 6, modes: int = 32,
-                 noise_floor: float = 0.015) -> None:
+                 noise_floor: float = 0.015, far_reach: int = 24) -> None:
         kernels.warm_up()  # compile before the first decision, not during it
         self.samples = samples
         self.reach = reach
         self.modes = modes
+        self.far_reach = far_reach
+        """Steps (Manhattan) the far search looks when nothing in `reach` tells the modes
+        apart."""
         self.noise_floor = noise_floor
         """Smallest reading sd assumed, as a fraction of the step: hypotheses closer than
         this are treated as one, so a noise-free run does not chase negligible differences."""
@@ -78,6 +97,8 @@ class InfoGainPolicy:
         self._unreachable: set[tuple[int, int]] = set()
         """Places a blocked step could not reach: never targets again."""
         self._target: tuple[int, int] | None = None
+        self._far: tuple[int, int] | None = None
+        """The place the far search walks to (`_far_target`)."""
 
     def next_move(self, view: PolicyInput) -> int:
         here = _place(view.displacement, view.step_length)
@@ -98,11 +119,14 @@ class InfoGainPolicy:
         offsets = _diamond(self.reach, view.surface.map.is_profile)
         value = self._value(view, poses, weights, offsets, s)
         dist = np.abs(offsets).sum(axis=1)
-        reachable = np.array([(here[0] + int(i), here[1] + int(j)) not in self._unreachable
-                              for i, j in offsets])
+        reachable = self._reachable(here, offsets)
         rate = np.where((dist > 0) & reachable, value / np.maximum(dist, 1), -np.inf)
         best = int(np.argmax(rate))
         target = (here[0] + int(offsets[best, 0]), here[1] + int(offsets[best, 1]))
+        far = self._far_target(view, here, poses, weights, s)
+        if far is not None:  # the main modes agree everywhere in reach: to where they do not
+            self._target = far
+            return self._toward(view, here, far, moves, poses, weights, s)
         if not rate[best] > 0:  # nothing in reach tells anything: to the nearest new place
             target = self._nearest_unread(here, view.surface.map.is_profile) or target
         if self._target is not None and self._target != here:
@@ -127,6 +151,56 @@ class InfoGainPolicy:
                           for i, j in offsets])
         return _credit(info, _precision(view, offsets, s), (reads == 0) * (inside @ w),
                        reads == 1)
+
+    def _far_target(self, view: PolicyInput, here: tuple[int, int], poses: np.ndarray,
+                    weights: np.ndarray, s: float) -> tuple[int, int] | None:
+        """Where to go when no unread place in reach tells the main modes apart: the unread
+        place within `far_reach` that does, at the best rate per step of the way, kept
+        until it is read or tells them apart no more. Four alike holes that one chamfered
+        corner tells apart leave every place near the finger alike under the pattern's
+        quarter turns, and the corner lies farther than the plan looks (pattern:20:0,
+        seeds 3, 5, 7: 60 steps near the start, the pose pinned to 0.2 mm, its turns
+        equally likely), while small modes that differ in reach keep the plan busy; once
+        the corner is in reach, those small modes led the plan away again. The main modes:
+        distinct ones holding at least `MAIN_SHARE` of the leader's weight, at most
+        `FAR_MODES`. None with one main mode, when a place in reach tells them apart (and
+        none is being walked to), or when none within `far_reach` does."""
+        keep = niche(poses, weights, MAIN_CELL[0] * view.step_length, MAIN_CELL[1],
+                     limit=FAR_MODES)
+        keep = keep[weights[keep] >= MAIN_SHARE * weights[keep].max()]
+        if len(keep) < 2:
+            self._far = None
+            return None
+        p, w = poses[keep], weights[keep] / weights[keep].sum()
+        profile = view.surface.map.is_profile
+
+        def telling(offsets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            """Mask of the unread places in reach that tell the main modes apart, and
+            their information."""
+            z, _ = _readings(view, p, offsets)
+            info = information(z[:, :, np.newaxis], w, s)
+            places = offsets + np.array(here)
+            fresh = ~_among(places, self._reads.keys()) & ~_among(places, self._unreachable)
+            return (info >= TRIVIAL) & fresh & (np.abs(offsets).sum(axis=1) > 0), info
+
+        if self._far is not None:  # walking to one: on while it still tells them apart
+            if telling(np.array([self._far]) - np.array(here))[0][0]:
+                return self._far
+            self._far = None
+        if np.any(telling(_diamond(self.reach, profile))[0]):
+            return None  # the plan in reach will do
+        offsets = _diamond(self.far_reach, profile)
+        mask, info = telling(offsets)
+        if not np.any(mask):
+            return None
+        rate = np.where(mask, info / np.maximum(np.abs(offsets).sum(axis=1), 1), -np.inf)
+        best = int(np.argmax(rate))
+        self._far = (here[0] + int(offsets[best, 0]), here[1] + int(offsets[best, 1]))
+        return self._far
+
+    def _reachable(self, here: tuple[int, int], offsets: np.ndarray) -> np.ndarray:
+        """Mask of the places (offsets from `here`) not known to be out of reach."""
+        return ~_among(offsets + np.array(here), self._unreachable)
 
     def _toward(self, view: PolicyInput, here: tuple[int, int], target: tuple[int, int],
                 moves: list[int], poses: np.ndarray, weights: np.ndarray, s: float) -> int:
@@ -220,14 +294,28 @@ def _place(displacement: np.ndarray, step: float) -> tuple[int, int]:
     return int(i), int(j)
 
 
+def _among(places: np.ndarray, known: Iterable[tuple[int, int]]) -> np.ndarray:
+    """Mask of the places (n, 2) that are in `known`."""
+    known = np.array(list(known), dtype=np.int64).reshape(-1, 2)
+    if len(known) == 0:
+        return np.zeros(len(places), dtype=bool)
+    key = 1 << 32
+    return np.isin(places[:, 0].astype(np.int64) * key + places[:, 1],
+                   known[:, 0] * key + known[:, 1])
+
+
+@functools.lru_cache(maxsize=16)
 def _diamond(reach: int, profile: bool) -> np.ndarray:
     """Lattice offsets (n, 2) within `reach` steps (Manhattan); along x only on a profile."""
     r = np.arange(-reach, reach + 1)
     if profile:
-        return np.column_stack([r, np.zeros_like(r)])
-    i, j = np.meshgrid(r, r, indexing="ij")
-    near = np.abs(i) + np.abs(j) <= reach
-    return np.column_stack([i[near], j[near]])
+        out = np.column_stack([r, np.zeros_like(r)])
+    else:
+        i, j = np.meshgrid(r, r, indexing="ij")
+        near = np.abs(i) + np.abs(j) <= reach
+        out = np.column_stack([i[near], j[near]])
+    out.flags.writeable = False  # cached: shared by every caller
+    return out
 
 
 def _readings(view: PolicyInput, poses: np.ndarray, offsets: np.ndarray
