@@ -175,8 +175,8 @@ class InfoGainPolicy:
         profile = view.surface.map.is_profile
 
         def telling(offsets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-            """Mask of the unread places in reach that tell the main modes apart, and
-            their information."""
+            """Mask of the places (offsets from here), unread and not known out of reach,
+            where a reading tells the main modes apart, and its information there."""
             z, _ = _readings(view, p, offsets)
             info = information(z[:, :, np.newaxis], w, s)
             places = offsets + np.array(here)
