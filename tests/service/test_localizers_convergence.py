@@ -78,6 +78,16 @@ def test_rule_needs_readings_mass_fit_and_tightness():
     assert rule.loosened().holds(**{**ok, "fit": _fit(position_sd=1e-3)})
 
 
+def test_only_a_spread_that_counts_the_shared_error_may_be_looser():
+    """With noise the spread is the sandwich that counts the map's shared error, and 0.07
+    steps passes; without noise it is the fit's own at a floored sd, held to 0.06."""
+    rule = ConvergenceRule()
+    fit = _fit(position_sd=0.07 * 0.01, max_abs=1.0)
+    assert rule.holds(readings=8, noisy=True, mode_mass=0.9999, fit=fit, step_length=0.01)
+    assert not rule.holds(readings=8, noisy=False, mode_mass=0.9999, fit=fit,
+                          step_length=0.01)
+
+
 def test_a_larger_map_asks_one_more_reading_per_doubling_of_its_area():
     step = 0.01
     assert ConvergenceRule.for_map((0.2, 0.2), step) == ConvergenceRule()  # B1's map

@@ -205,6 +205,27 @@ def test_paper_policy_samples_only_candidates_with_weight():
     assert PaperPolicy().next_move(view) in range(4)
 
 
+def test_a_far_target_behind_a_wall_is_given_up():
+    """The hill 13 steps out, but +x blocked from the second place on (a workspace limit):
+    places beyond a blocked step are out of reach as far as the far search looks, so it
+    does not keep a target there and shuttle beside the wall (it did: (2, 0) and (2, 1)
+    for the rest of the episode)."""
+    surface = contact_surface(_long_plain_with_a_hill(), 0.008)
+    poses = np.array([[0.10, 0.10, 0.0], [0.10, 0.05, 0.0]])
+    policy = InfoGainPolicy()
+    place, places, blocked = np.zeros(2, dtype=int), [(0, 0)], set()
+    for _ in range(20):
+        move = policy.next_move(_view(surface, poses, blocked,
+                                      displacement=tuple(place * 0.01)))
+        if place[0] + int(MOVES[move][0]) > 2:  # beyond the finger's reach
+            blocked = {move}
+            continue
+        blocked, place = set(), place + MOVES[move].astype(int)
+        places.append(tuple(place))
+    shuttles = sum(places[i] == places[i + 2] != places[i + 1] for i in range(len(places) - 2))
+    assert shuttles <= 2, f"shuttled: {places}"
+
+
 def test_localizes_four_alike_holes_whose_deciding_corner_lies_beyond_the_plan():
     """pattern:20:0, seed 5: with a plan of six steps, 60 steps near the start left the
     pattern's quarter turns equally likely; the far search reads the corner that decides."""

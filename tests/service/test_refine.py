@@ -66,6 +66,7 @@ def test_one_bad_reading_is_dropped(surface):
     h[5, 2] += 0.005  # a 5 mm slip
     fit = refine(surface, h, TRUTH + np.array([0.001, 0.001, 0.02]), 1e-4)
     assert fit.readings == len(h) - 1
+    assert fit.kept is not None and 5 not in fit.kept and len(fit.kept) == len(h) - 1
     np.testing.assert_allclose(fit.pose[:2], TRUTH[:2], atol=2e-4)
 
 
@@ -143,3 +144,11 @@ def test_the_spread_covers_the_error_of_a_world_that_is_not_its_map(surface):
                                                 0.01)[0])
     assert np.mean(np.array(shared) > 2) <= 0.03
     assert np.mean(np.array(own) > 2) >= 0.06
+
+
+def test_a_spread_the_readings_cannot_bound_is_unbounded(surface):
+    """Every reading at one place: the sandwich has no inverse, and the spread is infinite,
+    never quietly the fit's own."""
+    h = np.zeros((6, 3))
+    position, heading = correlated_spread(surface, h, TRUTH, np.full(6, 2e-4), 2e-4, 0.01)
+    assert position == np.inf and heading == np.inf

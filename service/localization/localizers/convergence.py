@@ -127,7 +127,13 @@ class ConvergenceRule:
     max_abs: float = 6.0
     """Largest acceptable single residual, in sensor sigmas (noise-free)."""
     max_position_sd: float = 0.08
+    """Largest position sd (steps) with noise, where the spread counts the map's shared
+    error (`_with_model_error`) and matches the errors: a Gaussian error of that sd passes
+    the 0.25-step tolerance about once in 17,000 declarations."""
     max_heading_sd: float = float(np.deg2rad(1.5))
+    max_position_sd_exact: float = 0.06
+    """Largest position sd (steps) without noise, where the spread is the fit's own at a
+    floored reading sd (`_with_floored_spread`), not calibrated as with noise."""
 
     @classmethod
     def for_map(cls, extent: tuple[float, float], step_length: float) -> ConvergenceRule:
@@ -150,7 +156,8 @@ class ConvergenceRule:
         no limit on a noise-free residual."""
         return ConvergenceRule(self.min_readings, self.min_readings_noisy, mode_mass,
                                3 * self.max_rms, float("inf"), float("inf"),
-                               3 * self.max_position_sd, 3 * self.max_heading_sd)
+                               3 * self.max_position_sd, 3 * self.max_heading_sd,
+                               3 * self.max_position_sd_exact)
 
     def max_abs_for(self, readings: int) -> float:
         """`max_abs_noisy` for this many readings: the same chance that the largest of them
@@ -168,7 +175,8 @@ class ConvergenceRule:
         fits = (fit.rms <= self.max_rms and fit.max_abs <= self.max_abs_for(fit.readings)
                 if noisy
                 else fit.max_abs <= self.max_abs)
-        tight = (fit.position_sd <= self.max_position_sd * step_length
+        largest = self.max_position_sd if noisy else self.max_position_sd_exact
+        tight = (fit.position_sd <= largest * step_length
                  and fit.heading_sd <= self.max_heading_sd)
         return bool(fits and tight)
 
@@ -395,9 +403,9 @@ def _with_model_error(surface: ContactSurface, history: np.ndarray, fit: Fit, si
     seed 1) and was declared.
     """
     pose = np.asarray(fit.pose)
-    sds = reading_sigmas(surface, history, pose, sigma, position_sigma)
-    position_sd, heading_sd = correlated_spread(surface, history, pose, sds, sigma,
-                                                step_length)
+    kept = history if fit.kept is None else history[fit.kept]  # outliers set aside
+    sds = reading_sigmas(surface, kept, pose, sigma, position_sigma)
+    position_sd, heading_sd = correlated_spread(surface, kept, pose, sds, sigma, step_length)
     factor = max(1.0, fit.rms)
     return dataclasses.replace(fit, position_sd=max(fit.position_sd, position_sd) * factor,
                                heading_sd=max(fit.heading_sd, heading_sd) * factor)

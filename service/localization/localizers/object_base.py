@@ -87,8 +87,9 @@ def object_rule() -> ConvergenceRule:
     """The declaration rule for a held object: B2's, with half the heading spread and
     0.06 scales of position spread. A held object is felt on a few short arcs, where the
     world's outline differs from the model coherently; at 1.5 degrees a heading 5.5
-    degrees off was declared (rounded:8, seed 8). (B2's rule allows 0.08 steps because its
-    spread counts an error shared by nearby readings; the object judge's spread counts it
-    its own way, by patches felt (`object_judge._temper`), measured against 0.06.)"""
+    degrees off was declared (rounded:8, seed 8). (B2's rule allows 0.08 steps with noise
+    because there its spread is the sandwich of `convergence._with_model_error`; the
+    object judge counts shared error by patches felt (`object_judge._temper`), measured
+    against 0.06.)"""
     return dataclasses.replace(ConvergenceRule(), max_position_sd=0.06,
                                max_heading_sd=ConvergenceRule.max_heading_sd / 2)

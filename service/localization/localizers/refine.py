@@ -9,6 +9,7 @@ rather than an exact reference.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -37,6 +38,8 @@ class Fit:
                                     compare=False)
     """(3, 3) what the readings tell about (x0, y0, heading), the height offset
     marginalized: zero along a direction they do not see (the covariance is its inverse)."""
+    kept: np.ndarray | None = field(default=None, repr=False, compare=False)
+    """Indexes of the readings the fit kept (`refine` sets outliers aside); None: all."""
 
 
 def reading_sigmas(surface: ContactSurface, history: np.ndarray, pose: np.ndarray,
@@ -91,7 +94,8 @@ def refine(surface: ContactSurface, history: np.ndarray, start: np.ndarray,
         if r[worst] <= outlier_gate or use.sum() - 1 < 6 or (~use).sum() >= max_outliers:
             break
         use[worst] = False  # the worst reading only: one slip distorts the fit everywhere
-    return _fit_at(surface, history[use], params, sigma[use])
+    fit = _fit_at(surface, history[use], params, sigma[use])
+    return fit if use.all() else dataclasses.replace(fit, kept=np.flatnonzero(use))
 
 
 def assess(surface: ContactSurface, history: np.ndarray, pose: np.ndarray,
@@ -149,8 +153,13 @@ def correlated_spread(surface: ContactSurface, history: np.ndarray, pose: np.nda
     free = np.ix_(_free(surface), _free(surface))
     cov = np.zeros((4, 4))
     cov[free] = bread @ inner @ bread if np.all(np.isfinite(bread)) else bread
-    return (float(np.sqrt(max(cov[0, 0] + cov[1, 1], 0.0))),
-            float(np.sqrt(max(cov[2, 2], 0.0))))
+    return _sd(cov[0, 0] + cov[1, 1]), _sd(cov[2, 2])
+
+
+def _sd(variance: float) -> float:
+    """The sd of a variance; a variance that is not finite leaves the spread unbounded, never
+    quietly the narrower one it would replace."""
+    return float(np.sqrt(max(variance, 0.0))) if np.isfinite(variance) else float("inf")
 
 
 def _covariance(jac: np.ndarray) -> np.ndarray:

@@ -108,7 +108,7 @@ class InfoGainPolicy:
             # and every place beyond it that way: the map and the workspace are convex
             # enough (kept as a target past a workspace limit, a planar finger shuttled
             # between the last two places before it)
-            for k in range(1, 2 * self.reach + 1):
+            for k in range(1, max(2 * self.reach, self.far_reach) + 1):
                 self._unreachable.add((here[0] + k * int(MOVES[m][0]),
                                        here[1] + k * int(MOVES[m][1])))
         moves = self._moves(view, here)
@@ -124,6 +124,9 @@ class InfoGainPolicy:
         best = int(np.argmax(rate))
         target = (here[0] + int(offsets[best, 0]), here[1] + int(offsets[best, 1]))
         far = self._far_target(view, here, poses, weights, s)
+        if far is not None and not _route(moves, here, far):  # walled off from here
+            self._unreachable.add(far)
+            far = self._far = None
         if far is not None:  # the main modes agree everywhere in reach: to where they do not
             self._target = far
             return self._toward(view, here, far, moves, poses, weights, s)
@@ -206,9 +209,7 @@ class InfoGainPolicy:
                 moves: list[int], poses: np.ndarray, weights: np.ndarray, s: float) -> int:
         """The free move along a shortest route to `target` whose own reading tells most;
         any free move if none leads there."""
-        di, dj = target[0] - here[0], target[1] - here[1]
-        route = [m for m in moves if (MOVES[m][0] * di > 0) or (MOVES[m][1] * dj > 0)]
-        options = route or moves
+        options = _route(moves, here, target) or moves
         if len(options) == 1:
             return options[0]
         k = min(self.samples, len(poses))
@@ -292,6 +293,12 @@ def _place(displacement: np.ndarray, step: float) -> tuple[int, int]:
     """The lattice point (in steps, finger frame) nearest the finger's displacement."""
     i, j = np.round(np.asarray(displacement, dtype=np.float64)[:2] / step)
     return int(i), int(j)
+
+
+def _route(moves: list[int], here: tuple[int, int], target: tuple[int, int]) -> list[int]:
+    """The moves among `moves` that bring the finger closer to `target`."""
+    di, dj = target[0] - here[0], target[1] - here[1]
+    return [m for m in moves if (MOVES[m][0] * di > 0) or (MOVES[m][1] * dj > 0)]
 
 
 def _among(places: np.ndarray, known: Iterable[tuple[int, int]]) -> np.ndarray:
