@@ -109,7 +109,7 @@ def _shared_error(h: np.ndarray, error_sd: float, length: float, noise: float,
 def test_without_a_shared_error_the_spread_is_the_fits_own(surface):
     h = _history(surface, steps=10)
     fit = assess(surface, h, TRUTH, 2e-4)
-    position, heading = correlated_spread(surface, h, TRUTH, np.full(len(h), 2e-4), 0.0, 0.01)
+    position, heading = correlated_spread(surface, h, TRUTH, 2e-4, 0.0, 0.0, 0.01)
     assert position == pytest.approx(fit.position_sd, rel=1e-9)
     assert heading == pytest.approx(fit.heading_sd, rel=1e-9)
 
@@ -120,7 +120,7 @@ def test_a_shared_error_is_not_averaged_away_by_reading_one_place_again(surface)
     once = _history(surface, steps=10)
     four = np.vstack([once] * 4)
     own = [assess(surface, h, TRUTH, 2e-4).position_sd for h in (once, four)]
-    shared = [correlated_spread(surface, h, TRUTH, np.full(len(h), 2e-4), 2e-4, 0.01)[0]
+    shared = [correlated_spread(surface, h, TRUTH, 2e-4, 0.0, 2e-4, 0.01)[0]
               for h in (once, four)]
     assert own[1] == pytest.approx(own[0] / 2, rel=1e-6)
     assert shared[0] > own[0]
@@ -138,10 +138,9 @@ def test_the_spread_covers_the_error_of_a_world_that_is_not_its_map(surface):
                           np.random.default_rng(seed))
         fit = refine(surface, h, TRUTH + np.array([0.002, 0.001, 0.05]), 2e-4)
         error = np.hypot(fit.pose[0] - TRUTH[0], fit.pose[1] - TRUTH[1])
-        sds = reading_sigmas(surface, h, np.asarray(fit.pose), 2e-4, 0.0)
         own.append(error / fit.position_sd)
-        shared.append(error / correlated_spread(surface, h, np.asarray(fit.pose), sds, 2e-4,
-                                                0.01)[0])
+        shared.append(error / correlated_spread(surface, h, np.asarray(fit.pose), 2e-4, 0.0,
+                                                2e-4, 0.01)[0])
     assert np.mean(np.array(shared) > 2) <= 0.03
     assert np.mean(np.array(own) > 2) >= 0.06
 
@@ -150,5 +149,5 @@ def test_a_spread_the_readings_cannot_bound_is_unbounded(surface):
     """Every reading at one place: the sandwich has no inverse, and the spread is infinite,
     never quietly the fit's own."""
     h = np.zeros((6, 3))
-    position, heading = correlated_spread(surface, h, TRUTH, np.full(6, 2e-4), 2e-4, 0.01)
+    position, heading = correlated_spread(surface, h, TRUTH, 2e-4, 0.0, 2e-4, 0.01)
     assert position == np.inf and heading == np.inf

@@ -404,8 +404,8 @@ def _with_model_error(surface: ContactSurface, history: np.ndarray, fit: Fit, si
     """
     pose = np.asarray(fit.pose)
     kept = history if fit.kept is None else history[fit.kept]  # outliers set aside
-    sds = reading_sigmas(surface, kept, pose, sigma, position_sigma)
-    position_sd, heading_sd = correlated_spread(surface, kept, pose, sds, sigma, step_length)
+    position_sd, heading_sd = correlated_spread(surface, kept, pose, sigma, position_sigma,
+                                                sigma, step_length)
     factor = max(1.0, fit.rms)
     return dataclasses.replace(fit, position_sd=max(fit.position_sd, position_sd) * factor,
                                heading_sd=max(fit.heading_sd, heading_sd) * factor)

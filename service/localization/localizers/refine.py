@@ -48,6 +48,11 @@ def reading_sigmas(surface: ContactSurface, history: np.ndarray, pose: np.ndarra
     noise (in this reading and the first) turned into height by the local slope, so steep
     readings weigh less and the covariance is honest."""
     _, jac = heights_and_jacobian(surface, np.asarray(pose, dtype=np.float64), history)
+    return _slope_sigmas(jac, sigma, position_sigma)
+
+
+def _slope_sigmas(jac: np.ndarray, sigma: float, position_sigma: float) -> np.ndarray:
+    """`reading_sigmas` from the readings' Jacobian (K, 3) at the pose."""
     return np.sqrt(sigma**2 + 2 * position_sigma**2 * (jac[:, 0]**2 + jac[:, 1]**2))
 
 
@@ -56,8 +61,23 @@ def _model(surface: ContactSurface, history: np.ndarray, params: np.ndarray
     """Residuals of (x0, y0, heading, offset) and their Jacobian by the free parameters:
     all four, or on a profile x0 and the offset (y0 and the direction are fixed there)."""
     z, jac = heights_and_jacobian(surface, params[:3], history)
-    full = np.column_stack([jac, -np.ones(len(z))])
-    return z - params[3] - history[:, 2], full[:, _free(surface)]
+    return z - params[3] - history[:, 2], _design(surface, jac)
+
+
+def _design(surface: ContactSurface, jac: np.ndarray) -> np.ndarray:
+    """The Jacobian by the free parameters (`_free`) from the heights' Jacobian (K, 3) by
+    the pose: the offset's column is -1."""
+    return np.column_stack([jac, -np.ones(len(jac))])[:, _free(surface)]
+
+
+def _over_all(surface: ContactSurface, block: np.ndarray) -> np.ndarray:
+    """A matrix over the free parameters as one over all four, zero where a profile fits
+    none (its y0 and heading)."""
+    if not surface.map.is_profile:
+        return block
+    full = np.zeros((4, 4))
+    full[np.ix_(_free(surface), _free(surface))] = block
+    return full
 
 
 def _free(surface: ContactSurface) -> list[int]:
@@ -117,12 +137,7 @@ def _fit_at(surface: ContactSurface, history: np.ndarray, params: np.ndarray,
     r, j = _model(surface, history, params)
     r, j = r / sigma, j / sigma[:, np.newaxis]
     seen = j.T @ j
-    if surface.map.is_profile:  # x0 and the offset only: y0 and heading are not fitted
-        cov, normal = np.zeros((4, 4)), np.zeros((4, 4))
-        free = np.ix_(_free(surface), _free(surface))
-        cov[free], normal[free] = _inverse(seen), seen
-    else:
-        cov, normal = _inverse(seen), seen
+    cov, normal = _over_all(surface, _inverse(seen)), _over_all(surface, seen)
     offset = normal[3, 3] if normal[3, 3] > 0 else np.inf
     information = normal[:3, :3] - np.outer(normal[:3, 3], normal[3, :3]) / offset
     return Fit(pose=(float(params[0]), float(params[1]), float(wrap_angle(params[2]))),
@@ -133,26 +148,24 @@ def _fit_at(surface: ContactSurface, history: np.ndarray, params: np.ndarray,
 
 
 def correlated_spread(surface: ContactSurface, history: np.ndarray, pose: np.ndarray,
-                      sigma: np.ndarray, error_sd: float, length: float
+                      sigma: float, position_sigma: float, error_sd: float, length: float
                       ) -> tuple[float, float]:
-    """Position and heading sd of the least-squares pose (`refine`, weighted by `sigma`)
-    when the map also differs from the object by a smooth error of sd `error_sd` that
-    readings `length` apart share (a Gaussian correlation): the fit's own covariance
-    assumes every reading errs alone, and on a gently curved shell a shared error of
-    0.2 mm moves the fit by millimetres (shell:20:5, seed 2: declared 4.2 mm off with a
-    claimed sd of 0.6 mm). The estimator is unchanged; its covariance is the sandwich
-    A^-1 J^T W S W J A^-1, S the readings' covariance, A = J^T W J."""
-    params = np.array([*np.asarray(pose, dtype=np.float64), 0.0])
-    _, j = _model(surface, history, params)
-    weighed = j / sigma[:, np.newaxis] ** 2  # W J
+    """Position and heading sd of the least-squares pose (`refine`, each reading weighed
+    by its `reading_sigmas`) when the map also differs from the object by a smooth error of
+    sd `error_sd` that readings `length` apart share (a Gaussian correlation): the fit's
+    own covariance assumes every reading errs alone, and on a gently curved shell a shared
+    error of 0.2 mm moves the fit by millimetres (shell:20:5, seed 2: declared 4.2 mm off
+    with a claimed sd of 0.6 mm). The estimator is unchanged; its covariance is the
+    sandwich A^-1 J^T W S W J A^-1, S the readings' covariance, A = J^T W J."""
+    _, jac = heights_and_jacobian(surface, np.asarray(pose, dtype=np.float64), history)
+    j = _design(surface, jac)
+    weighed = j / _slope_sigmas(jac, sigma, position_sigma)[:, np.newaxis] ** 2  # W J
     d2 = np.sum((history[:, None, :2] - history[None, :, :2]) ** 2, axis=-1)
     shared = error_sd**2 * np.exp(-0.5 * d2 / length**2)
-    normal = j.T @ weighed  # A, over the fitted parameters (`_free`)
+    normal = j.T @ weighed  # A
     inner = normal + weighed.T @ shared @ weighed  # J^T W (diag(sigma^2) + shared) W J
     bread = _inverse(normal)
-    free = np.ix_(_free(surface), _free(surface))
-    cov = np.zeros((4, 4))
-    cov[free] = bread @ inner @ bread if np.all(np.isfinite(bread)) else bread
+    cov = _over_all(surface, bread @ inner @ bread if np.all(np.isfinite(bread)) else bread)
     return _sd(cov[0, 0] + cov[1, 1]), _sd(cov[2, 2])
 
 

@@ -116,13 +116,6 @@ class InfoGainPolicy:
         if len(poses) == 0:
             return moves[0]
         s = self.noise_floor * view.step_length
-        offsets = _diamond(self.reach, view.surface.map.is_profile)
-        value = self._value(view, poses, weights, offsets, s)
-        dist = np.abs(offsets).sum(axis=1)
-        reachable = self._reachable(here, offsets)
-        rate = np.where((dist > 0) & reachable, value / np.maximum(dist, 1), -np.inf)
-        best = int(np.argmax(rate))
-        target = (here[0] + int(offsets[best, 0]), here[1] + int(offsets[best, 1]))
         far = self._far_target(view, here, poses, weights, s)
         if far is not None and not _route(moves, here, far):  # walled off from here
             self._unreachable.add(far)
@@ -130,6 +123,13 @@ class InfoGainPolicy:
         if far is not None:  # the main modes agree everywhere in reach: to where they do not
             self._target = far
             return self._toward(view, here, far, moves, poses, weights, s)
+        offsets = _diamond(self.reach, view.surface.map.is_profile)
+        value = self._value(view, poses, weights, offsets, s)
+        dist = np.abs(offsets).sum(axis=1)
+        reachable = self._reachable(here, offsets)
+        rate = np.where((dist > 0) & reachable, value / np.maximum(dist, 1), -np.inf)
+        best = int(np.argmax(rate))
+        target = (here[0] + int(offsets[best, 0]), here[1] + int(offsets[best, 1]))
         if not rate[best] > 0:  # nothing in reach tells anything: to the nearest new place
             target = self._nearest_unread(here, view.surface.map.is_profile) or target
         if self._target is not None and self._target != here:
