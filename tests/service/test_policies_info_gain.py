@@ -9,6 +9,7 @@ from service.episode.scenario import RunSettings
 from service.episode.simulate import simulate
 from service.localization.localizers.base import Hypotheses
 from service.localization.maps import bumps, peaks
+from service.localization.policies import info_gain
 from service.localization.policies.base import MOVES, PolicyInput, predicted_heights
 from service.localization.policies.info_gain import InfoGainPolicy, information
 from service.localization.surface import HeightMap, contact_surface
@@ -114,6 +115,37 @@ def test_walks_to_a_feature_beyond_its_plan_when_nothing_in_it_tells(far_reach, 
     surface = contact_surface(_long_plain_with_a_hill(), 0.008)
     poses = np.array([[0.10, 0.10, 0.0], [0.10, 0.05, 0.0]])
     policy = InfoGainPolicy(far_reach=far_reach)
+    d, moves = np.zeros(2), []
+    for _ in range(8):
+        move = policy.next_move(_view(surface, poses, displacement=tuple(d)))
+        moves.append(move)
+        d = d + MOVES[move] * 0.01
+    assert (moves == [0] * 8) == heads_there, moves
+
+
+def _long_plain_with_a_hill_and_a_blip(blip: float) -> HeightMap:
+    """`_long_plain_with_a_hill` with a low, narrow bump `blip` metres high three steps
+    beside the start of the first hypothesis below."""
+    y, x = np.mgrid[0:201, 0:401] * 0.001
+    return HeightMap(_long_plain_with_a_hill().heights
+                     + blip * np.exp(-((x - 0.10) ** 2 + (y - 0.13) ** 2) / (2 * 0.004**2)),
+                     0.001, name="long-plain-with-a-hill-and-a-blip")
+
+
+@pytest.mark.parametrize("far_gain, heads_there", [(info_gain.FAR_GAIN, True),
+                                                   (np.inf, False)])
+def test_walks_to_a_feature_beyond_its_plan_that_tells_far_more_than_one_in_it(
+        monkeypatch, far_gain, heads_there):
+    """As above, but a bump 0.1 mm high three steps away tells the two modes apart a
+    little (eight alike pockets, pattern:20:1 seed 4: places in reach told the modes
+    apart a little for 32 steps while the places that halved them lay farther out). The
+    hill farther out tells them apart at more than twice the rate per step, so the far
+    search walks there; if nothing beyond reach could beat the plan in reach (an infinite
+    `FAR_GAIN`, which is how the far search behaved before), the finger stays near."""
+    monkeypatch.setattr(info_gain, "FAR_GAIN", far_gain)
+    surface = contact_surface(_long_plain_with_a_hill_and_a_blip(0.0001), 0.008)
+    poses = np.array([[0.10, 0.10, 0.0], [0.10, 0.05, 0.0]])
+    policy = InfoGainPolicy()
     d, moves = np.zeros(2), []
     for _ in range(8):
         move = policy.next_move(_view(surface, poses, displacement=tuple(d)))
@@ -234,3 +266,18 @@ def test_localizes_four_alike_holes_whose_deciding_corner_lies_beyond_the_plan()
     report = simulate(RunSettings(map="pattern:20:0", seed=5, noise=True, max_steps=60),
                       load_map("pattern:20:0"))
     assert report.score.success
+
+
+@pytest.mark.parametrize("far_gain, localizes", [(info_gain.FAR_GAIN, True), (np.inf, False)])
+def test_localizes_four_alike_holes_where_the_plan_in_reach_tells_a_little(
+        monkeypatch, far_gain, localizes):
+    """pattern:20:0, seed 2: places in reach told the main modes apart a little, so the far
+    search never started and 60 steps ended undecided; walking to the place that tells
+    them apart at more than twice the rate localizes it (in 21 steps)."""
+    from service.localization.maps import load_map
+
+    monkeypatch.setattr(info_gain, "FAR_GAIN", far_gain)
+    report = simulate(RunSettings(map="pattern:20:0", seed=2, noise=True, max_steps=60),
+                      load_map("pattern:20:0"))
+    assert report.score.success == localizes
+    assert not report.score.wrong_declaration
