@@ -19,6 +19,7 @@ from service.episode.hand_scenario import (
     score,
     streams,
 )
+from service.localization.localizers import object_judge
 from service.localization.localizers.base import Estimate, update, wrap_angle
 from service.localization.localizers.contour_fit import refine
 from service.localization.localizers.object_base import HandMeasurement
@@ -140,3 +141,17 @@ def test_three_small_arcs_do_not_declare_a_half_turn_image():
     report = simulate_hand(HandSettings(object="rounded:14", hand="three-finger", seed=14,
                                         noise=True, max_steps=30))
     assert not report.score.wrong_declaration and not report.result.dropped
+
+
+@pytest.mark.parametrize("carried_sd, localizes", [(object_judge.CARRIED_SD, True), (0.0, False)])
+def test_readings_carried_without_noise_keep_a_floor(monkeypatch, carried_sd, localizes):
+    """Without noise the motion model adds no spread to the readings a turn carries, yet
+    they moved with the track's pose as fitted then, not with the truth: three fingers on
+    keyed:0 (seed 0) kept turning the object and never declared. With the floor they
+    localize it, and without it they still do not."""
+    monkeypatch.setattr(object_judge, "CARRIED_SD", carried_sd)
+    report = simulate_hand(HandSettings(object="keyed:0", hand="three-finger", seed=0,
+                                        noise=False, max_steps=20))
+    assert report.score.success == localizes
+    assert not report.score.wrong_declaration
+    assert not report.result.dropped
