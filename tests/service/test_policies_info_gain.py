@@ -106,6 +106,16 @@ def _long_plain_with_a_hill() -> HeightMap:
                      0.001, name="long-plain-with-a-hill")
 
 
+def _walk(policy: InfoGainPolicy, surface, poses: np.ndarray, steps: int) -> list[int]:
+    """The moves `policy` takes over `steps` free steps from the origin."""
+    d, moves = np.zeros(2), []
+    for _ in range(steps):
+        move = policy.next_move(_view(surface, poses, displacement=tuple(d)))
+        moves.append(move)
+        d = d + MOVES[move] * 0.01
+    return moves
+
+
 @pytest.mark.parametrize("far_reach, heads_there", [(24, True), (0, False)])
 def test_walks_to_a_feature_beyond_its_plan_when_nothing_in_it_tells(far_reach, heads_there):
     """Two equally likely modes read the same everywhere within the plan's six steps; 13
@@ -114,12 +124,7 @@ def test_walks_to_a_feature_beyond_its_plan_when_nothing_in_it_tells(far_reach, 
     only six steps ahead wanders among the places near the start."""
     surface = contact_surface(_long_plain_with_a_hill(), 0.008)
     poses = np.array([[0.10, 0.10, 0.0], [0.10, 0.05, 0.0]])
-    policy = InfoGainPolicy(far_reach=far_reach)
-    d, moves = np.zeros(2), []
-    for _ in range(8):
-        move = policy.next_move(_view(surface, poses, displacement=tuple(d)))
-        moves.append(move)
-        d = d + MOVES[move] * 0.01
+    moves = _walk(InfoGainPolicy(far_reach=far_reach), surface, poses, 8)
     assert (moves == [0] * 8) == heads_there, moves
 
 
@@ -145,12 +150,7 @@ def test_walks_to_a_feature_beyond_its_plan_that_tells_far_more_than_one_in_it(
     monkeypatch.setattr(info_gain, "FAR_GAIN", far_gain)
     surface = contact_surface(_long_plain_with_a_hill_and_a_blip(0.0001), 0.008)
     poses = np.array([[0.10, 0.10, 0.0], [0.10, 0.05, 0.0]])
-    policy = InfoGainPolicy()
-    d, moves = np.zeros(2), []
-    for _ in range(8):
-        move = policy.next_move(_view(surface, poses, displacement=tuple(d)))
-        moves.append(move)
-        d = d + MOVES[move] * 0.01
+    moves = _walk(InfoGainPolicy(), surface, poses, 8)
     assert (moves == [0] * 8) == heads_there, moves
 
 

@@ -89,8 +89,7 @@ class InfoGainPolicy:
         self.reach = reach
         self.modes = modes
         self.far_reach = far_reach
-        """Steps (Manhattan) the far search looks when nothing in `reach` tells the modes
-        apart."""
+        """Steps (Manhattan) out to which the far search looks (`_far_target`)."""
         self.noise_floor = noise_floor
         """Smallest reading sd assumed, as a fraction of the step: hypotheses closer than
         this are treated as one, so a noise-free run does not chase negligible differences."""
@@ -124,7 +123,7 @@ class InfoGainPolicy:
         if far is not None and not _route(moves, here, far):  # walled off from here
             self._unreachable.add(far)
             far = self._far = None
-        if far is not None:  # the main modes agree everywhere in reach: to where they do not
+        if far is not None:  # a place beyond reach tells the main modes apart far faster
             self._target = far
             return self._toward(view, here, far, moves, poses, weights, s)
         offsets = _diamond(self.reach, view.surface.map.is_profile)
@@ -200,21 +199,20 @@ class InfoGainPolicy:
             self._far = None
         near = _diamond(self.reach, profile)
         mask, info = telling(near)
+        best_near = float(np.max(info[mask] / np.abs(near[mask]).sum(axis=1), initial=0.0))
         # no reading tells more than the main modes' entropy, so no place farther out than
         # that over FAR_GAIN times the best rate in reach can beat it: look no farther
-        best_near = float(np.max(info[mask] / np.abs(near[mask]).sum(axis=1), initial=0.0))
         horizon = self.far_reach if best_near == 0 else min(
             self.far_reach, int(-np.sum(w * np.log(w)) / (FAR_GAIN * best_near)))
-        if horizon <= self.reach and best_near > 0:
-            return None  # the plan in reach will do
         offsets = _diamond(horizon, profile)
-        mask, info = telling(offsets)
-        if not np.any(mask):
-            return None
         dist = np.abs(offsets).sum(axis=1)
-        rate = np.where(mask, info / np.maximum(dist, 1), -np.inf)
+        offsets, dist = offsets[dist > self.reach], dist[dist > self.reach]  # beyond reach
+        if len(offsets) == 0:
+            return None
+        mask, info = telling(offsets)
+        rate = np.where(mask, info / dist, -np.inf)
         best = int(np.argmax(rate))
-        if rate[best] < FAR_GAIN * best_near:
+        if not (mask[best] and rate[best] >= FAR_GAIN * best_near):
             return None  # the plan in reach will do
         self._far = (here[0] + int(offsets[best, 0]), here[1] + int(offsets[best, 1]))
         return self._far
