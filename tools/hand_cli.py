@@ -56,6 +56,9 @@ def add_object_world_options(g: argparse._ActionsContainer) -> None:
     g.add_argument("--margin", type=float, default=d.margin_n, metavar="N",
                    help="disturbance the grasp must resist beyond the weight; below it the "
                         "object drops (default: %(default)s)")
+    g.add_argument("--start-quality", type=float, default=d.start_n, metavar="N",
+                   help="grasp quality the hand starts with at least; the policy relies on "
+                        "it (default: %(default)s)")
 
 
 def hand_settings(args: argparse.Namespace, **overrides):
@@ -67,6 +70,7 @@ def hand_settings(args: argparse.Namespace, **overrides):
     fields = dict(object=args.object, plane=args.plane, units=args.object_units,
                   hand=args.hand or DEFAULT_HAND, seed=getattr(args, "seed", 0),
                   noise=args.noise, mu=args.mu, mass_kg=args.mass, margin_n=args.margin,
+                  start_n=args.start_quality,
                   # what only an episode uses (`haptic emulate` has none of it)
                   algorithm=getattr(args, "algorithm", d.algorithm),
                   step=getattr(args, "roll", d.step),

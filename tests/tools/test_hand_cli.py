@@ -56,6 +56,8 @@ def test_a_mesh_cross_section_is_an_object(tmp_path, capsys):
     (["--object", "blob", "--algorithm", "grid"], "unknown algorithm 'grid'"),
     (["--object", "blob", "--hand", "nope"], "no hand preset or file 'nope'"),
     (["--object", "blob", "--mu", "0"], "mu must be > 0"),
+    (["--object", "blob", "--start-quality", "0.5"],
+     "start grasp quality (0.5 N) must be at least the threshold (1.0 N)"),
     (["--object", "blob", "--plane", "z=0"], "--plane applies to mesh files"),
 ])
 def test_user_errors_are_one_line(argv, message, capsys):
@@ -65,12 +67,12 @@ def test_user_errors_are_one_line(argv, message, capsys):
 
 
 def test_a_hand_with_no_safe_move_says_why_and_draws_it(tmp_path, capsys):
-    """Two fingers on rounded:39 (seed 39) find every move too risky from the start: the run
-    ends undecided, says why in words, and still draws its figure, of an episode of no
-    steps."""
+    """Two fingers on rounded:39 (seed 39), known to start only at the threshold, find every
+    move too risky from the start: the run ends undecided, says why in words, and still
+    draws its figure, of an episode of no steps."""
     fig = tmp_path / "stuck.png"
     main(["run", "--object", "rounded:39", "--hand", "two-finger", "--noise", "--seed", "39",
-          "--plot", str(fig)])
+          "--start-quality", "1", "--plot", str(fig)])
     text = capsys.readouterr().out
     assert "not localized after 0 steps: no safe move left (under a pose the readings" in text
     assert fig.stat().st_size > 10_000

@@ -143,6 +143,9 @@ class GraspGatedPolicy:
         self._decisions = 0
         self._certified: tuple[np.ndarray, tuple[np.ndarray, ...]] | None = None
         """Centres and joints of the grasp the hand last started from."""
+        self._turned = False
+        """A manipulation has moved the object: the grasp it ended in is known to keep
+        only the threshold, not the first grasp's `GraspSpec.start_n`."""
         self._now = np.empty(0)
         """The grasp's quality as it is, under each plausible pose."""
         self._guard = np.empty(0, dtype=bool)
@@ -164,16 +167,16 @@ class GraspGatedPolicy:
         if not view.fixed:
             turn = self._manipulate(view, poses, weights, radii)
             if turn is not None:
-                self._certified = None  # the grasp it ends in is the next start
+                self._certified, self._turned = None, True  # it ends in the next start
                 return turn
         return explore if explore is not None else HandDecision(None, "stuck")
 
     def _plausible(self, view: HandView) -> tuple[np.ndarray, np.ndarray]:
         """The `plausible` heaviest hypotheses under which the grasp as it is holds the
-        object (it is held) and the grasp the hand last started from - its first, or the
-        one a manipulation ended in - kept the threshold (the hand starts only from such a
-        grasp, and a manipulation is gated to end in one), with the gate's cover of the
-        gaps between them that hold too."""
+        object (it is held) and the grasp the hand last started from had the quality known
+        of it - its first the start quality (`GraspSpec.start_n`), one a manipulation ended
+        in the threshold (a manipulation is gated to end in one) - with the gate's cover of
+        the gaps between them that hold too."""
         poses, w = view.hypotheses.poses[:self.plausible], view.hypotheses.weights[
             :self.plausible]
         if view.fixed:
@@ -194,14 +197,16 @@ class GraspGatedPolicy:
               known: tuple[np.ndarray, np.ndarray] = (np.empty(0), np.empty(0))
               ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """The poses (and weights, guard mask) under which the grasp holds the object now
-        and the grasp the hand last started from kept the threshold, with the quality now
-        and at that start under each; failing that, those under which it holds now;
-        failing that, all. `known` are those qualities for the first poses already."""
+        and the grasp the hand last started from had the quality known of it (`_plausible`),
+        with the quality now and at that start under each; failing that, those under which
+        it holds now; failing that, all. `known` are those qualities for the first poses
+        already."""
         assert self._certified is not None
         rest = poses[len(known[0]):]
         now = np.concatenate([known[0], self._quality(view, rest, view.centres, view.joints)])
         start = np.concatenate([known[1], self._quality(view, rest, *self._certified)])
-        for keep in ((now >= view.grasp.margin_n) & (start >= view.grasp.threshold_n),
+        known_start = view.grasp.threshold_n if self._turned else view.grasp.start_n
+        for keep in ((now >= view.grasp.margin_n) & (start >= known_start),
                      now >= view.grasp.margin_n):
             if keep.any() and w[keep].sum() > 0:
                 self._guard = self._guard[keep]
