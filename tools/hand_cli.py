@@ -58,7 +58,7 @@ def add_object_world_options(g: argparse._ActionsContainer) -> None:
                         "object drops (default: %(default)s)")
     g.add_argument("--start-quality", type=float, default=d.start_n, metavar="N",
                    help="grasp quality the hand starts with at least; the policy relies on "
-                        "it (default: %(default)s)")
+                        "it (default: the threshold)")
 
 
 def hand_settings(args: argparse.Namespace, **overrides):

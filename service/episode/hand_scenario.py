@@ -50,8 +50,9 @@ class HandSettings:
     mass_kg: float = 0.05
     margin_n: float = 0.2
     threshold_n: float = 1.0
-    start_n: float = 2.0
-    """The quality the hand starts with at least (`GraspSpec.start_n`)."""
+    start_n: float | None = None
+    """The quality the hand starts with at least (`GraspSpec.start_n`; None: the
+    threshold)."""
     gate: bool = True
     single_finger: bool = False
     """Only the hand's first finger, the object clamped in place (the comparison B6 asks)."""
@@ -122,7 +123,7 @@ def draw_truth(settings: HandSettings, parts: HandParts, rng: np.random.Generato
                ) -> tuple[float, float, float]:
     """The object's hidden start pose: near the grasp centre, any heading, and such that
     every finger reaches it and (unless clamped) the grasp has the quality the policy
-    relies on at the start (`GraspSpec.start_n`)."""
+    relies on at the start (`GraspSpec.start_quality_n`)."""
     from sim_backend.hand import close_fingers  # the simulator's closing motion, by name
 
     centre = np.asarray(parts.hand.grasp_centre)
@@ -140,12 +141,12 @@ def draw_truth(settings: HandSettings, parts: HandParts, rng: np.random.Generato
             tips, angles = grasp
             quality = float(hand_quality(parts.field, pose[None], tips[None],
                                          parts.hand.fingers, angles, parts.torque, spec)[0])
-            if quality >= spec.start_n:
+            if quality >= spec.start_quality_n:
                 return tuple(float(v) for v in pose)  # type: ignore[return-value]
         if settings.start is not None:
             raise ConfigError(f"at --start {settings.start} hand '{parts.hand.name}' cannot "
                               f"hold object '{parts.contour.name}' with quality "
-                              f"{spec.start_n} N (--start-quality)")
+                              f"{spec.start_quality_n} N (--start-quality)")
     raise ConfigError(f"hand '{parts.hand.name}' found no hold on object "
                       f"'{parts.contour.name}' in 200 tries: it is too big, too small or too "
                       "slippery for this hand")

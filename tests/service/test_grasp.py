@@ -120,8 +120,9 @@ def test_hand_quality_pushes_each_finger_to_its_joint_limits(name):
     ({"mu": 0}, "mu must be > 0"),
     ({"mass_kg": -1}, "mass must be >= 0"),
     ({"margin_n": 0.5, "threshold_n": 0.3}, "must be at least the disturbance margin"),
-    ({"threshold_n": 3.0}, r"start grasp quality \(2.0 N\) must be at least the threshold"),
-    ({"start_n": float("nan")}, "raise --start-quality"),
+    ({"threshold_n": 3.0, "start_n": 2.0},
+     r"start grasp quality \(2.0 N\) must be at least the threshold \(3.0 N\)"),
+    ({"start_n": float("nan")}, "start grasp quality"),
 ])
 def test_spec_validation(kwargs, message):
     with pytest.raises(ConfigError, match=message):

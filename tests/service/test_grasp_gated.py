@@ -197,13 +197,13 @@ def test_the_best_allowed_option_is_argmax_over_the_allowed(scores, allowed):
 def test_two_fingers_move_from_a_start_firmer_than_the_threshold():
     """rounded:2, seed 2: the poses that explain two opposed fingers' first readings run
     on until the grasp under them would be as weak as the start is known to be. Known only
-    to keep the threshold, every move took one of them below it and the hand never moved;
-    known to keep twice the threshold (the default), it explores. Same object, same pose."""
+    to keep the threshold (the default), every move took one of them below it and the hand
+    never moved; known to keep twice the threshold, it explores. Same object, same pose."""
     firm = HandSettings(object="rounded:2", hand="two-finger", seed=2, noise=True,
-                        max_steps=2)
+                        max_steps=2, start_n=2.0)
     report = simulate_hand(firm)
-    assert firm.start_n == 2 * firm.threshold_n
     assert report.result.steps and not report.result.dropped
-    loose = simulate_hand(HandSettings(**{**firm.to_json(), "start": report.start,
-                                          "start_n": firm.threshold_n}))
-    assert loose.result.stuck and not loose.result.steps
+    default = simulate_hand(HandSettings(**{**firm.to_json(), "start": report.start,
+                                            "start_n": None}))
+    assert default.settings.grasp.start_quality_n == default.settings.threshold_n
+    assert default.result.stuck and not default.result.steps

@@ -67,9 +67,9 @@ def test_user_errors_are_one_line(argv, message, capsys):
 
 
 def test_a_hand_with_no_safe_move_says_why_and_draws_it(tmp_path, capsys):
-    """Two fingers on rounded:39 (seed 39), known to start only at the threshold, find every
-    move too risky from the start: the run ends undecided, says why in words, and still
-    draws its figure, of an episode of no steps."""
+    """Two fingers on rounded:39 (seed 39), known to start only at the threshold (the
+    default, given here too), find every move too risky from the start: the run ends
+    undecided, says why in words, and still draws its figure, of an episode of no steps."""
     fig = tmp_path / "stuck.png"
     main(["run", "--object", "rounded:39", "--hand", "two-finger", "--noise", "--seed", "39",
           "--start-quality", "1", "--plot", str(fig)])

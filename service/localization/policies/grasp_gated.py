@@ -145,7 +145,7 @@ class GraspGatedPolicy:
         """Centres and joints of the grasp the hand last started from."""
         self._turned = False
         """A manipulation has moved the object: the grasp it ended in is known to keep
-        only the threshold, not the first grasp's `GraspSpec.start_n`."""
+        only the threshold, not the first grasp's `GraspSpec.start_quality_n`."""
         self._now = np.empty(0)
         """The grasp's quality as it is, under each plausible pose."""
         self._guard = np.empty(0, dtype=bool)
@@ -174,7 +174,7 @@ class GraspGatedPolicy:
     def _plausible(self, view: HandView) -> tuple[np.ndarray, np.ndarray]:
         """The `plausible` heaviest hypotheses under which the grasp as it is holds the
         object (it is held) and the grasp the hand last started from had the quality known
-        of it - its first the start quality (`GraspSpec.start_n`), one a manipulation ended
+        of it - its first the start quality (`GraspSpec.start_quality_n`), one a manipulation ended
         in the threshold (a manipulation is gated to end in one) - with the gate's cover of
         the gaps between them that hold too."""
         poses, w = view.hypotheses.poses[:self.plausible], view.hypotheses.weights[
@@ -205,7 +205,7 @@ class GraspGatedPolicy:
         rest = poses[len(known[0]):]
         now = np.concatenate([known[0], self._quality(view, rest, view.centres, view.joints)])
         start = np.concatenate([known[1], self._quality(view, rest, *self._certified)])
-        known_start = view.grasp.threshold_n if self._turned else view.grasp.start_n
+        known_start = view.grasp.threshold_n if self._turned else view.grasp.start_quality_n
         for keep in ((now >= view.grasp.margin_n) & (start >= known_start),
                      now >= view.grasp.margin_n):
             if keep.any() and w[keep].sum() > 0:
