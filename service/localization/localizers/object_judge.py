@@ -258,12 +258,18 @@ def _offset_log_likelihood(ctx: ObjectContext, poses: np.ndarray, points: np.nda
         return temper * fit_log_likelihood(ctx.field, poses, points, radii, sd,
                                            ctx.outlier_probability, ctx.outlier_range)
     r = residuals(ctx.field, poses, points, radii)  # (N, K), positive outside
-    prior_sd = ctx.sigma
-    offset = r.sum(axis=1) / (r.shape[1] + (sd / prior_sd) ** 2)
+    offset = _shared_offset(ctx, r, sd)
     ll = log_likelihood(r - offset[:, None], np.ones(r.shape, dtype=bool), sd,
                         ctx.outlier_probability, ctx.outlier_range)
     ll = temper * np.where(np.isfinite(ll), ll, -np.inf)
-    return ll - 0.5 * (offset / prior_sd) ** 2
+    return ll - 0.5 * (offset / ctx.sigma) ** 2
+
+
+def _shared_offset(ctx: ObjectContext, r: np.ndarray, sd: float | np.ndarray) -> np.ndarray:
+    """The offset (N,) the residuals (N, K) of each pose share: their weighted mean, shrunk
+    towards zero by a prior of sd `ctx.sigma`."""
+    w = np.broadcast_to(1.0 / np.asarray(sd, dtype=np.float64) ** 2, r.shape[1:])
+    return (r * w).sum(axis=1) / (w.sum() + 1.0 / ctx.sigma**2)
 
 
 def _offset_refit(ctx: ObjectContext, points: np.ndarray, radii: np.ndarray, sd: np.ndarray,
@@ -277,9 +283,8 @@ def _offset_refit(ctx: ObjectContext, points: np.ndarray, radii: np.ndarray, sd:
     off)."""
     if ctx.mismatch_length <= 0:
         return fit
-    r = residuals(ctx.field, np.asarray([fit.pose]), points, radii)[0]
-    w = 1.0 / np.asarray(sd) ** 2
-    offset = float((r * w).sum() / (w.sum() + 1.0 / ctx.sigma**2))
+    offset = float(_shared_offset(ctx, residuals(ctx.field, np.asarray([fit.pose]), points,
+                                                 radii), sd)[0])
     refit = refine(ctx.field, points, radii + offset, np.asarray(fit.pose), sd,
                    max_outliers=outliers)
     if refit.rms > 1.0:

@@ -174,9 +174,9 @@ class GraspGatedPolicy:
     def _plausible(self, view: HandView) -> tuple[np.ndarray, np.ndarray]:
         """The `plausible` heaviest hypotheses under which the grasp as it is holds the
         object (it is held) and the grasp the hand last started from had the quality known
-        of it - its first the start quality (`GraspSpec.start_quality_n`), one a manipulation ended
-        in the threshold (a manipulation is gated to end in one) - with the gate's cover of
-        the gaps between them that hold too."""
+        of it - its first the start quality (`GraspSpec.start_quality_n`), one a
+        manipulation ended in the threshold (a manipulation is gated to end in one) - with
+        the gate's cover of the gaps between them that hold too."""
         poses, w = view.hypotheses.poses[:self.plausible], view.hypotheses.weights[
             :self.plausible]
         if view.fixed:
