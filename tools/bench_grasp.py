@@ -41,6 +41,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--hands", default=",".join(HANDS),
                    help="hands, comma-separated (default: %(default)s)")
     p.add_argument("--max-steps", type=int, default=60, help="(default: %(default)s)")
+    p.add_argument("--start-quality", type=float, metavar="N", help="grasp quality (newtons) "
+                   "every hand starts with at least; the policy relies on it (default: the "
+                   "threshold)")
     p.add_argument("--no-ablation", action="store_true", help="skip the runs without the gate")
     p.add_argument("--no-single", action="store_true", help="skip the single-finger runs")
     p.add_argument("--workers", type=int, default=1, help="parallel processes "
@@ -124,8 +127,9 @@ def run(args: argparse.Namespace) -> int:
                     jobs.append(((hand, family, kind), HandSettings(
                         object=f"{family}:{seed}", hand=hand, seed=seed, noise=True,
                         max_steps=args.max_steps, gate=kind != "ablation",
-                        single_finger=kind == "single")))
-    HandSettings(hand=hands[0])  # a bad hand name fails here, not in a worker
+                        single_finger=kind == "single", start_n=args.start_quality)))
+    # a bad hand name or start quality fails here, not in a worker
+    HandSettings(hand=hands[0], start_n=args.start_quality)
     results: dict[tuple, list[dict[str, Any]]] = {}
     with ProcessPoolExecutor(args.workers) if args.workers > 1 else _Serial() as pool:
         outcomes = pool.map(episode, [s for _, s in jobs], chunksize=4)
@@ -141,10 +145,11 @@ def run(args: argparse.Namespace) -> int:
         summary["ablation_drops"] = int(sum(o["dropped"] for (_, _, k), v in results.items()
                                             if k == "ablation" for o in v))
     _print(table, summary, hands, families, kinds)
-    failures = failed_runs(results)
+    failures = failed_runs(results, args.start_quality)
     for line in failures:
         print(line)
-    write_json(args.json, {"scenario": "grasp", "targets": TARGETS, "summary": summary,
+    write_json(args.json, {"scenario": "grasp", "targets": TARGETS,
+                           "start_quality_n": args.start_quality, "summary": summary,
                            "table": table,
                            "runs": {"/".join(k): v for k, v in results.items()}})
     if args.plot:
@@ -153,7 +158,8 @@ def run(args: argparse.Namespace) -> int:
     return 1 if failures else 0
 
 
-def failed_runs(results: dict[tuple, list[dict[str, Any]]]) -> list[str]:
+def failed_runs(results: dict[tuple, list[dict[str, Any]]], start_n: float | None = None
+                ) -> list[str]:
     """A line for each gated run that dropped the object or declared a wrong pose (the
     ablation's drops are what it is for), as `haptic run --noise` options to re-run it."""
     lines = []
@@ -161,7 +167,8 @@ def failed_runs(results: dict[tuple, list[dict[str, Any]]]) -> list[str]:
         if kind != "gated":
             continue
         for o in outcomes:
-            where = f"--hand {hand} --object {o['object']} --seed {o['seed']}"
+            where = f"--hand {hand} --object {o['object']} --seed {o['seed']}" + (
+                "" if start_n is None else f" --start-quality {start_n:g}")
             if o["dropped"]:
                 lines.append(f"DROPPED: {where} at step {o['steps']} (least quality "
                              f"{o['min_quality']:.2f} N)")

@@ -41,3 +41,16 @@ def test_bench_grasp_lists_each_gated_drop_and_wrong_declaration():
     assert lines == ["DROPPED: --hand two-finger --object rounded:7 --seed 7 at step 4 (least "
                      "quality 0.10 N)",
                      "WRONG: --hand two-finger --object rounded:8 --seed 8 (2.1 mm, 136.0 deg off)"]
+
+
+def test_bench_grasp_refuses_a_start_weaker_than_the_threshold(capsys):
+    assert main(["bench", "grasp", "--runs", "1", "--start-quality", "0.5"]) == 2
+    assert "must be at least the threshold" in capsys.readouterr().err
+
+
+def test_a_failure_line_reruns_with_the_start_quality_it_had():
+    lines = failed_runs({("three-finger", "blob", "gated"): [
+        {"object": "blob:4", "seed": 4, "dropped": True, "wrong": False, "steps": 2,
+         "min_quality": 0.3}]}, start_n=2.0)
+    assert lines == ["DROPPED: --hand three-finger --object blob:4 --seed 4 --start-quality 2 "
+                     "at step 2 (least quality 0.30 N)"]
