@@ -118,9 +118,13 @@ class SimulatedHand(PlanarHand, FaultLatch):
     """A simulated hand and object, implementing `firmware_if.backend.Backend`."""
 
     def __init__(self, hand: Hand, contour: Contour, config: HandSimConfig,
-                 rng: np.random.Generator, clock: Clock | None = None) -> None:
+                 rng: np.random.Generator, clock: Clock | None = None,
+                 world: Contour | None = None) -> None:
+        """`world`: the outline as the fingers meet it, if already drawn (the seed's start
+        was chosen in it); None: `contour` perturbed by the config's noise at each open."""
         self.hand = hand
         self.contour = contour
+        self._world = world
         self.config = config
         self._rng = rng
         self._clock = clock or MonotonicClock()
@@ -150,8 +154,10 @@ class SimulatedHand(PlanarHand, FaultLatch):
     def open(self) -> None:
         self._motion, self._busy_until = None, None  # opened again without a close
         noise = self.config.noise
-        world = perturbed_contour(self.contour, noise.surface_sigma, noise.surface_correlation,
-                                  self._rng)
+        world = self._world
+        if world is None:
+            world = perturbed_contour(self.contour, noise.surface_sigma,
+                                      noise.surface_correlation, self._rng)
         self._field = contact_field(world)
         grasp = close_fingers(self.fingers, self._field, self._pose)
         if grasp is None:

@@ -46,9 +46,9 @@ class HandScenario:
 def setup(fields: dict[str, Any], backend: str) -> tuple[HandScenario, dict[str, Any]]:
     """The scenario of `fields` (HandSettings): the object and hand loaded and checked
     against each other, and the `ready` reply with the simulator's hidden start pose."""
+    from service.episode.hand_episode import seeded_world
     from service.episode.hand_scenario import (
         HandSettings,
-        draw_truth,
         hand_for_backend,
         load_parts,
         streams,
@@ -65,8 +65,8 @@ def setup(fields: dict[str, Any], backend: str) -> tuple[HandScenario, dict[str,
         raise quiet_file_error("object", settings.object, exc, "an outline this hand can "
                                "hold (x,z rows in metres, closed, or a mesh the plane cuts)",
                                ObjectError) from None
-    truth_rng, _, loc_rng, _ = streams(settings.seed)
-    truth = draw_truth(settings, parts, truth_rng) if backend == "sim" else None
+    loc_rng = streams(settings.seed)[2]
+    truth = seeded_world(settings, parts)[0] if backend == "sim" else None
     return HandScenario(settings, parts, loc_rng), {
         "truth": None if truth is None else list(truth), "world": None}
 

@@ -152,6 +152,21 @@ class HandEpisodeReport:
         }
 
 
+def seeded_world(settings: HandSettings, parts: HandParts
+                 ) -> tuple[tuple[float, float, float], Any, Any]:
+    """The seed's simulated world: the object's start pose, its outline as the hand meets
+    it (B2's mismatch drawn first from the world stream) and that stream after the draw.
+    The start is drawn in that world, so a run on servos and the daemon's setup know the
+    pose the simulated hand holds."""
+    from sim_backend.hand import perturbed_contour  # chosen at run time
+
+    truth_rng, world_rng, _, _ = streams(settings.seed)
+    noise = settings.noise_spec
+    world = perturbed_contour(parts.contour, noise.surface_sigma, noise.surface_correlation,
+                              world_rng)
+    return draw_truth(settings, parts, truth_rng, world), world, world_rng
+
+
 def simulated_hand(settings: HandSettings, parts: HandParts, step_duration_s: float = 0.0
                    ) -> tuple[Any, tuple[float, ...]]:
     """The seed's simulated hand holding the object at the seed's start pose (not opened),
@@ -159,11 +174,10 @@ def simulated_hand(settings: HandSettings, parts: HandParts, step_duration_s: fl
     `hapticd` drives (its steps taking `step_duration_s` of real time)."""
     from sim_backend.hand import HandSimConfig, SimulatedHand  # chosen at run time
 
-    truth_rng, world_rng, _, _ = streams(settings.seed)
-    start = draw_truth(settings, parts, truth_rng)
+    start, world, world_rng = seeded_world(settings, parts)
     config = HandSimConfig(pose=start, grasp=settings.grasp, noise=settings.noise_spec,
                            fixed=settings.single_finger, step_duration_s=step_duration_s)
-    return SimulatedHand(parts.hand, parts.contour, config, world_rng), start
+    return SimulatedHand(parts.hand, parts.contour, config, world_rng, world=world), start
 
 
 def simulate_hand(settings: HandSettings, parts: HandParts | None = None, *,
@@ -184,7 +198,7 @@ def simulate_hand(settings: HandSettings, parts: HandParts | None = None, *,
         sim, start = simulated_hand(settings, parts)
         hand = world = sim
     else:
-        start = draw_truth(settings, parts, streams(settings.seed)[0])
+        start = seeded_world(settings, parts)[0]
         hand, world = backend_factory(), hidden
     localizer = build_localizer(settings, parts, loc_rng)
     snapshots: dict[int, Hypotheses] = {}

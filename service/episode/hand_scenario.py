@@ -119,13 +119,18 @@ def load_parts(settings: HandSettings) -> HandParts:
     return HandParts(contour=contour, field=contact_field(contour), hand=hand)
 
 
-def draw_truth(settings: HandSettings, parts: HandParts, rng: np.random.Generator
-               ) -> tuple[float, float, float]:
+def draw_truth(settings: HandSettings, parts: HandParts, rng: np.random.Generator,
+               world: Contour | None = None) -> tuple[float, float, float]:
     """The object's hidden start pose: near the grasp centre, any heading, and such that
     every finger reaches it and (unless clamped) the grasp has the quality the policy
-    relies on at the start (`GraspSpec.start_quality_n`)."""
+    relies on at the start (`GraspSpec.start_quality_n`).
+
+    Both are judged on `world`, the outline as the hand really meets it (the simulator's,
+    perturbed from the model's; None: the model's): the start's promise is about the hand
+    in the world, and on the model's outline a start could hold that the world's drops."""
     from sim_backend.hand import close_fingers  # the simulator's closing motion, by name
 
+    field = parts.field if world is None else contact_field(world)
     centre = np.asarray(parts.hand.grasp_centre)
     spec = settings.grasp
     for _ in range(200):
@@ -134,12 +139,12 @@ def draw_truth(settings: HandSettings, parts: HandParts, rng: np.random.Generato
         else:
             pose = np.array([*(centre + rng.uniform(-START_OFFSET, START_OFFSET, 2)),
                              rng.uniform(-np.pi, np.pi)])
-        grasp = close_fingers(parts.hand.fingers, parts.field, pose)
+        grasp = close_fingers(parts.hand.fingers, field, pose)
         if grasp is not None:
             if settings.single_finger:
                 return tuple(float(v) for v in pose)  # type: ignore[return-value]
             tips, angles = grasp
-            quality = float(hand_quality(parts.field, pose[None], tips[None],
+            quality = float(hand_quality(field, pose[None], tips[None],
                                          parts.hand.fingers, angles, parts.torque, spec)[0])
             if quality >= spec.start_quality_n:
                 return tuple(float(v) for v in pose)  # type: ignore[return-value]

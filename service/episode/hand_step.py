@@ -90,7 +90,8 @@ class HandStepper:
                         torque=self.parts.torque, grasp=self.settings.grasp,
                         step_length=self.settings.step, sigma=self.sigma,
                         fixed=self.settings.single_finger, blocked=frozenset(self.blocked),
-                        spread=(float(est.position_sd), float(est.heading_sd)))
+                        spread=(float(est.position_sd), float(est.heading_sd)),
+                        slope_sd=self.settings.noise_spec.surface_slope_sd)
         decision = self.policy.decide(view)
         self.policy_ms = (time.perf_counter() - t0) * 1e3
         return decision

@@ -28,6 +28,7 @@ two different polygons (`_margins`).
 
 from __future__ import annotations
 
+import itertools
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -345,9 +346,14 @@ def joint_torque(goal_current_a: float, model: str) -> float:
 
 def hand_quality(field: ContactField, poses: np.ndarray, centres: np.ndarray,
                  fingers: Sequence[Chain], joint_angles: Sequence[np.ndarray], torque: float,
-                 spec: GraspSpec) -> np.ndarray:
+                 spec: GraspSpec, tilt: float = 0.0) -> np.ndarray:
     """Quality (B,) of fingertips at `centres` (B, n, 2) holding the object under `poses`
-    (B, 3), finger i at joint angles `joint_angles[i]` ((B, joints) or (joints,))."""
+    (B, 3), finger i at joint angles `joint_angles[i]` ((B, joints) or (joints,)).
+
+    `tilt` > 0: the most the grasp could have in a world whose outline turns each contact's
+    normal up to `tilt` radians from the model's - the best of the model's normals and of
+    every finger's turned by -tilt or +tilt (2^n ways). What the model says of a grasp in
+    the world is only that good: the quality turns on where the normals point."""
     radii = np.array([f.radius for f in fingers])
     points, normals = contacts(field, poses, centres, radii)
     angles = [np.asarray(q, dtype=np.float64) for q in joint_angles]
@@ -355,5 +361,19 @@ def hand_quality(field: ContactField, poses: np.ndarray, centres: np.ndarray,
     jac = np.zeros((rows, len(fingers), 3, max(q.shape[-1] for q in angles)))
     for i, (finger, q) in enumerate(zip(fingers, angles, strict=True)):
         jac[:, i, :, :q.shape[-1]] = chain_kernels.jacobians(finger, q.reshape(-1, q.shape[-1]))
-    return quality(points, poses[:, :2], _forces(normals, jac, float(torque), float(spec.mu)),
+    if tilt == 0 or len(poses) == 0:
+        return quality(points, poses[:, :2], _forces(normals, jac, float(torque),
+                                                     float(spec.mu)),
+                       field.contour.max_radius, spec.load)
+    n, batch = len(fingers), len(poses)
+    turns = tilt * np.array([[0.0] * n, *itertools.product((-1.0, 1.0), repeat=n)])
+    c, s = np.cos(turns)[:, None], np.sin(turns)[:, None]  # (ways, 1, n)
+    turned = np.stack([c * normals[None, ..., 0] - s * normals[None, ..., 1],
+                       s * normals[None, ..., 0] + c * normals[None, ..., 1]], axis=-1)
+    ways = len(turns)
+    forces = _forces(turned.reshape(ways * batch, n, 2),
+                     np.tile(jac, (ways, 1, 1, 1)) if rows > 1 else jac, float(torque),
+                     float(spec.mu))
+    best = quality(np.tile(points, (ways, 1, 1)), np.tile(poses[:, :2], (ways, 1)), forces,
                    field.contour.max_radius, spec.load)
+    return best.reshape(ways, batch).max(axis=0)

@@ -142,6 +142,13 @@ class NoiseSpec:
         return bool(self.measurement_sigma or self.step_length_fraction
                     or self.step_direction_sigma or self.surface_sigma)
 
+    @property
+    def surface_slope_sd(self) -> float:
+        """Sd (radians) of the slope the world's mismatch adds to the model's surface: white
+        noise smoothed by a Gaussian of sd `surface_correlation` (as the simulator draws
+        it) has a slope of sd sigma / (sqrt(2) * correlation)."""
+        return float(self.surface_sigma / (np.sqrt(2.0) * self.surface_correlation))
+
     @classmethod
     def realistic(cls, unit: float = 0.01) -> NoiseSpec:
         """B2's models for a map whose unit is `unit` metres."""

@@ -116,6 +116,44 @@ def test_hand_quality_pushes_each_finger_to_its_joint_limits(name):
     assert np.ptp(got) > 0.1  # the batch spans weak and strong grasps
 
 
+@pytest.mark.parametrize("name", ["two-finger", "three-finger"])
+def test_tilted_quality_is_the_best_with_each_normal_turned_either_way(name):
+    """`tilt`: the most the grasp could have in a world whose outline turns each contact's
+    normal by up to that much - the best of the model's normals and of every finger's
+    turned by -tilt or +tilt, each way composed as the untilted quality is."""
+    hand = load_hand(name)
+    field = contact_field(preset_object("blob:3"))
+    rng = np.random.default_rng(5)
+    batch, n, tilt = 8, len(hand.fingers), np.deg2rad(2.4)
+    poses = np.column_stack([rng.normal(0, 0.002, (batch, 2)), rng.uniform(-np.pi, np.pi,
+                                                                            batch)])
+    angles = [np.array(f.home) for f in hand.fingers]
+    centres = np.broadcast_to(np.stack([kin.forward(f, q)[[0, 2]] for f, q in
+                                        zip(hand.fingers, angles, strict=True)]),
+                              (batch, n, 2)).copy()
+    spec = g.GraspSpec()
+    got = g.hand_quality(field, poses, centres, hand.fingers, angles, 0.4, spec, tilt)
+    plain = g.hand_quality(field, poses, centres, hand.fingers, angles, 0.4, spec)
+    radii = np.array([f.radius for f in hand.fingers])
+    points, normals = contacts(field, poses, centres, radii)
+    ways = []
+    for signs in itertools.product((-1.0, 1.0), repeat=n):
+        turn = tilt * np.array(signs)
+        c, s = np.cos(turn), np.sin(turn)
+        turned = np.stack([c * normals[..., 0] - s * normals[..., 1],
+                           s * normals[..., 0] + c * normals[..., 1]], axis=-1)
+        directions = g.force_vertices(turned, spec.mu, np.ones((batch, n, 3)))
+        spatial = np.stack([directions[..., 0], np.zeros((batch, n, 3)),
+                            directions[..., 1]], axis=-1)
+        limits = np.array([[kin.max_tip_force(f, q, 0.4, spatial[b, i]) for i, (f, q) in
+                            enumerate(zip(hand.fingers, angles, strict=True))]
+                           for b in range(batch)])
+        ways.append(g.quality(points, poses[:, :2], directions * limits[..., None],
+                              field.contour.max_radius, spec.load))
+    np.testing.assert_allclose(got, np.max([plain, *ways], axis=0), rtol=1e-9, atol=1e-12)
+    assert np.all(got >= plain) and np.any(got > plain + 0.01)
+
+
 @pytest.mark.parametrize(("kwargs", "message"), [
     ({"mu": 0}, "mu must be > 0"),
     ({"mass_kg": -1}, "mass must be >= 0"),
