@@ -160,7 +160,7 @@ def test_readings_carried_without_noise_keep_a_floor(monkeypatch, carried_sd, lo
 
 FOUND_START = (0.0007284762401801974, -0.0024788270824965463, 0.30938507388240977)
 """rounded:8's start for seed 8 from a 2 N start, as drawn on the model's outline before
-starts were drawn in the simulated world (`86519ae`)."""
+starts were drawn in the simulated world (`94c259a`)."""
 
 
 def _no_offset(ctx, poses, points, radii, sd, temper):
