@@ -13,6 +13,8 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
+import numpy as np
+
 from firmware_if.backend import HandCommand, HandState
 from firmware_if.errors import BusTimeoutError
 from service.episode.hand_scenario import (
@@ -34,6 +36,7 @@ from service.episode.hand_step import (
     step_json,
 )
 from service.localization.localizers.base import Budget, Estimate, Hypotheses
+from service.localization.objects.contour import Contour
 from service.localization.policies.grasp_gated import GraspGatedPolicy
 
 SNAPSHOT_LIMIT = 400
@@ -153,7 +156,7 @@ class HandEpisodeReport:
 
 
 def seeded_world(settings: HandSettings, parts: HandParts
-                 ) -> tuple[tuple[float, float, float], Any, Any]:
+                 ) -> tuple[tuple[float, float, float], Contour, np.random.Generator]:
     """The seed's simulated world: the object's start pose, its outline as the hand meets
     it (B2's mismatch drawn first from the world stream) and that stream after the draw.
     The start is drawn in that world, so a run on servos and the daemon's setup know the

@@ -120,17 +120,18 @@ def load_parts(settings: HandSettings) -> HandParts:
 
 
 def draw_truth(settings: HandSettings, parts: HandParts, rng: np.random.Generator,
-               world: Contour | None = None) -> tuple[float, float, float]:
+               world: Contour) -> tuple[float, float, float]:
     """The object's hidden start pose: near the grasp centre, any heading, and such that
     every finger reaches it and (unless clamped) the grasp has the quality the policy
     relies on at the start (`GraspSpec.start_quality_n`).
 
-    Both are judged on `world`, the outline as the hand really meets it (the simulator's,
-    perturbed from the model's; None: the model's): the start's promise is about the hand
-    in the world, and on the model's outline a start could hold that the world's drops."""
+    Both are judged on `world`, the outline as the hand really meets it (the simulator's:
+    the model's perturbed by B2's mismatch, or the model's itself without noise): the
+    start's promise is about the hand in the world, and on the model's outline a start
+    could hold that the world's drops (`hand_episode.seeded_world` draws both)."""
     from sim_backend.hand import close_fingers  # the simulator's closing motion, by name
 
-    field = parts.field if world is None else contact_field(world)
+    field = contact_field(world)
     centre = np.asarray(parts.hand.grasp_centre)
     spec = settings.grasp
     for _ in range(200):

@@ -361,19 +361,18 @@ def hand_quality(field: ContactField, poses: np.ndarray, centres: np.ndarray,
     jac = np.zeros((rows, len(fingers), 3, max(q.shape[-1] for q in angles)))
     for i, (finger, q) in enumerate(zip(fingers, angles, strict=True)):
         jac[:, i, :, :q.shape[-1]] = chain_kernels.jacobians(finger, q.reshape(-1, q.shape[-1]))
-    if tilt == 0 or len(poses) == 0:
-        return quality(points, poses[:, :2], _forces(normals, jac, float(torque),
+    ways = 1
+    if tilt > 0:  # every way's normals after the model's own, stacked along the batch
+        n = len(fingers)
+        turns = tilt * np.array([[0.0] * n, *itertools.product((-1.0, 1.0), repeat=n)])
+        ways = len(turns)
+        c, s = np.cos(turns)[:, None], np.sin(turns)[:, None]  # (ways, 1, n)
+        normals = np.stack([c * normals[..., 0] - s * normals[..., 1],
+                            s * normals[..., 0] + c * normals[..., 1]], axis=-1)
+        normals = normals.reshape(-1, n, 2)
+        points, poses = np.tile(points, (ways, 1, 1)), np.tile(poses, (ways, 1))
+        jac = np.tile(jac, (ways, 1, 1, 1)) if rows > 1 else jac
+    margins = quality(points, poses[:, :2], _forces(normals, jac, float(torque),
                                                      float(spec.mu)),
-                       field.contour.max_radius, spec.load)
-    n, batch = len(fingers), len(poses)
-    turns = tilt * np.array([[0.0] * n, *itertools.product((-1.0, 1.0), repeat=n)])
-    c, s = np.cos(turns)[:, None], np.sin(turns)[:, None]  # (ways, 1, n)
-    turned = np.stack([c * normals[None, ..., 0] - s * normals[None, ..., 1],
-                       s * normals[None, ..., 0] + c * normals[None, ..., 1]], axis=-1)
-    ways = len(turns)
-    forces = _forces(turned.reshape(ways * batch, n, 2),
-                     np.tile(jac, (ways, 1, 1, 1)) if rows > 1 else jac, float(torque),
-                     float(spec.mu))
-    best = quality(np.tile(points, (ways, 1, 1)), np.tile(poses[:, :2], (ways, 1)), forces,
-                   field.contour.max_radius, spec.load)
-    return best.reshape(ways, batch).max(axis=0)
+                      field.contour.max_radius, spec.load)
+    return margins.reshape(ways, -1).max(axis=0)

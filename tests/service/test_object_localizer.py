@@ -79,7 +79,7 @@ def test_the_localizer_follows_a_carried_object():
     settings = dataclasses.replace(THREE, noise=False)
     parts = load_parts(settings)
     truth_rng, world_rng, loc_rng, _ = streams(3)
-    start = draw_truth(settings, parts, truth_rng)
+    start = draw_truth(settings, parts, truth_rng, parts.contour)  # noise-free: the model
     sim = SimulatedHand(parts.hand, parts.contour, HandSimConfig(pose=start), world_rng)
     sim.open()
     sim.set_torque(True)

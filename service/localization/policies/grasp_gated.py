@@ -190,10 +190,9 @@ class GraspGatedPolicy:
         """The `plausible` heaviest hypotheses under which the grasp as it is holds the
         object (it is held) and the grasp the hand last started from had the quality known
         of it - its first the start quality (`GraspSpec.start_quality_n`, a promise about
-        the world, so judged by the most the grasp could have there: `TILT`), one
-        a manipulation ended in the threshold (a manipulation is gated on the model to end
-        in one) - with
-        the gate's cover of the gaps between them that hold too."""
+        the world, so judged by the most the grasp could have there: `TILT`), one a
+        manipulation ended in the threshold (a manipulation is gated on the model to end in
+        one) - with the gate's cover of the gaps between them that hold too."""
         poses, w = view.hypotheses.poses[:self.plausible], view.hypotheses.weights[
             :self.plausible]
         if view.fixed:
@@ -219,13 +218,13 @@ class GraspGatedPolicy:
         it holds now; failing that, all. `known` are those qualities for the first poses
         already."""
         assert self._certified is not None
-        rest = poses[len(known[0]):]
+        first = len(known[0])  # the poses whose qualities are new
+        rest = poses[first:]
         now = np.concatenate([known[0], self._quality(view, rest, view.centres, view.joints)])
         start = np.concatenate([known[1], self._quality(view, rest, *self._certified)])
         if not self._turned and view.slope_sd > 0:  # the start's promise is the world's
-            weak = len(known[0]) + np.flatnonzero((start[len(known[0]):]
-                                                   < view.grasp.start_quality_n)
-                                                  & (w[len(known[0]):] > 0))
+            weak = first + np.flatnonzero((start[first:] < view.grasp.start_quality_n)
+                                          & (w[first:] > 0))
             start[weak] = self._quality(view, poses[weak], *self._certified,
                                         tilt=TILT * view.slope_sd)
         # a turn's end was gated on the model to keep the threshold
