@@ -170,6 +170,23 @@ def heights_and_jacobian(grid: np.ndarray, spacing: float, pose: np.ndarray,
 
 
 @numba.njit(**_JIT)
+def slope_squares(grid: np.ndarray, spacing: float, poses: np.ndarray, history: np.ndarray
+                  ) -> np.ndarray:
+    """For every start pose (N, 3): the squared slope of the map under each reading (N, K),
+    the term `refine.reading_sigmas` turns position noise into height noise with."""
+    n, k = poses.shape[0], history.shape[0]
+    out = np.empty((n, k))
+    for i in range(n):
+        c, s = math.cos(poses[i, 2]), math.sin(poses[i, 2])
+        for j in range(k):
+            dx, dy = history[j, 0], history[j, 1]
+            _, gx, gy = _bilinear(grid, spacing, poses[i, 0] + c * dx - s * dy,
+                                  poses[i, 1] + s * dx + c * dy)
+            out[i, j] = gx**2 + gy**2
+    return out
+
+
+@numba.njit(**_JIT)
 def log_likelihood(resid: np.ndarray, on_map: np.ndarray, sigma: np.ndarray,
                    outlier_probability: float, outlier_range: float) -> np.ndarray:
     """Per row, the sum over readings of log(a exp(-z^2 / 2) + b), a Gaussian (sd `sigma`,
@@ -516,6 +533,7 @@ def warm_up() -> None:
         log_likelihood(r, ok, np.ones(2), 0.0, 1.0)
         gauss_newton(g, 1.0, poses, history, np.ones(2), 1, 1e-4, 0.0, 1.0, is_profile)
         heights_and_jacobian(g, 1.0, np.zeros(3), history)
+        slope_squares(g, 1.0, poses, history)
         sweep_screen(g, g, 1.0, 1.0, (1.0, 1.0), is_profile, 0, 1, 1,
                      np.ones(3, dtype=np.int64), np.zeros(3), np.ones(3), history, 1.0,
                      np.ones(2), 0.0, 9.0, 10.0, 4)

@@ -151,6 +151,13 @@ def heights_and_jacobian(surface: ContactSurface, pose: np.ndarray, history: np.
                                         _rows(pose), _rows(history))
 
 
+def slope_squares(surface: ContactSurface, poses: np.ndarray, history: np.ndarray
+                  ) -> np.ndarray:
+    """For every start pose (N, 3): the squared slope under each reading (N, K)."""
+    return kernels.slope_squares(surface.centre_heights, surface.map.spacing, _rows(poses),
+                                 _rows(history))
+
+
 def offset_residuals(surface: ContactSurface, poses: np.ndarray, history: np.ndarray,
                      margin: float) -> tuple[np.ndarray, np.ndarray]:
     """Residuals (N, K) of every reading, first contact included, with the height offset

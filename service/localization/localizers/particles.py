@@ -74,7 +74,7 @@ from service.localization.localizers.pool import (
     systematic_resample,
     thin,
 )
-from service.localization.localizers.refine import Fit, reading_sigmas
+from service.localization.localizers.refine import Fit, reading_sigmas_each
 from service.localization.localizers.spread import pose_spread
 from service.localization.localizers.sweep import Sweep, SweepSettings
 from service.localization.localizers.symmetry import images, symmetries
@@ -491,13 +491,10 @@ class Particles:
         """Gaussian log likelihood of every reading for each pose, the height offset fitted,
         each reading's sd `sd` widened by the position noise times the slope under it."""
         r, ok = offset_residuals(self.ctx.surface, poses, self.history, self.margin)
-        out = np.empty(len(poses))
-        for i, p in enumerate(poses):
-            sds = reading_sigmas(self.ctx.surface, self.history, p, sd,
-                                 self.ctx.motion.position_sigma)
-            out[i] = (-0.5 * np.sum((r[i] / sds) ** 2) - np.sum(np.log(sds))
-                      if ok[i].all() else -np.inf)
-        return out
+        sds = reading_sigmas_each(self.ctx.surface, self.history, poses, sd,
+                                  self.ctx.motion.position_sigma)
+        ll = -0.5 * np.sum((r / sds) ** 2, axis=1) - np.sum(np.log(sds), axis=1)
+        return np.where(ok.all(axis=1), ll, -np.inf)
 
     # -- helpers ---------------------------------------------------------------------------
     def _random(self, count: int) -> np.ndarray:

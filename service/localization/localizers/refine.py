@@ -15,7 +15,12 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from service.localization.localizers.base import wrap_angle
-from service.localization.localizers.fitting import gauss_newton, heights_and_jacobian, sample
+from service.localization.localizers.fitting import (
+    gauss_newton,
+    heights_and_jacobian,
+    sample,
+    slope_squares,
+)
 from service.localization.surface import ContactSurface
 
 
@@ -49,6 +54,12 @@ def reading_sigmas(surface: ContactSurface, history: np.ndarray, pose: np.ndarra
     readings weigh less and the covariance is honest."""
     _, jac = heights_and_jacobian(surface, np.asarray(pose, dtype=np.float64), history)
     return _slope_sigmas(jac, sigma, position_sigma)
+
+
+def reading_sigmas_each(surface: ContactSurface, history: np.ndarray, poses: np.ndarray,
+                        sigma: float, position_sigma: float) -> np.ndarray:
+    """`reading_sigmas` for every pose of `poses` (N, 3) at once: (N, K)."""
+    return np.sqrt(sigma**2 + 2 * position_sigma**2 * slope_squares(surface, poses, history))
 
 
 def _slope_sigmas(jac: np.ndarray, sigma: float, position_sigma: float) -> np.ndarray:
