@@ -177,12 +177,9 @@ def slope_squares(grid: np.ndarray, spacing: float, poses: np.ndarray, history: 
     n, k = poses.shape[0], history.shape[0]
     out = np.empty((n, k))
     for i in range(n):
-        c, s = math.cos(poses[i, 2]), math.sin(poses[i, 2])
+        _, jac = heights_and_jacobian(grid, spacing, poses[i], history)
         for j in range(k):
-            dx, dy = history[j, 0], history[j, 1]
-            _, gx, gy = _bilinear(grid, spacing, poses[i, 0] + c * dx - s * dy,
-                                  poses[i, 1] + s * dx + c * dy)
-            out[i, j] = gx**2 + gy**2
+            out[i, j] = jac[j, 0]**2 + jac[j, 1]**2
     return out
 
 

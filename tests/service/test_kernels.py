@@ -119,6 +119,18 @@ def test_offset_residuals_remove_each_poses_mean(surface):
     np.testing.assert_allclose(shifted, relative, atol=1e-14)
 
 
+def test_reading_sigmas_of_many_poses_are_each_poses_own(surface):
+    """`reading_sigmas_each` (one compiled pass) is `reading_sigmas` pose by pose, bit for
+    bit: the turned check's verdict may not depend on which one weighed it."""
+    from service.localization.localizers.refine import reading_sigmas, reading_sigmas_each
+
+    poses, history = _poses(surface, 40, seed=7), _history(12, seed=8)
+    each = reading_sigmas_each(surface, history, poses, 2e-4, 1e-4)
+    one_by_one = np.array([reading_sigmas(surface, history, p, 2e-4, 1e-4) for p in poses])
+    np.testing.assert_array_equal(each, one_by_one)
+    assert np.ptp(each) > 0  # the slopes differ: the test can tell poses apart
+
+
 @pytest.mark.parametrize("outlier_probability", [0.0, 0.02])
 def test_log_likelihood_matches_the_mixture_formula(outlier_probability):
     rng = np.random.default_rng(7)
