@@ -284,10 +284,10 @@ def judge(surface: ContactSurface, history: np.ndarray, modes: Modes, *, sigma: 
         # millimetres away is a mode of its own that sampling may have merged with this
         # one (terrain:20:0, seed 7: declared 3.8 mm and 4.3 degrees off the truth, whose
         # fit was far better)
-        nearby = _local_fits(surface, history, np.asarray(fit.pose), sds, tol_pos, tol_head)
+        at = np.asarray(fit.pose)
+        nearby = _local_fits(surface, history, at, sds, tol_pos, tol_head)
         poses = np.vstack([[f.pose for f in fits],
-                           _neighbours(surface, history, np.asarray(fit.pose), nearby, sds,
-                                       tol_pos, tol_head)])
+                           _neighbours(surface, history, at, nearby, sds, tol_pos, tol_head)])
         ll_fit = fit_log_likelihood(surface, poses, history, max(sigma, 0.002 * step_length),
                                     margin, outlier_probability, outlier_range)
         rest = share[1 + len(rivals):].sum() if len(share) > 1 + len(rivals) else 0.0
@@ -336,19 +336,17 @@ def _valley_within(surface: ContactSurface, history: np.ndarray, fit: Fit, sds: 
                                                                                    scale)
     free = [0] if surface.map.is_profile else [0, 1, 2]
     _, axes = np.linalg.eigh(info[np.ix_(free, free)])
-    directions = np.zeros((2 * len(free), 3))  # unit steps, in tolerances
-    directions[:len(free), free] = axes.T
-    directions[len(free):, free] = -axes.T
+    directions = np.vstack([axes.T, -axes.T])  # unit, in tolerances, over the free ones
     if toward is not None and len(toward):
         off = np.array(toward, dtype=np.float64) - pose
         off[:, 2] = wrap_angle(off[:, 2])
-        off /= scale
-        off[:, [i for i in range(3) if i not in free]] = 0.0
+        off = off[:, free] / scale[free]
         norm = np.linalg.norm(off, axis=1)
         directions = np.vstack([directions, off[norm > 1e-9] / norm[norm > 1e-9, None]])
+    steps = np.zeros((len(directions), 3))
+    steps[:, free] = directions * scale[free]
     t = np.linspace(0.25, 2.0, 8)
-    poses = np.vstack([pose, (pose + t[None, :, None] * (directions * scale)[:, None, :])
-                       .reshape(-1, 3)])
+    poses = np.vstack([pose, (pose + t[None, :, None] * steps[:, None, :]).reshape(-1, 3)])
     r, ok = offset_residuals(surface, poses, history, margin)
     chi2 = np.sum(np.where(ok, (r / sds) ** 2, 1e6), axis=1)
     allowed = chi2 <= chi2[0] + 9.0 * max(1.0, fit.rms**2)
@@ -358,8 +356,8 @@ def _valley_within(surface: ContactSurface, history: np.ndarray, fit: Fit, sds: 
 
 def _local_fits(surface: ContactSurface, history: np.ndarray, pose: np.ndarray,
                 sds: np.ndarray, position_tol: float, heading_tol: float) -> np.ndarray:
-    """Local fits polished from starts 1.5 tolerances around `pose` (the 26 neighbours of
-    a 3 x 3 x 3 grid; along the profile only, on one)."""
+    """Local fits polished from the 27 starts of a 3 x 3 x 3 grid, 1.5 tolerances apart,
+    centred on `pose` (3 along the profile, on one)."""
     span = np.array([-1.5, 0.0, 1.5])
     if surface.map.is_profile:
         starts = pose + np.column_stack([span * position_tol, np.zeros(3), np.zeros(3)])

@@ -59,12 +59,18 @@ def reading_sigmas(surface: ContactSurface, history: np.ndarray, pose: np.ndarra
 def reading_sigmas_each(surface: ContactSurface, history: np.ndarray, poses: np.ndarray,
                         sigma: float, position_sigma: float) -> np.ndarray:
     """`reading_sigmas` for every pose of `poses` (N, 3) at once: (N, K)."""
-    return np.sqrt(sigma**2 + 2 * position_sigma**2 * slope_squares(surface, poses, history))
+    return _widened(slope_squares(surface, poses, history), sigma, position_sigma)
 
 
 def _slope_sigmas(jac: np.ndarray, sigma: float, position_sigma: float) -> np.ndarray:
     """`reading_sigmas` from the readings' Jacobian (K, 3) at the pose."""
-    return np.sqrt(sigma**2 + 2 * position_sigma**2 * (jac[:, 0]**2 + jac[:, 1]**2))
+    return _widened(jac[:, 0]**2 + jac[:, 1]**2, sigma, position_sigma)
+
+
+def _widened(slope_squared: np.ndarray, sigma: float, position_sigma: float) -> np.ndarray:
+    """The height sd `sigma` widened by the position noise of a reading and of the first
+    contact, turned into height by the squared slope under the reading."""
+    return np.sqrt(sigma**2 + 2 * position_sigma**2 * slope_squared)
 
 
 def _model(surface: ContactSurface, history: np.ndarray, params: np.ndarray
