@@ -255,10 +255,19 @@ class DaemonConfig:
                                   f"{', '.join(sections)}")
             parts[name] = _section(type(getattr(self, name)), name, values,
                                    base=getattr(self, name))
+        scenario = parts.get("scenario")
+        finger_only = sorted(set(changes.get("scenario", {})) & FINGER_ONLY)
+        if scenario is not None and scenario.object is not None and finger_only:
+            # stored unchecked, they would only fail (or surprise) on a switch to a finger
+            raise ConfigError(f"scenario.{finger_only[0]} applies to a finger on a map, not "
+                              f"to a hand holding an object; to switch to a finger, set "
+                              f"object (and hand) to nil in the same change")
         return dataclasses.replace(self, **parts)
 
 
 SECTIONS = {f.name: f for f in dataclasses.fields(DaemonConfig)}
+FINGER_ONLY = frozenset({"map", "spacing", "radius", "step", "policy", "headings"})
+"""Scenario keys of a finger on a map, which a hand's scenario does not use."""
 
 
 def _section(cls: type, name: str, values: Any, base: Any = None) -> Any:

@@ -205,6 +205,8 @@ class CommandServer:
         self._recent: OrderedDict[tuple[Any, Any], tuple[bytes, bytes]] = OrderedDict()
         self._pending: dict[tuple[Any, Any], bytes] = {}
         """Requests whose reply a Deferred will give: key -> payload."""
+        self._controls_accepted = 0
+        """Control commands (those that need the lease) accepted so far."""
         self._poller = zmq.Poller()
         self._poller.register(self._sock, zmq.POLLIN)
 
@@ -288,7 +290,8 @@ class CommandServer:
                 self.lease.restore(before)  # a refusal changes nothing
                 raise
             if isinstance(result, Deferred):
-                self._defer(result, cmd, peer, rid, key, bytes(payload), head)
+                self._defer(result, cmd, peer, rid, key, bytes(payload), head,
+                            took=before[0] is None and self.lease.holds(peer))
                 return None
             return self._accepted(cmd, peer, rid, key, bytes(payload), result)
         except Exception as exc:
@@ -296,6 +299,8 @@ class CommandServer:
 
     def _accepted(self, cmd: str, peer: Peer, rid: Any, key: tuple[Any, ...], payload: bytes,
                   result: dict[str, Any]) -> bytes:
+        if TABLE[cmd].lease:
+            self._controls_accepted += 1
         if cmd == "release":
             self.lease.release()
         self.controls.on_command(cmd, peer.name())
@@ -306,17 +311,25 @@ class CommandServer:
         return out
 
     def _defer(self, deferred: Deferred, cmd: str, peer: Peer, rid: Any,
-               key: tuple[Any, ...], payload: bytes, head: list[bytes] | None) -> None:
+               key: tuple[Any, ...], payload: bytes, head: list[bytes] | None, *,
+               took: bool) -> None:
+        """Reply when `deferred` settles. `took`: this request took a free lease; refused
+        in the end, it gives it back (a refusal changes nothing) unless the holder has had
+        another control command accepted meanwhile."""
         self._pending[key] = payload
         holding = self.lease.holds(peer)
         if holding:
             self.lease.busy += 1
+        accepted = self._controls_accepted
 
         def done(result: dict[str, Any] | None, error: Exception | None) -> None:
             self._pending.pop(key, None)
             if holding:
                 self.lease.busy = max(0, self.lease.busy - 1)
                 self.lease.touch(peer)
+            if (error is not None and took and self.lease.holds(peer) and not self.lease.busy
+                    and self._controls_accepted == accepted):
+                self.lease.release()
             out = (self._accepted(cmd, peer, rid, key, payload, result) if error is None
                    else self._error(rid, *error_code(error)))
             if head is not None:

@@ -15,6 +15,7 @@ from hypothesis import strategies as st
 
 from service.daemon.harness import loopback_config, running_node
 from service.daemon.node import Node
+from service.errors import ConfigError
 from service.wire.client import Client, CommandFailed, Subscriber
 from service.wire.commands import TABLE, CommandServer, Deferred, validate
 from service.wire.lease import Lease, Peer
@@ -105,6 +106,17 @@ def test_out_of_state_requests_are_refused(node: Node) -> None:
         with pytest.raises(CommandFailed, match="bad_config"):
             ctl.call("deactivate") and ctl.call("set_map", map="no-such-map")
         assert ctl.status()["state"] == "inactive"
+        assert ctl.call("get_config")["scenario"]["map"] == "peaks"
+
+
+def test_a_refused_set_map_leaves_a_free_lease_free(node: Node, tmp_path) -> None:
+    """A client written from the docs alone found that a `set_map` refused only when the
+    compute process failed to load the file took the free lease (and kept it)."""
+    with Client(node.endpoints["cmd"]) as ctl:
+        with pytest.raises(CommandFailed, match="bad_config"):
+            ctl.call("set_map", map=str(tmp_path / "nope.npy"))
+        status = ctl.status()
+        assert status["lease"]["holder"] is None and status["state"] == "inactive"
         assert ctl.call("get_config")["scenario"]["map"] == "peaks"
 
 
@@ -284,6 +296,52 @@ def test_a_deferred_reply_comes_once_when_settled_and_keeps_the_lease() -> None:
         sock.send(payload)  # the same bytes again: the cached reply
         server.poll(1000)
         assert msgpack.unpackb(sock.recv())["seq"] == reply["seq"]
+    finally:
+        sock.close()
+        server.close()
+        ctx.term()
+
+
+def test_a_deferred_refusal_gives_back_the_lease_it_took() -> None:
+    """A control command that takes the free lease and is refused only when its slow work
+    ends (`set_map` of a file that does not load) leaves the lease free, as a refusal
+    found at once does; one from the holder leaves the holder holding."""
+    deferred: list[Deferred] = []
+
+    class SlowControls:
+        def configure(self, changes: dict) -> Deferred:
+            deferred.append(Deferred())
+            return deferred[-1]
+
+        def on_command(self, cmd: str, client: str | None) -> None:
+            pass
+
+    ctx = zmq.Context()
+    lease = Lease(1.0)
+    server = CommandServer(ctx, "tcp://127.0.0.1:*", SlowControls(), lease)
+    sock = ctx.socket(zmq.DEALER)
+    sock.setsockopt(zmq.LINGER, 0)
+    sock.connect(server.endpoint)
+
+    def send(payload: bytes) -> None:
+        sock.send(payload)
+        handled = server.handled
+        while server.handled == handled:
+            server.poll(100)
+
+    try:
+        send(request(cmd="configure", args={"changes": {}}))
+        assert lease.holder is not None  # taken while the work runs
+        deferred[-1].fail(ConfigError("map file 'nope.npy' cannot be used"))
+        assert msgpack.unpackb(sock.recv())["error"]["code"] == "bad_config"
+        assert lease.holder is None
+        send(msgpack.packb({"v": 2, "type": "request", "id": 10, "cmd": "acquire"}))
+        assert msgpack.unpackb(sock.recv())["ok"] and lease.holder is not None
+        send(msgpack.packb({"v": 2, "type": "request", "id": 11, "cmd": "configure",
+                            "args": {"changes": {}}}))
+        deferred[-1].fail(ConfigError("map file 'nope.npy' cannot be used"))
+        assert not msgpack.unpackb(sock.recv())["ok"]
+        assert lease.holder is not None  # it held the lease before: it still does
     finally:
         sock.close()
         server.close()

@@ -50,6 +50,18 @@ def test_changes_are_validated_the_same_way() -> None:
         config.updated({"endpoints": {"pub": "tcp://0.0.0.0:1"}})
 
 
+@pytest.mark.parametrize("change", [{"map": "nope.npy"}, {"policy": "random"},
+                                    {"radius": 0.005}, {"object": "keyed", "spacing": 0.001}])
+def test_a_hand_refuses_what_only_a_finger_uses(change: dict) -> None:
+    """Stored unchecked on a hand, a map file that does not load was accepted, and then
+    refused the switch back to a finger (a client written from the docs alone)."""
+    hand = DaemonConfig().updated({"scenario": {"object": "blob", "hand": "three-finger"}})
+    with pytest.raises(ConfigError, match="applies to a finger on a map.*object"):
+        hand.updated({"scenario": change})
+    finger = hand.updated({"scenario": {"object": None, "hand": None, "map": "bumps:20:3"}})
+    assert finger.scenario.object is None and finger.scenario.map == "bumps:20:3"
+
+
 def test_load_reports_missing_and_broken_files(tmp_path: Path) -> None:
     with pytest.raises(ConfigError, match="does not exist"):
         load_config(tmp_path / "none.toml")
