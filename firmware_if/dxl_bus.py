@@ -42,7 +42,7 @@ from firmware_if.registers import (
     describe_hardware_error,
     describe_status_error,
 )
-from firmware_if.sdk_fixes import FixedPacketHandler, PacedPortHandler
+from firmware_if.sdk_fixes import FixedPacketHandler, PacedPortHandler, PortBusy
 
 FAST_READ_MIN_FIRMWARE = 45
 SETUP_TIMEOUT_MS = 34.0
@@ -102,6 +102,8 @@ class DxlBus:
         try:
             if not port.openPort() or not port.setBaudRate(self.baud):
                 raise CommunicationError(f"cannot open {self.port_name} at {self.baud} baud")
+        except PortBusy as exc:
+            raise PortLost(f"cannot open {self.port_name}: {exc}") from None
         except (*PORT_ERRORS, ValueError) as exc:
             raise PortLost(f"cannot open {self.port_name}: {exc}; is the adapter plugged in "
                            f"(or the emulator running)?") from None
@@ -292,7 +294,7 @@ class DxlBus:
             self.stats.consecutive_failures += 1
             if self.stats.consecutive_failures >= self.failure_tolerance:
                 self._latch(f"{self.stats.consecutive_failures} consecutive failed cycles "
-                            f"(last: {exc})")
+                            f"(last: {exc}){self._silent_servos()}")
             raise
         port.budget_ms = SETUP_TIMEOUT_MS
         self.stats.consecutive_failures = 0
@@ -353,6 +355,20 @@ class DxlBus:
         except PacketError as exc:
             raise CommunicationError(f"fast sync read: {exc}", self.ids, bytes(rx)) from None
         return {sid: _reading(data, error) for sid, (error, data) in decoded.items()}
+
+    def _silent_servos(self) -> str:
+        """Which servos do not answer a ping, as words for a fault (one silent servo spoils
+        a sync read of all: the read alone cannot say which)."""
+        try:
+            silent = [sid for sid in self.ids if self.ping(sid) is None]
+        except (FirmwareError, *PORT_ERRORS, ValueError):
+            return ""  # the port itself: its own error says so
+        if not silent:
+            return ""
+        if len(silent) == len(self.ids):
+            return "; no servo answers a ping: check the bus power and the adapter"
+        return (f"; servo {', '.join(map(str, silent))} does not answer a ping: check its "
+                f"cable and power")
 
     def _latch(self, reason: str) -> None:
         self.fault = reason

@@ -16,6 +16,10 @@ Each defect has a test in tests/firmware_if/test_sdk_fixes.py that fails on the 
 4. The port busy-polls with `timeout=0` reads and times packets with the wall clock
    (`time.time`), with a fixed 2 x 16 ms latency allowance. Fix: `PacedPortHandler` waits
    in `select()` for bytes until a monotonic deadline bounded by the caller's budget.
+5. `setupPort` opens the port without a lock, so two processes (a second hapticd, a
+   `haptic bus` beside a running daemon) can share one bus: each takes the other's replies
+   and both fault on "Incorrect status packet". Fix: open it with pyserial's `exclusive`
+   lock, so the second open fails at once (`PortBusy`).
 """
 
 from __future__ import annotations
@@ -23,6 +27,7 @@ from __future__ import annotations
 import select
 import time
 
+import serial
 from dynamixel_sdk.port_handler import PortHandler
 from dynamixel_sdk.protocol2_packet_handler import Protocol2PacketHandler
 from dynamixel_sdk.robotis_def import COMM_RX_CORRUPT, COMM_SUCCESS
@@ -61,6 +66,10 @@ class FixedPacketHandler(Protocol2PacketHandler):
         return {sid: list(data) for sid, (_, data) in decoded.items()}, COMM_SUCCESS
 
 
+class PortBusy(serial.SerialException):
+    """Another process holds the port's lock."""
+
+
 class PacedPortHandler(PortHandler):
     """A PortHandler that sleeps in select() instead of spinning, on a monotonic clock.
 
@@ -71,6 +80,23 @@ class PacedPortHandler(PortHandler):
     def __init__(self, port_name: str, budget_ms: float = 34.0) -> None:
         super().__init__(port_name)
         self.budget_ms = budget_ms
+
+    def setupPort(self, cflag_baud: int) -> bool:  # noqa: N802
+        if self.is_open:
+            self.closePort()
+        try:
+            self.ser = serial.Serial(port=self.port_name, baudrate=self.baudrate,
+                                     bytesize=serial.EIGHTBITS, timeout=0, exclusive=True)
+        except serial.SerialException as exc:
+            if "exclusively lock" in str(exc):  # pyserial's words for a flock that failed
+                raise PortBusy(f"another process has {self.port_name} open (a second "
+                               f"hapticd, or haptic bus beside a running daemon?); stop it "
+                               f"or use another port") from None
+            raise
+        self.is_open = True
+        self.ser.reset_input_buffer()
+        self.tx_time_per_byte = (1000.0 / self.baudrate) * 10.0
+        return True
 
     def getCurrentTime(self) -> float:  # noqa: N802
         return time.monotonic_ns() / 1e6

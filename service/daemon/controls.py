@@ -75,8 +75,12 @@ class CommandHandlers:
                    or new.backend.name == "sim"
                    or self.lifecycle.state in (State.UNCONFIGURED, State.FAULT))
         deferred = Deferred()
+        port = new.backend.options.get("port")
+        same_port = (self.backend is not None and port is not None
+                     and port == self.config.backend.options.get("port"))
         self.reconf = Reconfiguration(new, settings, self.link, deferred,
-                                      rebuild_backend=rebuild, fault_count=self.faults)
+                                      rebuild_backend=rebuild, fault_count=self.faults,
+                                      release=self.backend if rebuild and same_port else None)
         return deferred
 
     def _commit(self: Node, rc: Reconfiguration) -> None:
@@ -93,7 +97,7 @@ class CommandHandlers:
         new = rc.new
         episode = 1 if self.explorer is None else self.explorer.episode + 1
         if self.explorer is not None:
-            self.explorer.stop()
+            self._episode_cut(self.explorer.stop("reconfigured"))
         self.explorer = Explorer(self.link, new.run_settings(), first_episode=episode,
                                  truth_at=self.truth_at, hidden=self.hidden)
         self.episode_truth = None
@@ -145,10 +149,10 @@ class CommandHandlers:
 
     def stop_exploration(self: Node) -> dict[str, Any]:
         was = bool(self.explorer and self.explorer.running)
-        if self.explorer:
-            self.explorer.stop()
+        cut = self.explorer.stop("stopped") if self.explorer else None
         self._fail_start(StateError("stopped before the first belief"))
         self._hold_until_ns = None
+        self._episode_cut(cut)
         return {"was_exploring": was}
 
     def reset(self: Node) -> dict[str, Any]:

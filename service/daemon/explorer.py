@@ -124,13 +124,22 @@ class Explorer:
         self.paused = False
         self._begin(state, truth)
 
-    def stop(self) -> None:
+    def stop(self, reason: str = "stopped") -> dict[str, Any] | None:
+        """Stop the episode under way; returns its `episode_done` fields (cut short for
+        `reason`, the estimate as of the cut), or None when none was under way."""
+        cut = None
         if self.phase is not Phase.IDLE:
             with contextlib.suppress(WorkerDied):  # a dead process has nothing to cancel
                 self._req = self.link.send("cancel")
+            est = {k: v for k, v in self.estimate_fields().items()
+                   if k not in ("step", "kind", "displacement", "predicted_quality", "quality")}
+            cut = {**est, "steps": self.steps, "reason": reason,
+                   "true_pose_eliminated": None, **({"dropped": False}
+                                                    if self.kind == "hand" else {})}
         self.phase = Phase.IDLE
         self.repeat = False
         self._next = None  # a move held back by a pause ends with its episode
+        return cut
 
     def cloud(self) -> Cloud | None:
         return self._cloud

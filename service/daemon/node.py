@@ -365,8 +365,7 @@ class Node(CommandHandlers):
         if self.lifecycle.state is State.FAULT and not again:
             return
         self.faults += 1
-        if self.explorer:
-            self.explorer.stop()
+        cut = self.explorer.stop("fault") if self.explorer else None
         self._fail_start(StateError(f"faulted: {reason}"))
         self._hold_until_ns = None
         if self.backend is not None and not (self.reconf and self.reconf.opening):
@@ -374,14 +373,21 @@ class Node(CommandHandlers):
                 self.backend.set_torque(False)
         self._transition("fault", reason)
         self._event("fault", reason=reason)
+        self._episode_cut(cut)
 
     def _deactivate(self, reason: str | None = None) -> None:
-        if self.explorer:
-            self.explorer.stop()
+        cut = self.explorer.stop("deactivated") if self.explorer else None
         self._fail_start(StateError("deactivated before the first belief"))
         self._hold_until_ns = None
         self.backend.set_torque(False)
         self._transition("deactivate", reason)
+        self._episode_cut(cut)
+
+    def _episode_cut(self, cut: dict[str, Any] | None) -> None:
+        """An episode cut short still ends with `episode_done`: a client or a recording
+        knows it is over, and with what estimate."""
+        if cut is not None:
+            self._event("episode_done", **cut)
 
     def _lease_expired(self, holder: str, reason: str) -> None:
         self._event("lease_expired", client=holder, reason=reason)

@@ -44,8 +44,12 @@ class Stage(StrEnum):
 
 class Reconfiguration:
     def __init__(self, new: DaemonConfig, settings: RunSettings, link: WorkerLink,
-                 deferred: Deferred, *, rebuild_backend: bool, fault_count: int) -> None:
+                 deferred: Deferred, *, rebuild_backend: bool, fault_count: int,
+                 release: Backend | None = None) -> None:
         self.new = new
+        self.release = release
+        """The old backend, when the new one opens its port: a serial port opens once, so
+        the old one lets it go first, and opens it again if the new one fails."""
         self.settings = settings
         self.link = link
         self.deferred = deferred
@@ -91,6 +95,9 @@ class Reconfiguration:
 
     def _open(self) -> None:
         """Helper thread: build and open the new backend (I/O waits release the GIL)."""
+        if self.release is not None:
+            with contextlib.suppress(Exception):  # torque off, port released
+                self.release.close()
         try:
             backend = make_backend(self.new, self.settings, self.truth, self._world)
             try:
@@ -102,6 +109,9 @@ class Reconfiguration:
             self.backend = backend
         except Exception as exc:  # reported to the client; the old backend stays
             self.error = exc
+            if self.release is not None:
+                with contextlib.suppress(Exception):  # a failure here latches at the next read
+                    self.release.open()
 
     def _fail(self, error: Exception) -> None:
         self.error = error

@@ -41,6 +41,12 @@ def test_no_io_before_open():
         bus.open()
 
 
+def test_a_port_another_bus_holds_is_refused_by_name(emulator, bus):
+    with pytest.raises(PortLost, match="another process has .* open.*stop it"):
+        DxlBus(emulator.port, IDS).open()
+    bus.cycle()  # the first bus is untouched
+
+
 def test_scan_and_configure(emulator, bus):
     assert bus.scan() == {sid: (1020, 46) for sid in IDS}
     assert all(s.get("operating_mode") == 5 and s.get("return_delay_time") == 0
@@ -72,8 +78,9 @@ def test_failures_are_tolerated_then_latch_a_fault_with_torque_off(emulator, bus
     for _ in range(2):
         with pytest.raises(CommunicationError):  # a truncated fast read, or a timeout
             bus.cycle()
-    with pytest.raises(HardwareFault, match="3 consecutive failed cycles"):
+    with pytest.raises(HardwareFault, match="3 consecutive failed cycles") as fault:
         bus.cycle()
+    assert "servo 2 does not answer a ping: check its cable" in str(fault.value)  # named
     assert emulator.wait_until(lambda: not any(s.torque_on for s in emulator.servos.values()))
     with pytest.raises(HardwareFault, match="reset first"):
         bus.cycle()

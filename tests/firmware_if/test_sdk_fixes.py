@@ -11,7 +11,7 @@ from dynamixel_sdk.protocol2_packet_handler import Protocol2PacketHandler
 from dynamixel_sdk.robotis_def import COMM_SUCCESS
 
 from firmware_if import packets as pk
-from firmware_if.sdk_fixes import FixedPacketHandler, PacedPortHandler
+from firmware_if.sdk_fixes import FixedPacketHandler, PacedPortHandler, PortBusy
 from sim_backend.emulator import EmulatedServo, ServoBus
 
 AWKWARD = [0xFF, 0xFF, 0xFD, 0xFF]  # Homing Offset -131073: needs byte stuffing
@@ -155,3 +155,24 @@ def test_paced_port_bounds_the_timeout_by_its_budget(emulator):
     port.closePort()
     assert result != COMM_SUCCESS
     assert wall < 0.025  # the stock allowance is 34 ms
+
+
+# -- 5. an exclusive port ------------------------------------------------------------------
+@pytest.mark.parametrize(("port_cls", "shared"), [(PortHandler, True), (PacedPortHandler, False)])
+def test_a_second_process_cannot_open_a_port_in_use(emulator, port_cls, shared):
+    """Two daemons on one bus took each other's replies and both faulted (a held-out fault
+    check): the stock port opens a port in use; the fixed one refuses it, naming why."""
+    first = _open(port_cls(emulator.port), Protocol2PacketHandler())
+    try:
+        second = port_cls(emulator.port)
+        if shared:
+            assert second.openPort()
+            second.closePort()
+        else:
+            with pytest.raises(PortBusy, match="another process has .* open"):
+                second.openPort()
+    finally:
+        first.closePort()
+    again = port_cls(emulator.port)
+    assert again.openPort()  # free again once the first closes
+    again.closePort()

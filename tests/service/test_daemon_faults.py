@@ -56,8 +56,13 @@ def explore_until_moving(sub: Subscriber, ctl: Controller) -> None:
 
 
 def wait_fault(sub: Subscriber) -> dict:
+    """The fault event of a fault mid-episode, after checking what follows it: the episode
+    cut short ends with `episode_done` (reason `fault`), then torque is off."""
     fault = sub.wait_for(lambda m: m.topic == "event" and m["event"] == "fault", 10.0)
     assert fault is not None, "no fault event"
+    done = sub.wait_for(lambda m: m.topic == "event" and m["event"] == "episode_done", 5.0)
+    assert done is not None and done["reason"] == "fault" and not done["converged"]
+    assert done["steps"] >= 1 and done["candidates"] >= 1  # the estimate as of the cut
     state = sub.wait_for(lambda m: m.topic == "state", 5.0)
     assert state["state"] == "fault" and not state["torque_on"] and not state["exploring"]
     return fault.body
@@ -90,6 +95,19 @@ def test_reset_with_no_bus_keeps_the_fault_and_configure_moves_to_a_new_port(rig
     assert result["state"] == "inactive"
     assert ctl.call("get_config")["backend"]["options"]["port"] == buses[-1].port
     explore_until_moving(sub, ctl)
+
+
+def test_new_backend_options_on_the_same_port_reopen_it(rig) -> None:
+    """A serial port opens once (`sdk_fixes`, defect 5): the new backend of a configure on
+    the same port takes it over from the old one; a new one that fails gives it back."""
+    node, sub, ctl, buses, link = rig
+    changed = {**options(str(link)), "cycle_budget_s": 0.04}
+    assert ctl.call("configure", changes={"backend": {"options": changed}})["state"] == "inactive"
+    with pytest.raises(Exception) as err:
+        ctl.call("configure", changes={"backend": {"options": {**changed, "hand": "nope"}}})
+    assert err.value.code == "bad_config"
+    assert ctl.call("get_config")["backend"]["options"]["cycle_budget_s"] == 0.04
+    explore_until_moving(sub, ctl)  # the old backend has its port again
 
 
 def test_a_hardware_error_fault_then_reset_restores_goal_current_and_touch_down(rig) -> None:

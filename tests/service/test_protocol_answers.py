@@ -112,6 +112,8 @@ def test_the_holder_returning_during_the_hold(node: Node) -> None:
         assert back.req("acquire")["ok"]  # the free lease, on a new connection
         assert back.req("start_exploration")["error"]["code"] == "bad_state"
         assert back.req("stop_exploration")["ok"]  # cancels the hold
+        done = sub.wait_for(lambda m: m.topic == "event" and m["event"] == "episode_done", 5)
+        assert done is not None and done["reason"] == "stopped"  # the episode is over
         end = time.monotonic() + 1.5  # longer than hold_s: torque stays on
         while time.monotonic() < end:
             back.req("ping")
