@@ -42,7 +42,7 @@ class CommandHandlers:
         return {
             "state": self.lifecycle.state.value, "fault": self.lifecycle.fault,
             "exploring": bool(ex and ex.running), "phase": ex.phase.value if ex else "idle",
-            "configuring": self.reconf is not None,
+            "configuring": self.reconf is not None, "configure_error": self.configure_error,
             "estimate": ex.estimate_fields() if ex and ex.estimate else None,
             "lease": {"holder": self.lease.holder_name,
                       "remaining_s": self.lease.remaining_s()},
@@ -86,6 +86,7 @@ class CommandHandlers:
     def _commit(self: Node, rc: Reconfiguration) -> None:
         """Everything worked: swap in the new backend, scenario and settings."""
         self.reconf = None
+        self.configure_error = None
         if rc.backend is not None:
             if self.backend is not None:
                 with contextlib.suppress(Exception):  # torque off, port released
@@ -112,6 +113,9 @@ class CommandHandlers:
         rc.deferred.resolve({"state": self.lifecycle.state.value})
 
     def activate(self: Node) -> dict[str, Any]:
+        if self.lifecycle.state is State.UNCONFIGURED and self.configure_error:
+            raise StateError(f"cannot activate while unconfigured: the last configure failed "
+                             f"({self.configure_error}); put that right and configure again")
         self.lifecycle.check("activate")
         self._not_configuring()
         self.lifecycle.require_valid_read()

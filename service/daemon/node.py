@@ -69,6 +69,8 @@ class Node(CommandHandlers):
         self.starting: Deferred | None = None
         """A `start_exploration` waiting for the episode's first belief."""
         self.faults = 0
+        self.configure_error: str | None = None
+        """Why the last configure failed (the one at start-up too), until one succeeds."""
         self.last_state: HandState | None = None
         self.localizer_work = Samples()
         self.lease = Lease(config.lease.ttl_s)
@@ -139,6 +141,7 @@ class Node(CommandHandlers):
     def _configured_at_start(self, result: dict[str, Any] | None, error: Exception | None
                              ) -> None:
         if error is not None:
+            self.configure_error = str(error)
             _log("configure_failed", level=logging.ERROR, error=str(error))
         self.ready.set()
 
@@ -247,6 +250,7 @@ class Node(CommandHandlers):
                 self._commit(rc)
 
     def _end_reconfigure(self, error: Exception) -> None:
+        self.configure_error = str(error)
         rc, self.reconf = self.reconf, None
         rc.abandon()
         rc.deferred.fail(error)

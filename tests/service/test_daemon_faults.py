@@ -119,3 +119,25 @@ def test_a_hardware_error_fault_then_reset_restores_goal_current_and_touch_down(
     for servo in buses[-1].servos.values():
         assert servo.get("goal_current") == 149 and servo.get("operating_mode") == 5
     explore_until_moving(sub, ctl)  # activate touched down again: no "no surface found"
+
+
+def test_a_daemon_started_before_its_bus_says_why_and_configures_later(tmp_path: Path) -> None:
+    """A held-out fault check started hapticd before the emulator: `status` said only
+    `unconfigured` and `activate` only "cannot activate while unconfigured"; the reason was
+    in the log alone."""
+    link = tmp_path / "ttyDXL"
+    config = loopback_config({"backend": {"name": "dynamixel", "options": options(str(link))}})
+    bus = None
+    try:
+        with running_node(config) as node, Controller(node.endpoints["cmd"]) as ctl:
+            status = ctl.status()
+            assert status["state"] == "unconfigured" and str(link) in status["configure_error"]
+            with pytest.raises(Exception) as err:
+                ctl.call("activate")
+            assert err.value.code == "bad_state" and str(link) in str(err.value)
+            bus = emulator(link)
+            assert ctl.call("configure", changes={})["state"] == "inactive"
+            assert ctl.status()["configure_error"] is None
+    finally:
+        if bus is not None:
+            bus.stop()
