@@ -164,6 +164,10 @@ def check_lines(bus: DxlBus, hand: Hand, port: str) -> list[tuple[str, str]]:
             out.append(("warn", f"servo {sid}: status return level "
                                 f"{values['status_return_level']}; writes will not be "
                                 "confirmed until the driver sets 2"))
+        out.append(("ok", f"servo {sid}: torque off") if not values["torque_enable"] else
+                   ("warn", f"servo {sid}: torque on, though nothing drives it (the port is "
+                            "ours): it holds its position until a driver opens the bus and "
+                            "turns it off"))
         if values["hardware_error_status"]:
             out.append(("FAIL", f"servo {sid}: hardware error status "
                                 f"{values['hardware_error_status']:#04x}; reboot it"))

@@ -54,6 +54,7 @@ def test_bus_scan_read_check(emulated, capsys):
     out = capsys.readouterr().out
     assert "no USB latency timer" in out
     assert "warn servo 1: operating mode 3 (position)" in out
+    assert all(f"ok   servo {sid}: torque off" in out for sid in (1, 2, 3, 4))
     assert "FAIL" not in out
 
 
