@@ -173,6 +173,18 @@ def test_no_wrong_declaration_on_surfaces_no_benchmark_uses(surface, seed, why):
     assert not _declares_wrongly(surface, seed), why
 
 
+@pytest.mark.xfail(strict=True, reason="not fixed: the spread's tail under the world's "
+                   "mismatch (below)")
+def test_no_near_miss_on_map_seeds_27_to_35():
+    """A second held-out check (`haptic bench objects --map-seeds 27,...,35`, 720 runs):
+    557 localized and 3 declared just past the tolerance, each at 4-8 of its claimed sds:
+    terrain:20:33 seed 11 (2.1 mm and 5.3 degrees off, claimed 0.45 mm / 0.7 degrees),
+    shell:20:27 seed 1 (2.5 mm, claimed 0.5 mm) and shell:20:30 seed 0 (2.5 mm and 2.6
+    degrees, claimed 0.8 mm / 1.0 degrees). The readings point there: refined from the
+    truth, the fit lands on the declared pose (RMS 1.01 sd against 1.40 at the truth)."""
+    assert not _declares_wrongly("terrain:20:33", 11)
+
+
 def _declares_wrongly(surface: str, seed: int) -> bool:
     """Whether B2's noisy episode of `seed` on the preset `surface` declares a wrong pose."""
     from service.localization.maps import load_map
