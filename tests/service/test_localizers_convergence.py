@@ -153,6 +153,10 @@ def test_modes_group_and_merge():
     ("plate:20:10", 17, "a half turn, 31 mm off"),
     ("pattern:20:3", 10, "3.0 mm off at 11 claimed sds: the readings fit it, and a "
                          "least-squares fit started from the truth ran off the map"),
+    # the second held-out check (map seeds 27-35), fixed by weighing the readings' shared
+    # error when the leader must beat its rivals (`_shared_error_mass`)
+    ("terrain:20:33", 11, "2.1 mm and 5.3 degrees off at 0.45 mm / 0.7 degrees claimed"),
+    ("shell:20:30", 0, "2.5 mm and 2.6 degrees off at 0.8 mm / 1.0 degrees claimed"),
 ])
 def test_no_wrong_declaration_where_one_was_found(surface, seed, why):
     assert not _declares_wrongly(surface, seed), why
@@ -177,12 +181,13 @@ def test_no_wrong_declaration_on_surfaces_no_benchmark_uses(surface, seed, why):
                    "mismatch (below)")
 def test_no_near_miss_on_map_seeds_27_to_35():
     """A second held-out check (`haptic bench objects --map-seeds 27,...,35`, 720 runs):
-    557 localized and 3 declared just past the tolerance, each at 4-8 of its claimed sds:
-    terrain:20:33 seed 11 (2.1 mm and 5.3 degrees off, claimed 0.45 mm / 0.7 degrees),
-    shell:20:27 seed 1 (2.5 mm, claimed 0.5 mm) and shell:20:30 seed 0 (2.5 mm and 2.6
-    degrees, claimed 0.8 mm / 1.0 degrees). The readings point there: refined from the
-    truth, the fit lands on the declared pose (RMS 1.01 sd against 1.40 at the truth)."""
-    assert not _declares_wrongly("terrain:20:33", 11)
+    557 localized and 3 declared just past the tolerance, each at 4-8 of its claimed sds.
+    Weighing the readings' shared error among the rivals fixed two (cases of
+    `test_no_wrong_declaration_where_one_was_found`); shell:20:27 seed 1 is still declared
+    2.5 mm and 0.5 degrees off at a claimed 0.5 mm. Refined from the truth, the fit lands
+    on the declared pose (RMS 1.01 sd there against 1.28 at the truth): the readings point
+    there."""
+    assert not _declares_wrongly("shell:20:27", 1)
 
 
 def _declares_wrongly(surface: str, seed: int) -> bool:
@@ -226,3 +231,57 @@ def test_the_valley_is_scanned_toward_the_local_fits_nearby():
     assert _valley_within(surface, history, fit, floored, tol_pos, tol_head, case["margin"])
     assert not _valley_within(surface, history, fit, floored, tol_pos, tol_head,
                               case["margin"], toward=nearby)
+
+
+def texture_with_a_bowl_and_a_bump() -> np.ndarray:
+    """A helper's held-out surface (200 x 200 mm at 1 mm): a 30 mm egg-crate texture, 3 mm
+    peak to peak, on a bowl 0.6 mm deep, with one 0.3 mm bump; the bowl and the bump are
+    all that tell its near-symmetric poses apart, about the size of B2's mismatch."""
+    x = np.arange(201) * 0.001
+    xx, yy = np.meshgrid(x, x)
+    z = 0.0015 * np.sin(2 * np.pi * xx / 0.030) * np.sin(2 * np.pi * yy / 0.030)
+    z += 0.0006 * ((xx - 0.1) ** 2 + (yy - 0.1) ** 2) / 0.1**2
+    mark = (0.1269840715151213384, 0.1442143955870480720)
+    return z + 0.0003 * np.exp(-((xx - mark[0]) ** 2 + (yy - mark[1]) ** 2) / (2 * 0.0025**2))
+
+
+def test_readings_that_err_together_are_weighed_as_one_error(tmp_path):
+    """Readings under which a pose 107 mm and a quarter turn off the truth was declared
+    (the surface above, B2's noise, seed 10, step 37): weighed as independent, they prefer
+    it to the truth by 16.5 in chi-square, a share of 0.9997; weighed with the error they
+    share where the world differs from the map (as the spread is), the truth keeps a share
+    the declaration must not ignore."""
+    import json
+    from pathlib import Path
+
+    from service.episode.scenario import surface_for
+    from service.localization.localizers.convergence import FLOOR, _shared_error_mass
+    from service.localization.localizers.fitting import offset_residuals
+    from service.localization.localizers.refine import reading_sigmas
+
+    case = json.loads((Path(__file__).parent / "data" / "texture_bowl_bump_seed10.json")
+                      .read_text())
+    path = tmp_path / "texture.npy"
+    np.save(path, texture_with_a_bowl_and_a_bump())
+    surface = surface_for(RunSettings(map=str(path), spacing=0.001, noise=True), None)
+    history, step = np.array(case["history"]), case["step"]
+    poses = np.array([case["pose"], case["truth"]])
+    assert np.hypot(*(poses[0, :2] - poses[1, :2])) > 0.1  # the declared pose was wrong
+    sds = np.maximum(reading_sigmas(surface, history, poses[0], case["sigma"],
+                                    case["position_sigma"]), FLOOR * step)
+    resid, _ = offset_residuals(surface, poses, history, case["margin"])
+    independent = np.sum((resid / sds) ** 2, axis=1)
+    assert independent[1] - independent[0] > 2 * np.log(1 / (1 - 0.999))  # it would pass
+    share = _shared_error_mass(surface, history, poses, sds, case["sigma"], step,
+                               case["margin"], 0.25 * step, np.deg2rad(5.0))
+    assert 0.5 < share < ConvergenceRule.mode_mass
+
+
+def test_no_wrong_declaration_on_the_texture_with_a_bowl_and_a_bump(tmp_path):
+    """The episode itself (B2's noise, seed 10): declared a quarter turn 107 mm off at step
+    37 when the readings were weighed as independent; now it is not declared wrongly."""
+    path = tmp_path / "texture.npy"
+    np.save(path, texture_with_a_bowl_and_a_bump())
+    report = simulate(RunSettings(map=str(path), spacing=0.001, noise=True, seed=10,
+                                  max_steps=40))
+    assert not report.score.wrong_declaration

@@ -177,13 +177,20 @@ def correlated_spread(surface: ContactSurface, history: np.ndarray, pose: np.nda
     _, jac = heights_and_jacobian(surface, np.asarray(pose, dtype=np.float64), history)
     j = _design(surface, jac)
     weighed = j / _slope_sigmas(jac, sigma, position_sigma)[:, np.newaxis] ** 2  # W J
-    d2 = np.sum((history[:, None, :2] - history[None, :, :2]) ** 2, axis=-1)
-    shared = error_sd**2 * np.exp(-0.5 * d2 / length**2)
+    shared = shared_error(history, error_sd, length)
     normal = j.T @ weighed  # A
     inner = normal + weighed.T @ shared @ weighed  # J^T W (diag(sigma^2) + shared) W J
     bread = _inverse(normal)
     cov = _over_all(surface, bread @ inner @ bread if np.all(np.isfinite(bread)) else bread)
     return _sd(cov[0, 0] + cov[1, 1]), _sd(cov[2, 2])
+
+
+def shared_error(history: np.ndarray, error_sd: float, length: float) -> np.ndarray:
+    """(K, K) covariance of the error the readings share where the map differs from the
+    object smoothly: sd `error_sd`, a Gaussian correlation over `length` (as far apart as
+    readings a step apart, about 0.6)."""
+    d2 = np.sum((history[:, None, :2] - history[None, :, :2]) ** 2, axis=-1)
+    return error_sd**2 * np.exp(-0.5 * d2 / length**2)
 
 
 def _sd(variance: float) -> float:
