@@ -117,6 +117,8 @@ def run_seeded_scenario(args: argparse.Namespace, *, scenario: str, label: str,
     if more_summary is not None:
         summary.update(more_summary(reports))
     print_table(summary, base)
+    for line in wrong_declarations(reports):
+        print(line)
     write_json(args.json, {"scenario": scenario, "settings": base.to_json(),
                            "summary": summary, **executor.info(), **(extra or {}),
                            "runs": [r.to_json() for r in reports]})
@@ -126,6 +128,27 @@ def run_seeded_scenario(args: argparse.Namespace, *, scenario: str, label: str,
         figure(reports, summary, args.plot, title)
         print(f"figure written to {args.plot}")
     return reports
+
+
+def wrong_declarations(reports: Sequence[EpisodeReport]) -> list[str]:
+    """A line per wrong declaration, with the `haptic run` that repeats it."""
+    lines = []
+    for r in reports:
+        if r.score.wrong_declaration:
+            s = r.settings
+            spacing = "" if s.spacing is None else f" --spacing {s.spacing:g}"
+            lines.append(
+                f"WRONG: seed {s.seed}, {r.score.position_error * 1e3:.1f} mm and "
+                f"{np.degrees(r.score.heading_error):.1f} deg off: haptic run --map {s.map}"
+                f"{spacing} --radius {s.radius:g} --step {s.step:g} --algorithm {s.algorithm} "
+                f"--policy {s.policy}{' --noise' if s.noise else ''} --seed {s.seed} "
+                f"--max-steps {s.max_steps}")
+    return lines
+
+
+def exit_status(reports: Sequence[EpisodeReport]) -> int:
+    """1 when a run declared a wrong pose (a bench's gravest finding), else 0."""
+    return int(any(r.score.wrong_declaration for r in reports))
 
 
 B2_DEFAULTS = dataclasses.replace(RunSettings(), noise=True, max_steps=60)

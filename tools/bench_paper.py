@@ -11,7 +11,7 @@ import numpy as np
 from service.episode.scenario import RunSettings, build_localizer, surface_for
 from service.episode.simulate import EpisodeReport
 from service.localization.localizers.base import Measurement, update
-from tools.bench_common import add_bench_options, fmt, run_seeded_scenario
+from tools.bench_common import add_bench_options, exit_status, fmt, run_seeded_scenario
 
 PAPER_STEPS = (23.6, 8.7)
 """The paper's steps to a unique pose on B1, mean and sd (Algorithm III in MATLAB)."""
@@ -30,10 +30,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     if args.noise:
         print("note: B1 is defined noise-free; --noise makes this a different experiment")
-    run_seeded_scenario(args, scenario="paper", label="B1", print_table=print_table,
-                        extra={"paper": PAPER}, more_summary=first_step_summary,
-                        figure=b1_figure)
-    return 0
+    return exit_status(run_seeded_scenario(args, scenario="paper", label="B1",
+                                           print_table=print_table, extra={"paper": PAPER},
+                                           more_summary=first_step_summary, figure=b1_figure))
 
 
 def first_move_elimination(report: EpisodeReport) -> float | None:

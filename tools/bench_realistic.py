@@ -11,7 +11,7 @@ import argparse
 
 from service.episode.scenario import RunSettings
 from tools.bench_common import B2_DEFAULTS as DEFAULTS
-from tools.bench_common import add_bench_options, fmt, run_seeded_scenario
+from tools.bench_common import add_bench_options, exit_status, fmt, run_seeded_scenario
 
 TARGETS = {"successes": ">= 198/200", "wrong_declarations": "<= 1", "steps_median": "<= 12",
            "final_position_error_median": "<= 0.5 mm",
@@ -23,9 +23,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    run_seeded_scenario(args, scenario="realistic", label="B2", print_table=print_table,
-                        extra={"targets": TARGETS}, noise=True)
-    return 0
+    return exit_status(run_seeded_scenario(args, scenario="realistic", label="B2",
+                                           print_table=print_table,
+                                           extra={"targets": TARGETS}, noise=True))
 
 
 def _mm(v: float | None) -> str:

@@ -19,6 +19,17 @@ def test_realistic_summary_has_the_accuracy_keys(tmp_path):
     assert len(payload["runs"]) == 2
 
 
+def test_a_wrong_declaration_is_listed_with_its_run_and_fails_the_bench(capsys):
+    """A helper had to dig a bench's wrong declarations out of its JSON: they are now
+    listed with the `haptic run` that repeats each, and the bench exits 1."""
+    assert main(["bench", "realistic", "--map", "profile:terrain:20:2", "--runs", "1",
+                 "--first-seed", "17"]) == 1  # the near miss of `haptic bench profile`
+    wrong = [line for line in capsys.readouterr().out.splitlines()
+             if line.startswith("WRONG: seed 17")]
+    assert len(wrong) == 1 and "haptic run --map profile:terrain:20:2" in wrong[0]
+    assert "--noise --seed 17 --max-steps 60" in wrong[0]
+
+
 def test_scale_rows_per_algorithm_and_size(tmp_path):
     out = tmp_path / "b3.json"
     assert main(["bench", "scale", "--runs", "1", "--sizes", "20,30", "--max-steps", "8",
