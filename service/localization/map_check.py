@@ -76,7 +76,10 @@ class MapReport:
         x, y = self.extent
         size = (f"profile {x * 1e3:g} mm long, {self.shape[1]} samples" if self.is_profile
                 else f"{x * 1e3:g} x {y * 1e3:g} mm, {self.shape[1]} x {self.shape[0]} samples")
-        feature = ("none (flat)" if self.smallest_feature is None else
+        flat = hi - lo < FEATURE_TOLERANCE
+        feature = (("none (flat)" if flat else "none as steep as 1 in 4 for its width: "
+                    "smooth, gently varying ground")
+                   if self.smallest_feature is None else
                    f"{self.smallest_feature * 1e3:.3g} mm wide"
                    + (f", narrower than the tip ({2 * self.radius * 1e3:g} mm across): it is "
                       f"felt only blurred" if self.smallest_feature < 2 * self.radius else ""))

@@ -55,6 +55,11 @@ def test_plains_features_and_hidden_pits():
     flat = check_map(tilted, 0.008)
     assert flat.smallest_feature is None and flat.hidden_share == 0
     assert flat.steepest_slope == pytest.approx(0.2)
+    # a tilted plane is no feature, but it is not flat either (a helper's 3 mm texture
+    # was reported "none (flat)")
+    assert "smallest none as steep as 1 in 4" in "\n".join(flat.lines())
+    level = check_map(HeightMap(np.zeros((201, 201)), 0.001, name="level"), 0.008)
+    assert "smallest none (flat)" in "\n".join(level.lines())
 
 
 def test_symmetries_of_surfaces_and_profiles():
