@@ -233,24 +233,12 @@ def test_the_valley_is_scanned_toward_the_local_fits_nearby():
                               case["margin"], toward=nearby)
 
 
-def texture_with_a_bowl_and_a_bump() -> np.ndarray:
-    """A helper's held-out surface (200 x 200 mm at 1 mm): a 30 mm egg-crate texture, 3 mm
-    peak to peak, on a bowl 0.6 mm deep, with one 0.3 mm bump; the bowl and the bump are
-    all that tell its near-symmetric poses apart, about the size of B2's mismatch."""
-    x = np.arange(201) * 0.001
-    xx, yy = np.meshgrid(x, x)
-    z = 0.0015 * np.sin(2 * np.pi * xx / 0.030) * np.sin(2 * np.pi * yy / 0.030)
-    z += 0.0006 * ((xx - 0.1) ** 2 + (yy - 0.1) ** 2) / 0.1**2
-    mark = (0.1269840715151213384, 0.1442143955870480720)
-    return z + 0.0003 * np.exp(-((xx - mark[0]) ** 2 + (yy - mark[1]) ** 2) / (2 * 0.0025**2))
-
-
-def test_readings_that_err_together_are_weighed_as_one_error(tmp_path):
+def test_readings_that_err_together_are_weighed_as_one_error(texture_map):
     """Readings under which a pose 107 mm and a quarter turn off the truth was declared
-    (the surface above, B2's noise, seed 10, step 37): weighed as independent, they prefer
-    it to the truth by 16.5 in chi-square, a share of 0.9997; weighed with the error they
-    share where the world differs from the map (as the spread is), the truth keeps a share
-    the declaration must not ignore."""
+    (`conftest.texture_with_a_bowl_and_a_bump`, B2's noise, seed 10, step 37): weighed as
+    independent, they prefer it to the truth by 16.5 in chi-square, a share of 0.9997;
+    weighed with the error they share where the world differs from the map (as the spread
+    is), the truth keeps a share the declaration must not ignore."""
     import json
     from pathlib import Path
 
@@ -261,9 +249,7 @@ def test_readings_that_err_together_are_weighed_as_one_error(tmp_path):
 
     case = json.loads((Path(__file__).parent / "data" / "texture_bowl_bump_seed10.json")
                       .read_text())
-    path = tmp_path / "texture.npy"
-    np.save(path, texture_with_a_bowl_and_a_bump())
-    surface = surface_for(RunSettings(map=str(path), spacing=0.001, noise=True), None)
+    surface = surface_for(RunSettings(map=str(texture_map), spacing=0.001, noise=True), None)
     history, step = np.array(case["history"]), case["step"]
     poses = np.array([case["pose"], case["truth"]])
     assert np.hypot(*(poses[0, :2] - poses[1, :2])) > 0.1  # the declared pose was wrong
@@ -277,11 +263,18 @@ def test_readings_that_err_together_are_weighed_as_one_error(tmp_path):
     assert 0.5 < share < ConvergenceRule.mode_mass
 
 
-def test_no_wrong_declaration_on_the_texture_with_a_bowl_and_a_bump(tmp_path):
+def test_no_wrong_declaration_on_the_texture_with_a_bowl_and_a_bump(texture_map):
     """The episode itself (B2's noise, seed 10): declared a quarter turn 107 mm off at step
     37 when the readings were weighed as independent; now it is not declared wrongly."""
-    path = tmp_path / "texture.npy"
-    np.save(path, texture_with_a_bowl_and_a_bump())
-    report = simulate(RunSettings(map=str(path), spacing=0.001, noise=True, seed=10,
+    report = simulate(RunSettings(map=str(texture_map), spacing=0.001, noise=True, seed=10,
                                   max_steps=40))
+    assert not report.score.wrong_declaration
+
+
+def test_no_wrong_declaration_on_a_helpers_machined_plate(plate_map):
+    """Declared 126 mm and 79 degrees off at step 28 (B2's noise, seed 148) when the readings
+    were weighed as independent (`conftest.machined_plate`, which has no symmetry). It
+    localizes now."""
+    report = simulate(RunSettings(map=str(plate_map), spacing=0.001, noise=True, seed=148,
+                                  max_steps=50))
     assert not report.score.wrong_declaration
