@@ -358,11 +358,16 @@ class DxlBus:
 
     def _silent_servos(self) -> str:
         """Which servos do not answer a ping, as words for a fault (one silent servo spoils
-        a sync read of all: the read alone cannot say which)."""
+        a sync read of all: the read alone cannot say which). It runs in the tick that
+        latches the fault, so each ping waits a cycle's budget at most, not the setup's."""
+        port = self._require()
+        port.budget_ms = self.cycle_budget_s * 1e3
         try:
             silent = [sid for sid in self.ids if self.ping(sid) is None]
         except (FirmwareError, *PORT_ERRORS, ValueError):
             return ""  # the port itself: its own error says so
+        finally:
+            port.budget_ms = SETUP_TIMEOUT_MS
         if not silent:
             return ""
         if len(silent) == len(self.ids):
