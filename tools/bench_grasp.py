@@ -201,8 +201,8 @@ def _print(table: dict, summary: dict, hands, families, kinds) -> None:
             ablation = table.get(f"{hand}/{family}/ablation")
             print(f"  {hand:<13} {family:<8} {g['runs']:4d}  ok {g['successes']:4d}  "
                   f"wrong {g['wrong_declarations']}  drops {g['drops']}  stuck {g['stuck']}  "
-                  f"steps {fmt(g['steps_median'], '.0f')}"
-                  f" ({fmt(single and single['steps_median'], '.0f')})  "
+                  f"steps {fmt(g['steps_median'], 'g')}"
+                  f" ({fmt(single and single['steps_median'], 'g')})  "
                   f"quality >= {fmt(g['quality_min'])} N  "
                   f"{fmt(g['compute_ms_after_first_median'])}/"
                   f"{fmt(g['compute_ms_after_first_p99'])} ms"

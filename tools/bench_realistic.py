@@ -38,7 +38,7 @@ def print_table(s: dict, base: RunSettings) -> None:
     rows = [
         ("successes", f"{s['successes']}/{s['runs']}"),
         ("wrong declarations", str(s["wrong_declarations"])),
-        ("steps", f"median {fmt(s['steps_median'], '.0f')}, p90 {fmt(s['steps_p90'], '.0f')}, "
+        ("steps", f"median {fmt(s['steps_median'], 'g')}, p90 {fmt(s['steps_p90'], 'g')}, "
                   f"max {s['steps_max']}"),
         ("final position error", f"median {_mm(s['final_position_error_median'])}, "
                                  f"p90 {_mm(s['final_position_error_p90'])}"),

@@ -103,7 +103,7 @@ def _run_sizes(args: argparse.Namespace, sizes: list[float], algorithms: list[st
 
 def print_row(r: dict) -> None:
     print(f"{r['algorithm']:<12} {r['map_units']:>4g} units  {r['successes']:>3}/{r['runs']:<3} "
-          f"ok  wrong {r['wrong_declarations']}  steps {fmt(r['steps'], '.0f'):>3}  compute "
+          f"ok  wrong {r['wrong_declarations']}  steps {fmt(r['steps'], 'g'):>4}  compute "
           f"first {fmt(r['compute_ms_first_median']):>8} ms  after it median "
           f"{fmt(r['compute_ms_after_first_median']):>7} ms, p99 "
           f"{fmt(r['compute_ms_after_first_p99']):>7} ms", flush=True)

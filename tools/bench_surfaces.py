@@ -111,7 +111,7 @@ HEADER = (f"{'surface':<26} {'localized':>9} {'not yet':>7} {'WRONG':>5} {'error
 
 
 def print_row(r: dict[str, Any]) -> None:
-    steps = f"{fmt(r['steps_median'], '.0f')}/{fmt(r['steps_p90'], '.0f')}"
+    steps = f"{fmt(r['steps_median'], 'g')}/{fmt(r['steps_p90'], 'g')}"
     mark = "  <-- WRONG" if r["wrong_declarations"] else ""
     print(f"{r['surface']:<26} {r['successes']:>4}/{r['runs']:<4} {r['not_yet']:>7} "
           f"{r['wrong_declarations']:>5} {r['errors']:>6} {steps:>13} "

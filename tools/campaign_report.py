@@ -98,8 +98,8 @@ def write_summary(path: Path, campaign: Campaign, grouped, executors: list[str],
         s = scenario_summary(rows)
         wrong = f"**{s['WRONG']}**" if s["WRONG"] else "0"
         lines.append(f"| {sc.name} | {s['episodes']} | {s['localized']} | {s['not yet']} | "
-                     f"{wrong} | {s['error']} | {fmt(s['steps_median'], '.0f')} / "
-                     f"{fmt(s['steps_p90'], '.0f')} | "
+                     f"{wrong} | {s['error']} | {fmt(s['steps_median'], 'g')} / "
+                     f"{fmt(s['steps_p90'], 'g')} | "
                      f"{fmt(s['position_error_mm_median'], '.3f')} | "
                      f"{fmt(s['compute_first_ms_median'])} | "
                      f"{fmt(s['compute_after_first_p99_ms_worst'])} |")

@@ -59,7 +59,11 @@ class MapReport:
     hidden_depth: float
     plains_share: float
     symmetries: np.ndarray = field(repr=False)
-    """(S, 3) motions (quarter turns, dx, dy) that map the contact surface onto itself."""
+    """(S, 3) motions (quarter turns, dx, dy) that map the contact surface nearly onto
+    itself."""
+    symmetry_strengths: np.ndarray = field(repr=False)
+    """(S, 2) how well each motion holds: correlation of the surface with its image, and
+    the share of the map where the two overlap."""
     warnings: tuple[str, ...] = ()
 
     @property
@@ -93,7 +97,8 @@ class MapReport:
             f"{self.radius * 1e3:g} mm tip reaches (by up to {self.hidden_depth * 1e3:.2f} mm)",
             f"plains     {self.plains_share:.1%} of the area: a {self.step * 1e3:g} mm step "
             f"there reads under {PLAIN_TOLERANCE * self.step * 1e3:.2g} mm",
-            f"symmetries {describe_symmetries(self.symmetries, self.is_profile)}",
+            "symmetries " + describe_symmetries(self.symmetries, self.symmetry_strengths,
+                                                self.is_profile),
         ]
         return lines + [f"warning    {w}" for w in self.warnings]
 
@@ -105,7 +110,10 @@ class MapReport:
             "steep_share": self.steep_share,
             "smallest_feature": self.smallest_feature, "hidden_share": self.hidden_share,
             "hidden_depth": self.hidden_depth, "plains_share": self.plains_share,
-            "symmetries": self.symmetries.tolist(), "warnings": list(self.warnings),
+            "symmetries": self.symmetries.tolist(),
+            "symmetry_correlation": self.symmetry_strengths[:, 0].tolist(),
+            "symmetry_overlap": self.symmetry_strengths[:, 1].tolist(),
+            "warnings": list(self.warnings),
         }
 
 
@@ -113,25 +121,29 @@ def _degrees(slope: float) -> str:
     return f"{np.degrees(np.arctan(slope)):.1f} deg ({slope:.3g} rise/run)"
 
 
-def describe_symmetries(motions: np.ndarray, is_profile: bool = False) -> str:
+def describe_symmetries(motions: np.ndarray, strengths: np.ndarray,
+                        is_profile: bool = False) -> str:
+    """The motions found, the strongest three shown with how well each holds."""
     if len(motions) == 0:
         return "none found"
     shown = []
-    for k, dx, dy in motions[:3]:
+    for (k, dx, dy), (corr, overlap) in zip(motions[:3], strengths[:3], strict=True):
+        how = f" (correlation {corr:.2f} over {overlap:.0%} of the map)"
         turn = {0: "shift", 1: "quarter turn", 2: "reversal" if is_profile else "half turn",
                 3: "three-quarter turn"}[int(k) % 4]
         if is_profile:
-            shown.append(f"{turn} by {dx * 1e3:+.0f} mm" if k == 0 else
-                         f"{turn} (then shift {dx * 1e3:+.0f} mm)")
+            motion = (f"{turn} by {dx * 1e3:+.0f} mm" if k == 0 else
+                      f"{turn} (then shift {dx * 1e3:+.0f} mm)")
         elif k == 0:
-            shown.append(f"shift by ({dx * 1e3:+.0f}, {dy * 1e3:+.0f}) mm")
+            motion = f"shift by ({dx * 1e3:+.0f}, {dy * 1e3:+.0f}) mm"
         elif abs(dx) < 5e-4 and abs(dy) < 5e-4:
-            shown.append(turn)
+            motion = turn
         else:
-            shown.append(f"{turn} then shift ({dx * 1e3:+.0f}, {dy * 1e3:+.0f}) mm")
-    more = f" and {len(motions) - 3} more" if len(motions) > 3 else ""
-    return (f"{len(motions)} motion{'s' if len(motions) > 1 else ''} map the contact surface "
-            f"onto itself within 3 %: {', '.join(shown)}{more}")
+            motion = f"{turn} then shift ({dx * 1e3:+.0f}, {dy * 1e3:+.0f}) mm"
+        shown.append(motion + how)
+    more = f"; and {len(motions) - 3} more" if len(motions) > 3 else ""
+    return (f"{len(motions)} motion{'s' if len(motions) > 1 else ''} nearly map the contact "
+            f"surface onto itself: {'; '.join(shown)}{more}")
 
 
 def check_map(height_map: HeightMap, radius: float, step: float = 0.01) -> MapReport:
@@ -154,7 +166,7 @@ def check_map(height_map: HeightMap, radius: float, step: float = 0.01) -> MapRe
         hidden_share=float(np.mean(hidden > FEATURE_TOLERANCE)),
         hidden_depth=float(hidden.max()),
         plains_share=float(np.mean(plains(surface, step))),
-        symmetries=_symmetries(surface),
+        **_symmetries(surface),
     )
     return MapReport(**report, warnings=tuple(_warnings(MapReport(**report))))
 
@@ -207,18 +219,27 @@ def plains(surface: ContactSurface, step: float) -> np.ndarray:
     return span < PLAIN_TOLERANCE * step
 
 
-def _symmetries(surface: ContactSurface) -> np.ndarray:
+def _symmetries(surface: ContactSurface) -> dict[str, np.ndarray]:
+    """The report's `symmetries` and `symmetry_strengths`."""
     if surface.map.is_profile:
-        return profile_symmetries(surface.centre_heights[0], surface.map.spacing)
-    from service.localization.localizers.symmetry import symmetries
+        found = profile_symmetry_matches(surface.centre_heights[0], surface.map.spacing)
+    else:
+        from service.localization.localizers.symmetry import symmetry_matches
 
-    return symmetries(surface)
+        found = symmetry_matches(surface)
+    return {"symmetries": found[:, :3], "symmetry_strengths": found[:, 3:]}
 
 
 def profile_symmetries(row: np.ndarray, spacing: float, threshold: float = 0.97,
                        min_overlap: float = 0.3) -> np.ndarray:
     """(S, 3) motions of a profile onto itself: shifts (k = 0) and reversals (k = 2, the
     finger facing the other way), by normalized correlation over at least `min_overlap`."""
+    return profile_symmetry_matches(row, spacing, threshold, min_overlap)[:, :3]
+
+
+def profile_symmetry_matches(row: np.ndarray, spacing: float, threshold: float = 0.97,
+                             min_overlap: float = 0.3) -> np.ndarray:
+    """(S, 5) `profile_symmetries` with each one's correlation and overlap share."""
     a = row - row.mean()
     n = len(a)
     found = []
@@ -238,9 +259,9 @@ def profile_symmetries(row: np.ndarray, spacing: float, threshold: float = 0.97,
         if k == 0:
             ok &= lags != 0
         for lag in lags[ok]:
-            found.append((ncc[lag + n - 1], k, -lag * spacing))
-    found.sort(key=lambda f: -f[0])
-    return np.array([(k, dx, 0.0) for _, k, dx in found], dtype=np.float64).reshape(-1, 3)
+            found.append((k, -lag * spacing, 0.0, ncc[lag + n - 1], overlap[lag + n - 1] / n))
+    found.sort(key=lambda f: -f[3])
+    return np.array(found, dtype=np.float64).reshape(-1, 5)
 
 
 def _warnings(r: MapReport) -> list[str]:
@@ -267,7 +288,7 @@ def _warnings(r: MapReport) -> list[str]:
         warnings.append(f"{r.plains_share:.0%} of the map is plain: the finger must travel to a "
                         "feature before it can localize; expect many steps")
     if len(r.symmetries):
-        warnings.append(f"the surface repeats under {len(r.symmetries)} motion(s) (see "
+        warnings.append(f"the surface nearly repeats under {len(r.symmetries)} motion(s) (see "
                         "symmetries): poses they relate differ only where a feature breaks "
                         "the symmetry, or not at all ('not yet' is then the right answer)")
     return warnings

@@ -65,8 +65,10 @@ def test_cycle_reads_positions_and_writes_goals(emulator, bus):
 @pytest.mark.parametrize("firmware", [44, 46])
 def test_falls_back_to_sync_read(firmware):
     servos = [EmulatedServo(i, firmware_version=firmware) for i in IDS]
-    with ServoBus(servos, fast_read=firmware >= 45 and False) as emu, \
-            DxlBus(emu.port, IDS) as bus:
+    # the emulator answers from a thread of this process: under load it once missed the
+    # default 10 ms budget, and the test is about the fallback, not the timing
+    with ServoBus(servos, fast_read=False) as emu, \
+            DxlBus(emu.port, IDS, cycle_budget_s=0.2) as bus:
         assert not bus.detect_fast_read()
         assert set(bus.cycle()) == set(IDS)
         assert emu.stats["unknown_instruction"] == (1 if firmware == 46 else 0)

@@ -41,3 +41,18 @@ def test_scale_rows_per_algorithm_and_size(tmp_path):
         for key in ("algorithm", "map_units", "runs", "successes", "compute_ms_median",
                     "compute_ms_p99"):
             assert key in r
+
+
+def test_a_half_step_median_is_printed_as_it_is(capsys):
+    """The table printed 14 for a median of 14.5 (rounded half to even)."""
+    from service.episode.scenario import RunSettings
+    from tools.bench_realistic import print_table
+    summary = {"runs": 2, "successes": 2, "wrong_declarations": 0, "steps_median": 14.5,
+               "steps_p90": 18.7, "steps_max": 19, "final_position_error_median": None,
+               "final_position_error_p90": None, "final_heading_error_deg_median": None,
+               "final_heading_error_deg_p90": None, "compute_ms_first_median": None,
+               "compute_ms_after_first_median": None, "compute_ms_after_first_p99": None,
+               "policy_ms_median": None, "policy_ms_p99": None}
+    print_table(summary, RunSettings())
+    line = next(x for x in capsys.readouterr().out.splitlines() if x.startswith("steps"))
+    assert "median 14.5, p90 18.7, max 19" in line
