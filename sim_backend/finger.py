@@ -118,6 +118,14 @@ class SimulatedFinger(FaultLatch, HandOfOne):
         self._finish_step_if_due()
 
     # -- internals -------------------------------------------------------------------------
+    def _cut_step(self) -> None:
+        if self._busy_until is None:
+            return
+        self._busy_until, self._pending = None, None
+        self._blocked = True
+        self._steps_done += 1
+        self._reading = self._measure()
+
     def _finish_step_if_due(self) -> None:
         if self._busy_until is None or self._clock.now_ns() < self._busy_until:
             return

@@ -316,6 +316,14 @@ class SimulatedHand(PlanarHand, FaultLatch):
                                               iterations=200)[1][0])
                    for f, t, q in zip(self.fingers, targets, self._q, strict=True))
 
+    def _cut_step(self) -> None:
+        if self._busy_until is None:
+            return
+        self._motion, self._busy_until = None, None  # the substeps made so far stay made
+        self._blocked = True
+        self._steps_done += 1
+        self._measure()
+
     def _finish_step_if_due(self) -> None:
         if self._busy_until is None or self._clock.now_ns() < self._busy_until:
             return

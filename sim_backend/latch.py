@@ -15,11 +15,17 @@ class FaultLatch:
     def _require_open(self) -> None:
         raise NotImplementedError
 
+    def _cut_step(self) -> None:
+        """End a step under way where it is, as blocked: servos without torque stop (the
+        Dynamixel backends count such a step cut short as blocked too)."""
+
     def set_torque(self, on: bool) -> None:
         self._require_open()
         if on and self._fault:
             raise HardwareFault(f"cannot enable torque while faulted: {self._fault}; reset first")
         self._torque = on
+        if not on:
+            self._cut_step()
 
     def clear_fault(self) -> None:
         self._fault = None
@@ -28,3 +34,4 @@ class FaultLatch:
         """Latch a fault (tests and fault drills): torque drops, like a real servo."""
         self._fault = reason
         self._torque = False
+        self._cut_step()

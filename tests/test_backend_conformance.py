@@ -34,6 +34,7 @@ from service.episode.simulate import simulate
 from service.localization.maps import load_map
 from service.localization.objects.presets import preset_object
 from service.localization.surface import contact_surface
+from sim_backend.clock import ManualClock
 from sim_backend.emulator import ServoBus
 from sim_backend.emulator.hand_plant import HandPlant
 from sim_backend.emulator.plant import FingerPlant, hand_bus_servos
@@ -353,3 +354,25 @@ def test_haptic_run_dynamixel_on_haptic_emulate(tmp_path, capsys, noise):
     assert abs(hil["estimate"]["y"] - sim["estimate"]["y"]) < 1e-3
     turn = hil["estimate"]["heading"] - sim["estimate"]["heading"]
     assert abs((turn + np.pi) % (2 * np.pi) - np.pi) < np.deg2rad(1.0)
+
+
+def test_torque_off_ends_a_step_under_way_as_blocked(hand_rig):
+    """A helper's client saw a simulated finger go on moving for the rest of its step
+    after `deactivate` (torque off): `moving` true with torque off, and `steps_done` rising
+    later. Servos without torque stop: on every backend the step ends at once, counted and
+    blocked, and no step goes on after it."""
+    backend = hand_rig.backend
+    if isinstance(backend, SimulatedFinger | SimulatedHand):  # a step that lasts: the
+        # simulator's clock stands still (its steps are instant by default)
+        backend.config = replace(backend.config, step_duration_s=1.0)
+        backend._clock = ManualClock()
+    backend.open()
+    backend.set_torque(True)
+    backend.command_hand(hand_rig.command)
+    assert backend.read_hand().moving
+    backend.set_torque(False)
+    cut = backend.read_hand()
+    assert not cut.moving
+    assert all(f.steps_done == 1 and f.blocked and not f.torque_on for f in cut.fingers)
+    later = backend.read_hand()  # (a limp finger on hardware may sag: its centre may move)
+    assert not later.moving and all(f.steps_done == 1 for f in later.fingers)

@@ -250,7 +250,8 @@ class Node(CommandHandlers):
                 self._commit(rc)
 
     def _end_reconfigure(self, error: Exception) -> None:
-        self.configure_error = str(error)
+        # the requester is told in its reply, and a refused request changes nothing, so
+        # `configure_error` keeps the start-up's (`_configured_at_start`), which no one asked
         rc, self.reconf = self.reconf, None
         rc.abandon()
         rc.deferred.fail(error)
@@ -402,18 +403,29 @@ class Node(CommandHandlers):
             self._event("holding", seconds=self.config.lease.hold_s)
 
     def _shutdown(self) -> None:
+        """Exploring stops, torque goes off and the backend closes; subscribers hear the
+        episode end (`episode_done`, reason `shutdown`), the last `state` (torque off) and
+        `shutdown`, in that order (a helper's client waited for an `episode_done` that
+        never came, and the last `state` it saw had torque on)."""
         if self.reconf is not None:
             self.reconf.abandon()
             self.reconf = None
+        cut = self.explorer.stop("shutdown") if self.explorer else None
         if self.backend is not None:
             with contextlib.suppress(Exception):
                 self.backend.set_torque(False)
+            with contextlib.suppress(Exception):  # the last state: torque off
+                self.last_state = self.backend.read_hand()
             with contextlib.suppress(Exception):
                 self.backend.close()
             self.backend = None
         self.link.close()
         if self.pub is not None:
+            self._episode_cut(cut)
             self.lifecycle.apply("shutdown")
+            now = time.monotonic_ns()
+            with contextlib.suppress(Exception):  # `shutdown` goes out whatever happens
+                self._publish_state(Tick(index=0, start_ns=now, due_ns=now, deadline_ns=now))
             self._event("shutdown", state=self.lifecycle.state.value)
             self.pub.close()
         if self.cmd is not None:

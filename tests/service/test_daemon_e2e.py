@@ -190,3 +190,25 @@ def test_lease_keeper_holds_control_through_long_waits() -> None:
             assert later["state"] == "active" and later["lease_holder"] == ctl.client_id
             assert keeper.error is None
         assert ctl.call("deactivate")["state"] == "inactive"
+
+
+def test_a_shutdown_mid_episode_ends_the_episode_and_says_torque_is_off() -> None:
+    """A helper's client, written from the protocol alone, waited for an `episode_done`
+    that a SIGTERM mid-episode never sent, and the last `state` it saw had torque on. Now
+    the episode ends (reason `shutdown`), then the last `state` (torque off), then
+    `shutdown`."""
+    config = loopback_config({"backend": {"step_duration_s": 0.1}})
+    with running_node(config) as node, \
+            Subscriber(node.endpoints["pub"], ["event", "state"]) as sub, \
+            Client(node.endpoints["cmd"]) as ctl:
+        ctl.call("activate")
+        ctl.call("start_exploration")
+        assert sub.wait_for(lambda m: m.topic == "state" and m["moving"], 10.0) is not None
+        node.stop()
+        seen: list[Message] = []
+        assert sub.wait_for(lambda m: seen.append(m) or (
+            m.topic == "event" and m["event"] == "shutdown"), 10.0) is not None
+    done = [i for i, m in enumerate(seen) if m.topic == "event" and m["event"] == "episode_done"]
+    assert len(done) == 1 and seen[done[0]]["reason"] == "shutdown"
+    last_state = [m for m in seen[done[0]:] if m.topic == "state"][-1]
+    assert not last_state["torque_on"] and not last_state["exploring"]

@@ -135,8 +135,17 @@ def test_a_daemon_started_before_its_bus_says_why_and_configures_later(tmp_path:
             with pytest.raises(Exception) as err:
                 ctl.call("activate")
             assert err.value.code == "bad_state" and str(link) in str(err.value)
+            before = ctl.status()["configure_error"]
+            with pytest.raises(Exception) as err:  # refused: it changes nothing
+                ctl.call("configure", changes={"scenario": {"map": str(tmp_path / "nope.npy")}})
+            assert err.value.code == "bad_config"
+            assert ctl.status()["configure_error"] == before
             bus = emulator(link)
             assert ctl.call("configure", changes={})["state"] == "inactive"
+            assert ctl.status()["configure_error"] is None
+            with pytest.raises(Exception) as err:  # a helper's client saw this one set it
+                ctl.call("configure", changes={"scenario": {"map": str(tmp_path / "nope.npy")}})
+            assert err.value.code == "bad_config"
             assert ctl.status()["configure_error"] is None
     finally:
         if bus is not None:
