@@ -173,7 +173,9 @@ class ConvergenceRule:
         needed = self.min_readings_noisy if noisy else self.min_readings
         if readings < needed or not mode_mass >= self.mode_mass:
             return False
-        fits = (fit.rms <= self.max_rms and fit.max_abs <= self.max_abs_for(fit.readings)
+        # with noise, a reading's error is its own and the map's, which the spread counts
+        worst = fit.max_abs_shared if np.isfinite(fit.max_abs_shared) else fit.max_abs
+        fits = (fit.rms <= self.max_rms and worst <= self.max_abs_for(fit.readings)
                 if noisy
                 else fit.max_abs <= self.max_abs)
         largest = self.max_position_sd if noisy else self.max_position_sd_exact
@@ -460,5 +462,7 @@ def _with_model_error(surface: ContactSurface, history: np.ndarray, fit: Fit, si
     position_sd, heading_sd = correlated_spread(surface, kept, pose, sigma, position_sigma,
                                                 sigma, step_length)
     factor = max(1.0, fit.rms)
+    whole = np.hypot(reading_sigmas(surface, kept, pose, sigma, position_sigma), sigma)
     return dataclasses.replace(fit, position_sd=max(fit.position_sd, position_sd) * factor,
-                               heading_sd=max(fit.heading_sd, heading_sd) * factor)
+                               heading_sd=max(fit.heading_sd, heading_sd) * factor,
+                               max_abs_shared=assess(surface, kept, pose, whole).max_abs)

@@ -45,6 +45,10 @@ class Fit:
     marginalized: zero along a direction they do not see (the covariance is its inverse)."""
     kept: np.ndarray | None = field(default=None, repr=False, compare=False)
     """Indexes of the readings the fit kept (`refine` sets outliers aside); None: all."""
+    max_abs_shared: float = float("nan")
+    """Largest residual over all the error a reading is expected to have: its own sd and
+    the map's error that nearby readings share (`convergence._with_model_error`); nan
+    where that error is not modelled (without noise)."""
 
 
 def reading_sigmas(surface: ContactSurface, history: np.ndarray, pose: np.ndarray,
