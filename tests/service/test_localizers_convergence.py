@@ -186,7 +186,7 @@ def test_no_near_miss_on_map_seeds_27_to_35():
     `test_no_wrong_declaration_where_one_was_found`); shell:20:27 seed 1 was still declared
     2.5 mm and 0.5 degrees off at a claimed 0.5 mm, the readings pointing there (refined
     from the truth, the fit landed on the declared pose). Since the plan counts the error
-    nearby readings share (`info_gain._precision`) its walk reads other places and it
+    nearby readings share (`precision.Spread`) its walk reads other places and it
     localizes (41 steps, 1.1 mm off). The judge is as it was: such a tail can recur."""
     assert not _declares_wrongly("shell:20:27", 1)
 

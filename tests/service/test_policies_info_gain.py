@@ -9,7 +9,7 @@ from service.episode.scenario import RunSettings
 from service.episode.simulate import simulate
 from service.localization.localizers.base import Hypotheses
 from service.localization.maps import bumps, peaks
-from service.localization.policies import info_gain
+from service.localization.policies import info_gain, precision
 from service.localization.policies.base import MOVES, PolicyInput, predicted_heights
 from service.localization.policies.info_gain import InfoGainPolicy, information
 from service.localization.surface import HeightMap, contact_surface
@@ -274,7 +274,7 @@ def test_localizes_four_alike_holes_where_the_plan_in_reach_tells_a_little(
     """pattern:20:0, seed 1: without the far search (a gain it can never reach) 60 steps
     end undecided between the pattern's quarter turns; walking to the place that tells
     them apart at more than twice the rate in reach localizes it (in 34 steps). Seed 2 was
-    this case until the plan counted the error nearby readings share (`_precision`); its
+    this case until the plan counted the error nearby readings share (`precision.Spread`); its
     walk now tells the turns apart in reach."""
     from service.localization.maps import load_map
 
@@ -297,10 +297,10 @@ def _direct_precision(surface, pose, done, fresh, s, shared_sd, step):
     """The spread's shrinkage computed from scratch for each place: the sandwich covariance
     of the least-squares pose over every reading, with and without the new one."""
     def volume(places):
-        rows, _ = info_gain._pose_rows(surface, pose, places)
+        rows, _ = precision._pose_rows(surface, pose, places)
         d2 = np.sum((places[:, None] - places[None, :]) ** 2, axis=-1)
         cov = s**2 * np.eye(len(places)) + shared_sd**2 * np.exp(-0.5 * d2 / step**2)
-        prior = np.diag([1 / step**2, 1 / step**2, 1 / info_gain.PRIOR_HEADING**2,
+        prior = np.diag([1 / step**2, 1 / step**2, 1 / precision.PRIOR_HEADING**2,
                          1 / step**2])
         a = rows.T @ rows / s**2 + prior
         m = rows.T @ cov @ rows / s**4 + prior
@@ -323,8 +323,8 @@ def test_precision_counts_the_error_nearby_readings_share(surface):
             for p in ((0, 0), (1, 0), (0, 1), (1, 1), (2, 0), (0, 2), (2, 1))]
     view = _with_estimate(_view(surface, [pose]), pose, mass=0.8)
     offsets = np.array([[1, 1], [2, 0], [4, 3], [-4, -3], [-3, 4], [5, -5]])
-    shared = info_gain._precision(view, offsets, s, read)
-    alone = info_gain._precision(view, offsets, s, read, shared_sd=0.0)
+    shared = precision.Spread.now(view, s, read).gain(view, offsets)
+    alone = precision.Spread.now(view, s, read, shared_sd=0.0).gain(view, offsets)
     direct = _direct_precision(surface, pose, np.asarray(read), offsets * step, s, s, step)
     assert shared == pytest.approx(0.8 * direct, rel=1e-6)
     assert np.all(alone > 0) and np.all(shared <= alone)

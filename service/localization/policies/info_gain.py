@@ -16,7 +16,7 @@ reading there, per step of the route to it, and walks toward the best; it re-pla
 every reading, and keeps its target unless another is clearly better, so it never dithers
 between two. Once one mode leads, a reading is also worth what it would shrink the
 leading pose's spread by, the spread as the declaration weighs it: nearby readings share
-the map's error (`_precision`). Places not read yet earn a little credit (`NOVELTY`):
+the map's error (`precision.Spread`). Places not read yet earn a little credit (`NOVELTY`):
 where the hypotheses agree, new places still add the evidence a declaration needs, where
 shuttling between two read places adds none.
 
@@ -47,11 +47,10 @@ from typing import ClassVar
 import numpy as np
 
 from service.localization import kernels
-from service.localization.localizers.fitting import sample
 from service.localization.localizers.pool import niche
 from service.localization.models import rotate
 from service.localization.policies.base import MOVES, PolicyInput, allowed_moves
-from service.localization.surface import ContactSurface
+from service.localization.policies.precision import Spread
 
 NOVELTY = 0.05
 """Information (nats) credited to a reading at a place not read yet."""
@@ -65,8 +64,6 @@ differ by less are one mode, and chasing their differences makes a policy dither
 BLOCKED = 1.0
 """The predicted "reading" of a blocked step, metres: far from any height, so it stands
 apart from every real reading."""
-PRIOR_HEADING = np.deg2rad(30.0)
-"""How loose a heading no reading has constrained is taken to be, for `_precision`."""
 KEEP_TARGET = 1.5
 """A new target must promise this many times the rate of the current one to replace it."""
 FAR_MODES = 8
@@ -107,7 +104,7 @@ class InfoGainPolicy:
         """The place the far search walks to (`_far_target`)."""
         self._positions: list[np.ndarray] = []
         """Where (finger frame) every reading so far was taken: readings near each other
-        share the map's error, which `_precision` counts."""
+        share the map's error, which `precision.Spread` counts."""
 
     def next_move(self, view: PolicyInput) -> int:
         here = _place(view.displacement, view.step_length)
@@ -126,15 +123,16 @@ class InfoGainPolicy:
         if len(poses) == 0:
             return moves[0]
         s = self.noise_floor * view.step_length
+        spread = Spread.now(view, s, self._positions)
         far = self._far_target(view, here, poses, weights, s)
         if far is not None and not _route(moves, here, far):  # walled off from here
             self._unreachable.add(far)
             far = self._far = None
         if far is not None:  # a place beyond reach tells the main modes apart far faster
             self._target = far
-            return self._toward(view, here, far, moves, poses, weights, s)
+            return self._toward(view, here, far, moves, poses, weights, s, spread)
         offsets = _diamond(self.reach, view.surface.map.is_profile)
-        value = self._value(view, poses, weights, offsets, s)
+        value = self._value(view, poses, weights, offsets, s, spread)
         dist = np.abs(offsets).sum(axis=1)
         reachable = self._reachable(here, offsets)
         rate = np.where((dist > 0) & reachable, value / np.maximum(dist, 1), -np.inf)
@@ -148,11 +146,11 @@ class InfoGainPolicy:
             if len(kept) and reachable[kept[0]] and rate[best] < KEEP_TARGET * rate[kept[0]]:
                 target = self._target
         self._target = target
-        return self._toward(view, here, target, moves, poses, weights, s)
+        return self._toward(view, here, target, moves, poses, weights, s, spread)
 
     # -- scoring ---------------------------------------------------------------------------
     def _value(self, view: PolicyInput, poses: np.ndarray, weights: np.ndarray,
-               offsets: np.ndarray, s: float) -> np.ndarray:
+               offsets: np.ndarray, s: float, spread: Spread | None) -> np.ndarray:
         """Information of a reading at each place (plus novelty), over distinct modes."""
         keep = niche(poses, weights, 0.5 * view.step_length, np.deg2rad(15.0),
                      limit=self.modes)
@@ -162,7 +160,7 @@ class InfoGainPolicy:
         here = _place(view.displacement, view.step_length)
         reads = np.array([self._reads[(here[0] + int(i), here[1] + int(j))]
                           for i, j in offsets])
-        precision = _precision(view, offsets, s, self._positions)
+        precision = np.zeros(len(offsets)) if spread is None else spread.gain(view, offsets)
         return _credit(info, precision, (reads == 0) * (inside @ w), reads == 1)
 
     def _far_target(self, view: PolicyInput, here: tuple[int, int], poses: np.ndarray,
@@ -229,7 +227,8 @@ class InfoGainPolicy:
         return ~_among(offsets + np.array(here), self._unreachable)
 
     def _toward(self, view: PolicyInput, here: tuple[int, int], target: tuple[int, int],
-                moves: list[int], poses: np.ndarray, weights: np.ndarray, s: float) -> int:
+                moves: list[int], poses: np.ndarray, weights: np.ndarray, s: float,
+                spread: Spread | None) -> int:
         """The free move along a shortest route to `target` whose own reading tells most;
         any free move if none leads there."""
         options = _route(moves, here, target) or moves
@@ -243,7 +242,7 @@ class InfoGainPolicy:
         gain = (information(z[:, :, np.newaxis], w, s) if k > 1 else np.zeros(len(options)))
         reads = np.array([self._reads[(here[0] + int(MOVES[m][0]), here[1] + int(MOVES[m][1]))]
                           for m in options])
-        precision = _precision(view, steps, s, self._positions)
+        precision = np.zeros(len(steps)) if spread is None else spread.gain(view, steps)
         value = _credit(gain, precision, (reads == 0) * (inside @ w), reads == 1)
         return options[int(np.argmax(value))]
 
@@ -265,78 +264,6 @@ class InfoGainPolicy:
         moves = allowed_moves(view)
         free = [m for m in moves if (*here, m) not in self._walls]
         return free or moves
-
-
-def _precision(view: PolicyInput, offsets: np.ndarray, s: float, read: list[np.ndarray],
-               shared_sd: float | None = None) -> np.ndarray:
-    """Expected information (nats) of a reading at each place about where exactly the
-    leading pose lies, weighted by the leading mode's probability: 0.5 log of how much it
-    shrinks the volume of the pose's spread, the spread as the declaration weighs it.
-
-    The map differs from the object smoothly, so readings near each other err together:
-    the declared spread is the least-squares pose's under an error shared with a Gaussian
-    correlation over a step (`shared_sd`, default `s`), besides each reading's own `s`
-    (`refine.correlated_spread`). A reading beside places already `read` then adds little,
-    one on new ground much. Weighed as independent (what this was), the policy took the
-    pose to be pinned long before the declaration did: on shells 0.9-2 mm of claimed spread
-    was left after 60 steps, against the 0.8 mm a declaration needs. With a prior of a step
-    and `PRIOR_HEADING`, a direction no reading has seen yet (a straight rib, a plain) is
-    bounded by the prior alone, and the readings that would see it are worth the most."""
-    est = view.estimate
-    if est is None or est.pose is None or est.information is None or not read:
-        return np.zeros(len(offsets))
-    mass = float(est.mode_mass) if np.isfinite(est.mode_mass) else 0.0
-    step = view.step_length
-    shared_var = (s if shared_sd is None else shared_sd) ** 2
-    done = np.asarray(read)
-    fresh = np.asarray(view.displacement, dtype=np.float64)[np.newaxis, :2] + offsets * step
-    rows, on_map = _pose_rows(view.surface, est.pose, np.vstack([done, fresh]))
-    j, jt, on_map = rows[:len(done)], rows[len(done):], on_map[len(done):]
-    w = 1.0 / s**2
-    prior = np.diag([1 / step**2, 1 / step**2, 1 / PRIOR_HEADING**2, 1 / step**2])
-    normal = w * j.T @ j + prior  # A = J^T W J, and the prior
-    meat = normal + w * w * j.T @ (shared_var * _correlation(done, done, step)) @ j
-    # a reading at each place added: A + w j j^T, and M gains the new reading's row and
-    # column of the readings' covariance (its own s^2 and what it shares with each read)
-    u = w * jt
-    v = w * (shared_var * _correlation(fresh, done, step)) @ j
-    normal_t = normal + w * np.einsum("ti,tj->tij", jt, jt)
-    meat_t = (meat + np.einsum("ti,tj->tij", u, v) + np.einsum("ti,tj->tij", v, u)
-              + (s**2 + shared_var) * np.einsum("ti,tj->tij", u, u))
-    before = _spread_volume(normal[np.newaxis], meat[np.newaxis])[0]
-    after = _spread_volume(normal_t, meat_t)
-    gain = 0.5 * np.log(np.maximum(before / np.maximum(after, 1e-300), 1.0))
-    return np.where(on_map & np.isfinite(gain), gain * mass, 0.0)
-
-
-def _correlation(a: np.ndarray, b: np.ndarray, length: float) -> np.ndarray:
-    """(A, B) the map error's correlation between readings at places `a` and `b`: Gaussian
-    over `length`, as `refine.shared_error` has it."""
-    return np.exp(-0.5 * np.sum((a[:, None, :] - b[None, :, :]) ** 2, axis=-1) / length**2)
-
-
-def _pose_rows(surface: ContactSurface, pose: tuple[float, float, float],
-               places: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(P, 4) each reading's sensitivity to (x0, y0, heading, height offset) at `pose`, for
-    readings at `places` (finger frame), and whether each lies on the map."""
-    x0, y0, heading = pose
-    c, si = np.cos(heading), np.sin(heading)
-    tx, ty = places[:, 0], places[:, 1]
-    x, y = x0 + c * tx - si * ty, y0 + si * tx + c * ty
-    _, gx, gy = sample(surface, x, y)
-    rows = np.column_stack([gx, gy, gx * (-si * tx - c * ty) + gy * (c * tx - si * ty),
-                            -np.ones(len(places))])
-    if surface.map.is_profile:  # a profile fits neither y0 nor the direction
-        rows[:, 1:3] = 0.0
-    return rows, surface.map.inside(x, y)
-
-
-def _spread_volume(normal: np.ndarray, meat: np.ndarray) -> np.ndarray:
-    """Determinant of the pose block (x0, y0, heading) of the sandwich covariance
-    A^-1 M A^-1, for each of a batch of (4, 4) A and M."""
-    bread = np.linalg.inv(normal)
-    cov = bread @ meat @ bread
-    return np.linalg.det(cov[:, :3, :3])
 
 
 def _credit(info: np.ndarray, precision: np.ndarray, novel: np.ndarray, once: np.ndarray
