@@ -129,8 +129,9 @@ def describe_symmetries(motions: np.ndarray, strengths: np.ndarray,
     shown = []
     for (k, dx, dy), (corr, overlap) in zip(motions[:3], strengths[:3], strict=True):
         how = f" (correlation {corr:.2f} over {overlap:.0%} of the map)"
-        turn = {0: "shift", 1: "quarter turn", 2: "reversal" if is_profile else "half turn",
-                3: "three-quarter turn"}[int(k) % 4]
+        turn = ({0: "shift", 1: "quarter turn", 2: "reversal" if is_profile else "half turn",
+                 3: "three-quarter turn"}[int(k) % 4] if k == round(k)
+                else f"turn by {k * 90:.0f} deg")
         if is_profile:
             motion = (f"{turn} by {dx * 1e3:+.0f} mm" if k == 0 else
                       f"{turn} (then shift {dx * 1e3:+.0f} mm)")

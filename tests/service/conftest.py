@@ -1,4 +1,4 @@
-"""Surfaces a helper wrote from scratch for a held-out check (200 x 200 mm at 1 mm, heights
+"""Surfaces helpers wrote from scratch for held-out checks (200 x 200 mm at 1 mm, heights
 in metres), kept where a wrong declaration was found on them: fixtures give each as a
 `.npy` map file."""
 
@@ -10,6 +10,8 @@ import numpy as np
 import pytest
 
 _X, _Y = np.meshgrid(np.arange(201) * 0.001, np.arange(201) * 0.001)
+_MM = np.meshgrid(np.arange(201.0), np.arange(201.0))
+"""The same grid in millimetres, exactly."""
 
 
 @pytest.fixture()
@@ -26,6 +28,82 @@ def plate_map(tmp_path: Path) -> Path:
     path = tmp_path / "plate.npy"
     np.save(path, machined_plate())
     return path
+
+
+@pytest.fixture()
+def hex_map(tmp_path: Path) -> Path:
+    """`hexagonal_bumps` as a map file."""
+    path = tmp_path / "hexbumps.npy"
+    np.save(path, hexagonal_bumps())
+    return path
+
+
+@pytest.fixture()
+def knurl_map(tmp_path: Path) -> Path:
+    """`knurl_60` as a map file."""
+    path = tmp_path / "knurl60.npy"
+    np.save(path, knurl_60())
+    return path
+
+
+@pytest.fixture()
+def twins_map(tmp_path: Path) -> Path:
+    """`twin_blocks` as a map file."""
+    path = tmp_path / "twins.npy"
+    np.save(path, twin_blocks())
+    return path
+
+
+def _smooth(z_mm: np.ndarray, sigma: float) -> np.ndarray:
+    """Heights in millimetres, smoothed by `sigma` samples, as metres."""
+    from scipy import ndimage
+
+    return ndimage.gaussian_filter(z_mm, sigma, mode="nearest") * 1e-3
+
+
+def hexagonal_bumps() -> np.ndarray:
+    """A hexagonal lattice (22 mm) of 4 mm round bumps, one missing: it repeats under
+    turns of 60 degrees about its centre, which no check of quarter turns finds."""
+    x, y = _MM
+    z = np.full(x.shape, 10.0)
+    for i in range(-8, 9):
+        for j in range(-8, 9):
+            cx, cy = 100 + 22.0 * (i + 0.5 * j), 100 + 22.0 * (np.sqrt(3) / 2) * j
+            if (i, j) != (1, 2) and -15 < cx < 215 and -15 < cy < 215:
+                r2 = (x - cx) ** 2 + (y - cy) ** 2
+                z = np.maximum(z, 10.0 + 4.0 * np.clip(1 - r2 / 8.0**2, 0, None) ** 0.5)
+    return _smooth(z, 0.7)
+
+
+def knurl_60() -> np.ndarray:
+    """A 60-degree diamond knurl (14 mm pitch, 2.5 mm deep) with one worn patch: nearly a
+    hexagonal lattice to the tip, correlating with its 60-degree turn at 0.83."""
+    x, y = _MM
+    a = np.deg2rad(30)
+    u, v = x * np.cos(a) + y * np.sin(a), x * np.cos(-a) + y * np.sin(-a)
+    def tri(t: np.ndarray) -> np.ndarray:
+        return np.abs(np.mod(t / 14.0, 1.0) - 0.5) * 2
+    z = 2.5 * np.minimum(tri(u), tri(v)) + 8.0
+    worn = np.exp(-(((x - 57) / 14.0) ** 2 + ((y - 142) / 14.0) ** 2))
+    return _smooth(z * (1 - worn) + np.minimum(z, 8.5) * worn, 0.5)
+
+
+def twin_blocks() -> np.ndarray:
+    """Two identical pocketed blocks side by side, a dimple on the right one: the plate is
+    its own half turn about (100, 70) mm wherever the pocket and the gap between the
+    blocks are read."""
+    x, y = _MM
+    def block(x0: float) -> np.ndarray:
+        b = np.zeros(x.shape)
+        inside = (x >= x0) & (x <= x0 + 80) & (y >= 25) & (y <= 175)
+        b[inside] = 15.0
+        b[inside & (np.abs(x - (x0 + 40)) < 20) & (np.abs(y - 70) < 25)] = 11.0
+        b[inside & (np.hypot(x - (x0 + 40), y - 140) < 11)] = 5.0
+        return b
+    z = np.maximum(block(12), block(108))
+    dimple = np.hypot(x - 168, y - 105) < 5.0
+    z[dimple] = np.minimum(z[dimple], 13.0)
+    return _smooth(z, 0.6)
 
 
 def texture_with_a_bowl_and_a_bump() -> np.ndarray:
