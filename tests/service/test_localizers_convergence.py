@@ -302,22 +302,22 @@ def test_a_reading_is_judged_against_all_the_error_it_is_expected_to_have():
 def test_turns_other_than_quarter_turns_are_found_and_their_images_read_alike(hex_map):
     """A hexagonal lattice repeats under turns of 60 degrees, which the quarter-turn search
     never tried: a helper's held-out check found five poses declared 29-86 mm and 60
-    degrees off on one. Such turns are now found, and the image of a pose under one reads
-    what the pose reads."""
+    degrees off on one. Such turns are now found, and a pose's image under one lands within
+    a polish (a millimetre, half a degree) of the pose turned about a bump, which reads the
+    same heights."""
     surface = contact_surface(load_map(str(hex_map), 0.001), 0.008)
     motions = symmetries(surface)
     other = motions[np.abs(motions[:, 0] - np.round(motions[:, 0])) > 1e-9]
     assert {60, 120, 240, 300} <= set(np.round(other[:, 0] * 90).astype(int))
     pose = np.array([0.0877, 0.081, 1.29])
-    steps = np.random.default_rng(0).uniform(-0.03, 0.03, (60, 2))
-
-    def heights(p: np.ndarray) -> np.ndarray:
-        c, s = np.cos(p[2]), np.sin(p[2])
-        return np.array([surface.height(p[0] + c * dx - s * dy, p[1] + s * dx + c * dy)
-                         for dx, dy in steps])
-    misfit = [np.sqrt(np.mean((heights(q) - heights(pose)) ** 2))
-              for q in images(surface, pose, other)]
-    assert min(misfit) < 0.0002  # within B2's noise
+    centre = np.array([0.1, 0.1])  # a bump of the lattice, at the map's centre
+    for turn in np.deg2rad([60.0, 120.0, -60.0, -120.0]):
+        c, s = np.cos(turn), np.sin(turn)
+        at = centre + np.array([[c, -s], [s, c]]) @ (pose[:2] - centre)
+        image = images(surface, pose, other)
+        off = np.hypot(*(image[:, :2] - at).T)
+        turned = np.abs((image[:, 2] - pose[2] - turn + np.pi) % (2 * np.pi) - np.pi)
+        assert np.min(np.where(turned < np.deg2rad(0.5), off, np.inf)) < 0.001
     assert not np.any(np.abs(symmetries(contact_surface(peaks(), 0.008))[:, 0] % 1) > 0)
 
 
@@ -329,10 +329,14 @@ def test_no_wrong_declaration_on_a_hexagonal_lattice(hex_map):
     assert report.score.success
 
 
-@pytest.mark.xfail(strict=True, reason="not fixed: the knurl correlates with its 60-degree "
-                   "turn at 0.83, under the 0.85 at which a turn counts as a near symmetry")
+@pytest.mark.xfail(strict=True, reason="not fixed: its 60-degree turns are found (a lattice, "
+                   "`symmetry.LATTICE`), but the judge still declares the turned pose")
 def test_no_wrong_declaration_on_a_60_degree_knurl(knurl_map):
-    """A helper's held-out check: seed 237 is declared 66 mm and 60 degrees off."""
+    """A helper's held-out check: seed 237 is declared 66 mm and 60 degrees off. The knurl
+    correlates with its 60-degree turn at 0.83 only, under the bar of a near symmetry, but
+    with its 30-degree turn at 0.03: a lattice, whose turns now count; one version of this
+    search (a coarser grid) localized this seed, and another knurl's seed 298 stays wrong
+    (BENCHMARKS.md)."""
     report = simulate(RunSettings(map=str(knurl_map), spacing=0.001, noise=True, seed=237,
                                   max_steps=60))
     assert not report.score.wrong_declaration
