@@ -283,7 +283,7 @@ def test_a_reading_is_judged_against_all_the_error_it_is_expected_to_have():
     """The spread counts the map's error that nearby readings share; the rule's largest
     residual now does too (`Fit.max_abs_shared`): each reading over its own sd and that
     error together. Over its own sd alone, one reading 4.3 sds off kept plate:20:27, seed
-    12, undeclared for 60 steps at 0.15 mm and 0.1 degrees from the truth."""
+    12, undeclared for 60 steps at 0.1 mm and 0.1 degrees from the truth."""
     rule = ConvergenceRule()
     fit = Fit(pose=(0.1, 0.1, 0.0), position_sd=0.0002, heading_sd=0.002, rms=1.1,
               max_abs=4.3, readings=40)
