@@ -47,10 +47,12 @@ def belief_text(position_sd: float | None, heading_sd: float | None,
     probability (comparable across localizers, unlike a count of hypotheses)."""
     if position_sd is None or not math.isfinite(position_sd):
         spread = "spread ?"
-    else:
-        spread = f"spread {mm(position_sd)}"
+    else:  # a direction the readings do not see yet has a spread of no meaning in numbers
+        # (a helper read "spread 514850229.0 mm / 74956147.2 deg")
+        spread = ("spread over 1 m" if position_sd > 1.0 else f"spread {mm(position_sd)}")
         if heading_sd is not None and math.isfinite(heading_sd):
-            spread += f" / {math.degrees(heading_sd):.1f} deg"
+            spread += (" / over 180 deg" if heading_sd > math.pi
+                       else f" / {math.degrees(heading_sd):.1f} deg")
     if mode_mass is None or not math.isfinite(mode_mass):
         return spread
     return f"{spread}, leading mode {100 * mode_mass:.0f} %"

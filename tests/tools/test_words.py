@@ -1,0 +1,16 @@
+"""How beliefs read: a spread no reading bounds is said in words, not in nine digits."""
+
+import math
+
+from tools.words import belief_text
+
+
+def test_a_spread_no_reading_bounds_reads_in_words():
+    """A helper read "spread 514850229.0 mm / 74956147.2 deg" while a raised text's plain
+    left a direction unseen, and "476.2 deg" at another step."""
+    assert belief_text(514850.229, 1.3e6, 0.2) == \
+        "spread over 1 m / over 180 deg, leading mode 20 %"
+    assert belief_text(0.00046, math.radians(0.43), 1.0) == \
+        "spread 0.5 mm / 0.4 deg, leading mode 100 %"
+    assert belief_text(0.2505, math.radians(476.2), None) == "spread 250.5 mm / over 180 deg"
+    assert belief_text(float("inf"), None, None) == "spread ?"
