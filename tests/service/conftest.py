@@ -47,6 +47,22 @@ def knurl_map(tmp_path: Path) -> Path:
 
 
 @pytest.fixture()
+def knurl12_map(tmp_path: Path) -> Path:
+    """`knurl_12` as a map file."""
+    path = tmp_path / "knurl12.npy"
+    np.save(path, knurl_12())
+    return path
+
+
+@pytest.fixture()
+def gear_map(tmp_path: Path) -> Path:
+    """`gear_13` as a map file."""
+    path = tmp_path / "gear.npy"
+    np.save(path, gear_13())
+    return path
+
+
+@pytest.fixture()
 def twins_map(tmp_path: Path) -> Path:
     """`twin_blocks` as a map file."""
     path = tmp_path / "twins.npy"
@@ -78,14 +94,41 @@ def hexagonal_bumps() -> np.ndarray:
 def knurl_60() -> np.ndarray:
     """A 60-degree diamond knurl (14 mm pitch, 2.5 mm deep) with one worn patch: nearly a
     hexagonal lattice to the tip, correlating with its 60-degree turn at 0.83."""
+    return _diamond_knurl(14.0, 2.5, (57.0, 142.0), (14.0, 14.0), 8.5)
+
+
+def knurl_12() -> np.ndarray:
+    """A diamond knurl of 12 mm pitch at +-30 degrees, 1.6 mm deep, one worn ellipse."""
+    return _diamond_knurl(12.0, 1.6, (132.0, 61.0), (22.0, 15.0), 8.3)
+
+
+def _diamond_knurl(pitch: float, depth: float, worn: tuple[float, float],
+                   radii: tuple[float, float], floor: float) -> np.ndarray:
+    """Grooves at +-30 degrees (millimetres), ground down to `floor` round `worn`."""
     x, y = _MM
     a = np.deg2rad(30)
     u, v = x * np.cos(a) + y * np.sin(a), x * np.cos(-a) + y * np.sin(-a)
+
     def tri(t: np.ndarray) -> np.ndarray:
-        return np.abs(np.mod(t / 14.0, 1.0) - 0.5) * 2
-    z = 2.5 * np.minimum(tri(u), tri(v)) + 8.0
-    worn = np.exp(-(((x - 57) / 14.0) ** 2 + ((y - 142) / 14.0) ** 2))
-    return _smooth(z * (1 - worn) + np.minimum(z, 8.5) * worn, 0.5)
+        return np.abs(np.mod(t / pitch, 1.0) - 0.5) * 2
+    z = depth * np.minimum(tri(u), tri(v)) + 8.0
+    w = np.exp(-(((x - worn[0]) / radii[0]) ** 2 + ((y - worn[1]) / radii[1]) ** 2))
+    return _smooth(z * (1 - w) + np.minimum(z, floor) * w, 0.5)
+
+
+def gear_13() -> np.ndarray:
+    """A 13-tooth spur gear lying on a table (14 mm web, 20 mm hub, a bore with one
+    keyway): it repeats under turns of its tooth pitch, 27.7 degrees."""
+    x, y = _MM
+    r, th = np.hypot(x - 101.3, y - 98.7), np.arctan2(y - 98.7, x - 101.3)
+    gap = np.abs(np.mod(th * 13 / (2 * np.pi), 1.0) - 0.5) * 2
+    tip = np.clip((r - 58.0) / 20.0, 0, 1)
+    z = np.where((r <= 78.0) & ((r <= 58.0) | (gap <= 0.55 - 0.25 * tip)), 14.0, 0.0)
+    z[r <= 28.0] = 20.0
+    u = (x - 101.3) * np.cos(0.4) + (y - 98.7) * np.sin(0.4)
+    v = -(x - 101.3) * np.sin(0.4) + (y - 98.7) * np.cos(0.4)
+    z[(r <= 14.0) | ((u > 0) & (u < 19.0) & (np.abs(v) < 3.5))] = 0.0
+    return _smooth(z, 0.6)
 
 
 def twin_blocks() -> np.ndarray:
