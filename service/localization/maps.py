@@ -23,10 +23,12 @@ def load_map(spec: str, spacing: float | None = None) -> HeightMap:
     path = Path(spec)
     if path.suffix.lower() not in MAP_FILE_SUFFIXES:
         if spacing is not None:
-            raise MapError("--spacing applies to map files, not presets")
+            raise MapError("a spacing (`--spacing`, `scenario.spacing`) applies to map files, "
+                           "not presets")
         return preset(spec)
     if spacing is None:
-        raise MapError(f"map file '{spec}' needs --spacing (metres between samples)")
+        raise MapError(f"map file '{spec}' needs its sample spacing in metres (`--spacing` "
+                       "on the command line, `scenario.spacing` in hapticd's configuration)")
     if not path.is_file():
         raise MapError(f"map file '{spec}' does not exist")
     try:

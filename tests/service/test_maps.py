@@ -51,7 +51,7 @@ def test_bad_map_specs(spec, spacing, message):
 def test_file_needs_spacing(tmp_path):
     path = tmp_path / "s.npy"
     np.save(path, np.zeros((3, 3)))
-    with pytest.raises(MapError, match="needs --spacing"):
+    with pytest.raises(MapError, match="needs its sample spacing .*--spacing.*scenario.spacing"):
         load_map(str(path))
 
 
