@@ -17,56 +17,47 @@ _MM = np.meshgrid(np.arange(201.0), np.arange(201.0))
 @pytest.fixture()
 def texture_map(tmp_path: Path) -> Path:
     """`texture_with_a_bowl_and_a_bump` as a map file."""
-    path = tmp_path / "texture.npy"
-    np.save(path, texture_with_a_bowl_and_a_bump())
-    return path
+    return _map_file(tmp_path / "texture.npy", texture_with_a_bowl_and_a_bump())
 
 
 @pytest.fixture()
 def plate_map(tmp_path: Path) -> Path:
     """`machined_plate` as a map file."""
-    path = tmp_path / "plate.npy"
-    np.save(path, machined_plate())
-    return path
+    return _map_file(tmp_path / "plate.npy", machined_plate())
 
 
 @pytest.fixture()
 def hex_map(tmp_path: Path) -> Path:
     """`hexagonal_bumps` as a map file."""
-    path = tmp_path / "hexbumps.npy"
-    np.save(path, hexagonal_bumps())
-    return path
+    return _map_file(tmp_path / "hexbumps.npy", hexagonal_bumps())
 
 
 @pytest.fixture()
 def knurl_map(tmp_path: Path) -> Path:
     """`knurl_60` as a map file."""
-    path = tmp_path / "knurl60.npy"
-    np.save(path, knurl_60())
-    return path
+    return _map_file(tmp_path / "knurl60.npy", knurl_60())
 
 
 @pytest.fixture()
 def knurl12_map(tmp_path: Path) -> Path:
     """`knurl_12` as a map file."""
-    path = tmp_path / "knurl12.npy"
-    np.save(path, knurl_12())
-    return path
+    return _map_file(tmp_path / "knurl12.npy", knurl_12())
 
 
 @pytest.fixture()
 def gear_map(tmp_path: Path) -> Path:
     """`gear_13` as a map file."""
-    path = tmp_path / "gear.npy"
-    np.save(path, gear_13())
-    return path
+    return _map_file(tmp_path / "gear.npy", gear_13())
 
 
 @pytest.fixture()
 def twins_map(tmp_path: Path) -> Path:
     """`twin_blocks` as a map file."""
-    path = tmp_path / "twins.npy"
-    np.save(path, twin_blocks())
+    return _map_file(tmp_path / "twins.npy", twin_blocks())
+
+
+def _map_file(path: Path, heights: np.ndarray) -> Path:
+    np.save(path, heights)
     return path
 
 

@@ -37,6 +37,7 @@ from service.localization.localizers.refine import (
     reading_sigmas,
     refine,
     shared_error,
+    worst_over_whole_error,
 )
 from service.localization.localizers.symmetry import images
 from service.localization.surface import ContactSurface
@@ -462,7 +463,7 @@ def _with_model_error(surface: ContactSurface, history: np.ndarray, fit: Fit, si
     position_sd, heading_sd = correlated_spread(surface, kept, pose, sigma, position_sigma,
                                                 sigma, step_length)
     factor = max(1.0, fit.rms)
-    whole = np.hypot(reading_sigmas(surface, kept, pose, sigma, position_sigma), sigma)
     return dataclasses.replace(fit, position_sd=max(fit.position_sd, position_sd) * factor,
                                heading_sd=max(fit.heading_sd, heading_sd) * factor,
-                               max_abs_shared=assess(surface, kept, pose, whole).max_abs)
+                               max_abs_shared=worst_over_whole_error(
+                                   surface, kept, pose, sigma, position_sigma))

@@ -189,6 +189,17 @@ def correlated_spread(surface: ContactSurface, history: np.ndarray, pose: np.nda
     return _sd(cov[0, 0] + cov[1, 1]), _sd(cov[2, 2])
 
 
+def worst_over_whole_error(surface: ContactSurface, history: np.ndarray, pose: np.ndarray,
+                           sigma: float, position_sigma: float) -> float:
+    """The largest residual at `pose` (the height offset fitted), each reading's over its
+    whole expected error: its own sd (`reading_sigmas`) and the map's error `sigma` that
+    nearby readings share (`Fit.max_abs_shared`). One pass over the readings."""
+    z, jac = heights_and_jacobian(surface, np.asarray(pose, dtype=np.float64), history)
+    whole = np.hypot(_slope_sigmas(jac, sigma, position_sigma), sigma)
+    r = z - np.mean(z - history[:, 2]) - history[:, 2]
+    return float(np.max(np.abs(r / whole)))
+
+
 def shared_error(history: np.ndarray, error_sd: float, length: float) -> np.ndarray:
     """(K, K) covariance of the error the readings share where the map differs from the
     object smoothly: sd `error_sd`, a Gaussian correlation over `length` (as far apart as
