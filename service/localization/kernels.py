@@ -408,8 +408,9 @@ def sweep_tiles(shape: np.ndarray) -> int:
 def sweep_screen(grid: np.ndarray, slopes: np.ndarray, block: float, spacing: float,
                  extent: tuple[float, float], profile: bool, first: int, count: int,
                  stride: int, shape: np.ndarray, origin: np.ndarray, pitch: np.ndarray,
-                 history: np.ndarray, sigma: float, spread: np.ndarray, margin: float,
-                 cap: float, limit: float, keep: int) -> tuple[np.ndarray, np.ndarray]:
+                 headings: np.ndarray, history: np.ndarray, sigma: float, spread: np.ndarray,
+                 margin: float, cap: float, limit: float, keep: int
+                 ) -> tuple[np.ndarray, np.ndarray]:
     """The `keep` best of cells `first` .. `first + count` of a sweep over a grid of start
     poses, best first.
 
@@ -418,7 +419,8 @@ def sweep_screen(grid: np.ndarray, slopes: np.ndarray, block: float, spacing: fl
     spread over the whole map, and within a tile each heading in turn over its positions,
     so neighbouring cells read neighbouring samples (on an 80-unit map a cell order with
     no locality missed the cache on most lookups: 1 us a cell instead of 0.15). A cell's
-    pose is `origin` + (index + 0.5) * `pitch`. A cell's misfit is the sum over readings of
+    position is `origin` + (index + 0.5) * `pitch`, its heading one of `headings`
+    (`shape[2]` of them). A cell's misfit is the sum over readings of
     min(z^2, cap), z its relative height residual over the sd a pose in the cell could
     explain: `sigma` widened by how far such a pose can move the reading (`spread` (K,),
     metres; entry 0 for the first contact) times the steepest slope near where it lands
@@ -438,7 +440,7 @@ def sweep_screen(grid: np.ndarray, slopes: np.ndarray, block: float, spacing: fl
     cos_h, sin_h = np.empty(shape[2]), np.empty(shape[2])
     turned = np.empty((shape[2], k, 2))
     for ih in range(shape[2]):
-        heading[ih] = origin[2] + (ih + 0.5) * pitch[2]
+        heading[ih] = headings[ih]
         co, si = math.cos(heading[ih]), math.sin(heading[ih])
         cos_h[ih], sin_h[ih] = co, si
         for j in range(k):
@@ -532,7 +534,8 @@ def warm_up() -> None:
         heights_and_jacobian(g, 1.0, np.zeros(3), history)
         slope_squares(g, 1.0, poses, history)
         sweep_screen(g, g, 1.0, 1.0, (1.0, 1.0), is_profile, 0, 1, 1,
-                     np.ones(3, dtype=np.int64), np.zeros(3), np.ones(3), history, 1.0,
+                     np.ones(3, dtype=np.int64), np.zeros(3), np.ones(3), np.zeros(1),
+                     history, 1.0,
                      np.ones(2), 0.0, 9.0, 10.0, 4)
     first_of_each_mode(poses, 1.0, 1.0)
     best_per_key(np.zeros(1, dtype=np.int64), np.zeros(1))

@@ -97,8 +97,9 @@ class MapReport:
             f"{self.radius * 1e3:g} mm tip reaches (by up to {self.hidden_depth * 1e3:.2f} mm)",
             f"plains     {self.plains_share:.1%} of the area: a {self.step * 1e3:g} mm step "
             f"there reads under {PLAIN_TOLERANCE * self.step * 1e3:.2g} mm",
-            "symmetries " + describe_symmetries(self.symmetries, self.symmetry_strengths,
-                                                self.is_profile),
+            "symmetries " + describe_symmetries(
+                self.symmetries, self.symmetry_strengths, self.is_profile,
+                ((self.shape[1] - 1) * self.spacing, (self.shape[0] - 1) * self.spacing)),
         ]
         return lines + [f"warning    {w}" for w in self.warnings]
 
@@ -122,10 +123,20 @@ def _degrees(slope: float) -> str:
 
 
 def describe_symmetries(motions: np.ndarray, strengths: np.ndarray,
-                        is_profile: bool = False) -> str:
-    """The motions found, the strongest three shown with how well each holds."""
+                        is_profile: bool = False,
+                        extent: tuple[float, float] | None = None) -> str:
+    """The motions found, the strongest three shown with how well each holds; a surface of
+    revolution named as one, with its axis."""
     if len(motions) == 0:
         return "none found"
+    from service.localization.localizers.symmetry import revolution_centre
+
+    axis = None if is_profile or extent is None else revolution_centre(motions, extent)
+    if axis is not None:
+        return (f"every turn about ({axis[0] * 1e3:.0f}, {axis[1] * 1e3:.0f}) mm nearly maps "
+                f"the contact surface onto itself ({len(motions)} motions, correlation "
+                f"{float(np.min(strengths[:, 0])):.2f} at least): a surface of revolution, "
+                "whose heading only a feature off its axis or the map's edges tell")
     shown = []
     for (k, dx, dy), (corr, overlap) in zip(motions[:3], strengths[:3], strict=True):
         how = f" (correlation {corr:.2f} over {overlap:.0%} of the map)"

@@ -56,6 +56,12 @@ def twins_map(tmp_path: Path) -> Path:
     return _map_file(tmp_path / "twins.npy", twin_blocks())
 
 
+@pytest.fixture()
+def rings_map(tmp_path: Path) -> Path:
+    """`concentric_rings` as a map file."""
+    return _map_file(tmp_path / "rings.npy", concentric_rings())
+
+
 def _map_file(path: Path, heights: np.ndarray) -> Path:
     np.save(path, heights)
     return path
@@ -120,6 +126,15 @@ def gear_13() -> np.ndarray:
     v = -(x - 101.3) * np.sin(0.4) + (y - 98.7) * np.cos(0.4)
     z[(r <= 14.0) | ((u > 0) & (u < 19.0) & (np.abs(v) < 3.5))] = 0.0
     return _smooth(z, 0.6)
+
+
+def concentric_rings() -> np.ndarray:
+    """Rings of 18 mm pitch, 3 mm high, about (110, 95) mm: a surface of revolution, the
+    same under every turn about that point, whose heading only the map's edges tell (a
+    helper's held-out surface)."""
+    x, y = _MM
+    r = np.hypot(x - 110.0, y - 95.0)
+    return (3.0 * np.cos(2 * np.pi * r / 18.0) * np.exp(-r / 200.0) + 8.0) * 1e-3
 
 
 def twin_blocks() -> np.ndarray:

@@ -14,7 +14,13 @@ from service.episode.scenario import RunSettings
 from service.episode.simulate import simulate
 from service.localization.localizers.convergence import ConvergenceRule, distinct, group_modes
 from service.localization.localizers.refine import Fit
-from service.localization.localizers.symmetry import _convolve, images, symmetries
+from service.localization.localizers.sweep import turns_to_check
+from service.localization.localizers.symmetry import (
+    _convolve,
+    images,
+    revolution_centre,
+    symmetries,
+)
 from service.localization.maps import bumps, eggcrate, load_map, peaks
 from service.localization.surface import contact_surface
 
@@ -325,31 +331,64 @@ def test_turns_other_than_quarter_turns_are_found_and_their_images_read_alike(he
     ("hex_map", 234, "80 mm and 60 degrees off at step 15: turned about a bump"),
     ("gear_map", 151, "73 mm and two teeth (55 degrees) off"),
     ("knurl12_map", 155, "72 mm and 121 degrees off"),
+    ("knurl12_map", 298, "74.9 mm and 60.6 degrees off: the knurl correlates with its "
+     "60-degree turn at 0.75 only, and the images of its motions missed the lattice shift "
+     "the truth lay at"),
+    ("knurl_map", 237, "66 mm and 60 degrees off: the turn was found, but no image landed "
+     "on the truth"),
 ])
 def test_no_wrong_declaration_where_a_turn_of_a_pattern_was_declared(request, surface, seed,
                                                                      was):
     """A helper's held-out check: these were declared the truth turned by the pattern's
     pitch (a hexagonal lattice's or a knurl's 60 degrees, a gear's teeth), an image no
-    check had tried; with those turns' images judged they localize."""
+    check had tried. With those turns' images judged, and the turned check screening the
+    leader turned by them anywhere on the map (`sweep.turns_to_check`), they localize."""
     assert _held_out_episode(request, surface, seed).score.success, was
 
 
+def test_a_surface_of_revolution_repeats_under_every_turn_about_its_axis(rings_map):
+    """Rings about a point off the map's centre read the same under any turn about it: the
+    turns found are every one tried, and they share that point as their fixed point. The
+    turned check leaves them to the images (a turn every 2 degrees would make its grid too
+    coarse to find anything)."""
+    surface = contact_surface(load_map(str(rings_map), 0.001), 0.008)
+    motions = symmetries(surface)
+    turns = np.round(motions[motions[:, 0] % 1 != 0, 0] * 90).astype(int)
+    assert len(set(turns)) >= 170
+    axis = revolution_centre(motions, surface.map.extent)
+    assert axis is not None and np.hypot(axis[0] - 0.110, axis[1] - 0.095) < 0.002
+    assert np.allclose(np.rad2deg(turns_to_check(surface)), np.arange(45.0, 360.0, 45.0))
+    assert revolution_centre(symmetries(contact_surface(peaks(), 0.008)), (0.2, 0.2)) is None
+
+
+@pytest.mark.parametrize("seed, was", [(12, "34.2 mm and 84.0 degrees off"),
+                                       (24, "79.5 mm and 78.4 degrees off")])
+def test_no_wrong_declaration_on_a_surface_of_revolution(rings_map, seed, was):
+    """A helper's held-out rings: every turn about their axis reads alike, and poses turned
+    by 66-173 degrees were declared in 23 of 560 runs, since no check tried those turns. Each
+    turn every 2 degrees is now an image the judge weighs."""
+    report = simulate(RunSettings(map=str(rings_map), spacing=0.001, noise=True, seed=seed,
+                                  max_steps=60))
+    assert not report.score.wrong_declaration, was
+
+
 @pytest.mark.parametrize("surface, seed", [
-    pytest.param("knurl12_map", 298, marks=pytest.mark.xfail(
-        strict=True, reason="not fixed: declared 74.9 mm and 60.6 degrees off; this knurl's "
-        "60-degree turn is not found (its turns at 120, 240 and 300 degrees are)")),
-    pytest.param("knurl_map", 237, marks=pytest.mark.xfail(
-        strict=True, reason="not fixed: declared 66 mm and 60 degrees off; the knurl's "
-        "60-degree turns are found (it correlates with them at 0.83 only, with its 30-degree "
-        "turn at 0.03: a lattice, `symmetry.LATTICE`), but the judge still declares the "
-        "turned pose; one version of the search (a coarser grid) localized this seed")),
     pytest.param("twins_map", 17, marks=pytest.mark.xfail(
         strict=True, reason="not fixed: declared 105 mm and a half turn off; the finger read "
         "only the pocket and the gap between the blocks, which the half turn maps onto "
         "themselves (fits 0.384 against 0.361 mm RMS), and noise-level differences decided")),
+    pytest.param("knurl12_map", 270, marks=pytest.mark.xfail(
+        strict=True, reason="not fixed: declared 155 mm and a half turn off; a lattice has "
+        "more poses that read alike than the turned check polishes (its best 16 of each "
+        "slice), and the truth was not among them")),
+    pytest.param("knurl_map", 55, marks=pytest.mark.xfail(
+        strict=True, reason="not fixed: declared 15.9 mm off, a lattice shift; the truth, "
+        "refitted by least squares, fails the map's edge test (a blocked step's target "
+        "comes back on the map), so the last comparison leaves poses there out; comparing "
+        "with a margin wider by the tolerance cost 17 of 60 successes on this knurl")),
 ])
 def test_no_wrong_declaration_on_the_held_out_patterns_left(request, surface, seed):
-    """A helper's held-out check found these wrong declarations; they are not fixed."""
+    """Helpers' held-out checks and mine found these wrong declarations; not fixed."""
     assert not _held_out_episode(request, surface, seed).score.wrong_declaration
 
 

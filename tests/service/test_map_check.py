@@ -108,3 +108,11 @@ def test_a_symmetry_is_reported_with_how_well_and_where_it_holds(plate_map):
     mirrored = np.concatenate([ramp, ramp[::-1]])
     found = profile_symmetry_matches(mirrored, 0.001)
     assert found[0][0] == 2 and found[0][3] > 0.99 and found[0][4] == 1.0
+
+
+def test_a_surface_of_revolution_is_named_with_its_axis(rings_map):
+    """Rings repeat under every turn about their axis: the report says so, and where the axis
+    lies, rather than listing three of 179 turns as if they were all."""
+    text = "\n".join(check_map(load_map(str(rings_map), spacing=0.001), 0.008).lines())
+    assert "surface of revolution" in text and "every turn about (110, 95) mm" in text
+    assert "surface of revolution" not in "\n".join(check_map(load_map("peaks"), 0.008).lines())

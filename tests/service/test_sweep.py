@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from service.localization.localizers.fitting import sample
-from service.localization.localizers.sweep import Sweep, SweepSettings
+from service.localization.localizers.sweep import SAME_TURN, Sweep, SweepSettings, turns_to_check
 from service.localization.maps import load_map
 from service.localization.surface import HeightMap, contact_surface
 
@@ -74,3 +74,28 @@ def test_a_pose_turned_about_a_square_pocket_is_found_anywhere():
     gap = np.hypot(found[:, 0] - expected[0], found[:, 1] - expected[1])
     turned = np.abs(np.angle(np.exp(1j * (found[:, 2] - expected[2]))))
     assert np.any((gap <= 0.3 * STEP) & (turned <= 1e-9))
+
+
+def test_a_pose_turned_by_a_lattices_own_turn_is_found_anywhere(hex_map):
+    """A hexagonal lattice of bumps reads the same turned by 60 degrees about any bump, a turn
+    no multiple of 45 degrees comes near: the surface's own turns are screened too
+    (`turns_to_check`), so the turned check finds that pose wherever it lies (the lattice's
+    own bumps differ by up to 0.12 mm under it, a sampled map's smoothing)."""
+    surface = contact_surface(load_map(str(hex_map), 0.001), 0.008)
+    assert np.any(np.abs(np.rad2deg(turns_to_check(surface)) - 60.0) < SAME_TURN)
+    start = np.array([0.0877, 0.081, 1.29])
+    centre, sixth = np.array([0.1, 0.1]), np.pi / 3  # a bump of the lattice
+    turn = np.array([[np.cos(sixth), -np.sin(sixth)], [np.sin(sixth), np.cos(sixth)]])
+    expected = np.append(centre + turn @ (start[:2] - centre), start[2] + sixth)
+    sweep = Sweep(surface, STEP, 0.0002, 0.0005)
+    readings = _readings(surface, start)
+    # a lattice has hundreds of poses that read alike: all that fit are kept here
+    found = np.vstack([sweep.turned(readings, start[2], first, 8192, 8192)
+                       for first in range(0, sweep.turned_cells, 8192)])
+    gap = np.hypot(found[:, 0] - expected[0], found[:, 1] - expected[1])
+    turned = np.abs(np.angle(np.exp(1j * (found[:, 2] - expected[2]))))
+    assert np.any((gap <= 0.3 * STEP) & (turned <= np.deg2rad(SAME_TURN)))
+
+
+def test_a_surface_without_turns_of_its_own_is_checked_at_multiples_of_45_degrees(pattern):
+    assert np.allclose(np.rad2deg(turns_to_check(pattern)), np.arange(45.0, 360.0, 45.0))

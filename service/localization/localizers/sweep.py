@@ -33,6 +33,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from service.localization import kernels
+from service.localization.localizers.base import wrap_angle
 from service.localization.localizers.convergence import FLOOR
 from service.localization.localizers.fitting import (
     STEEP_BLOCK,
@@ -40,6 +41,7 @@ from service.localization.localizers.fitting import (
     steepest_near,
     typical_slope,
 )
+from service.localization.localizers.symmetry import revolution_centre, symmetries
 from service.localization.surface import ContactSurface
 
 CAP = 9.0
@@ -49,6 +51,8 @@ TURN = 45.0
 TURNED_CELL = 0.3
 """Step lengths between the positions `Sweep.turned` screens (at most `TURNED_CELLS`)."""
 TURNED_CELLS = 32768
+SAME_TURN = 2.0
+"""Degrees within which two turns are one (`turns_to_check`)."""
 
 
 @dataclass(frozen=True)
@@ -89,6 +93,7 @@ class Sweep:
         self.shape = np.array([nx, ny, nh], dtype=np.int64)
         self.pitch = np.array([x_max / nx, 0.0 if profile else y_max / ny, 2 * np.pi / nh])
         self.origin = np.array([0.0, 0.0, -0.5 * self.pitch[2] if profile else -np.pi])
+        self.headings = self.origin[2] + (np.arange(nh) + 0.5) * self.pitch[2]
         self.cells = kernels.sweep_cells(self.shape)
         self.stride = _coprime_stride(kernels.sweep_tiles(self.shape))
         self.reach = (float(np.hypot(*self.pitch[:2])) / 2, float(self.pitch[2]) / 2)
@@ -97,6 +102,8 @@ class Sweep:
         self.slope = typical_slope(surface)
         self.start_reach = self.reach[0]
         """How far (metres) a start handed over can lie from a pose its cell stands for."""
+        self.turns = turns_to_check(surface)
+        """Radians `turned` turns a heading by."""
         self._turned_grid = self._turned_shape()
         self.turned_cells = kernels.sweep_cells(self._turned_grid[0])
         self.reset()
@@ -144,8 +151,8 @@ class Sweep:
                 self.surface.centre_heights, self.slopes,
                 STEEP_BLOCK * self.surface.map.spacing, self.surface.map.spacing,
                 self.surface.map.extent, self.surface.map.is_profile, self.cursor, count,
-                self.stride, self.shape, self.origin, self.pitch, history, self.sensor_sigma,
-                spread, self.margin, CAP, limit, self.settings.keep)
+                self.stride, self.shape, self.origin, self.pitch, self.headings, history,
+                self.sensor_sigma, spread, self.margin, CAP, limit, self.settings.keep)
             poses, misfit = np.vstack([poses, p]), np.concatenate([misfit, m])
             self.cursor += count
             left -= count
@@ -160,40 +167,48 @@ class Sweep:
                ) -> np.ndarray:
         """Of turned cells `first` .. `first + count` (of `turned_cells`), the start poses
         of the `best` that fit the readings best, best first: every position on the map, at
-        `heading` turned by each multiple of `TURN` (a half turn on a profile). Where a part
-        repeats a feature turned (a square pocket, four alike holes), such a pose reads what
-        a pose at `heading` reads.
+        `heading` turned by each of `turns`. Where a part repeats a feature turned (a square
+        pocket, four alike holes, a knurl's lattice), such a pose reads what a pose at
+        `heading` reads.
 
         A screen over positions only, `TURNED_CELL` steps apart (further on a map too large
         for `TURNED_CELLS` of them), at exact headings: no cell stands for a range of
         headings, so readings far from the start are not blurred by one, as the sweep's
         are, and every reading counts."""
-        shape, pitch, first_turn = self._turned_grid
-        origin = np.array([0.0, 0.0, heading + first_turn - 0.5 * pitch[2]])
+        shape, pitch = self._turned_grid
         spread = np.full(len(history), float(np.hypot(*pitch[:2])) / 2)
         poses, _ = kernels.sweep_screen(
             self.surface.centre_heights, self.slopes, STEEP_BLOCK * self.surface.map.spacing,
             self.surface.map.spacing, self.surface.map.extent, self.surface.map.is_profile,
-            first, min(count, self.turned_cells - first), 1, shape, origin, pitch, history,
-            self.sensor_sigma, spread, self.margin, CAP, np.inf, best)
+            first, min(count, self.turned_cells - first), 1, shape, np.zeros(3), pitch,
+            self._turned_headings(heading), history, self.sensor_sigma, spread, self.margin, CAP,
+            np.inf, best)
         return on_pose_space(self.surface, poses)
 
-    def _turned_shape(self) -> tuple[np.ndarray, np.ndarray, float]:
-        """The grid `turned` screens: positions (x, y) and turns, their pitch, and the first
-        turn (radians; the next ones follow a pitch apart)."""
+    def _turned_headings(self, heading: float) -> np.ndarray:
+        """`heading` turned by each of `turns`; the multiples of `TURN` (or a profile's half
+        turn) reckoned as a grid of headings a `TURN` apart, from the first, as they were
+        before the surface's own turns joined them, so the same sums give the same bits."""
+        pitch = np.deg2rad(TURN)
+        first = np.pi if self.surface.map.is_profile else pitch
+        grid = (heading + first - 0.5 * pitch) + (np.arange(len(self.turns)) + 0.5) * pitch
+        index = np.round((self.turns - first) / pitch)
+        regular = np.abs(self.turns - (first + index * pitch)) < 1e-12
+        return np.where(regular, grid[np.clip(index, 0, len(grid) - 1).astype(np.int64)],
+                        heading + self.turns)
+
+    def _turned_shape(self) -> tuple[np.ndarray, np.ndarray]:
+        """The grid `turned` screens: positions (x, y) and turns, and their pitch."""
         profile = self.surface.map.is_profile
-        turns = 1 if profile else int(round(360.0 / TURN)) - 1
         x_max, y_max = self.surface.map.extent
-        area = x_max * (1.0 if profile else y_max) * turns
+        area = x_max * (1.0 if profile else y_max) * len(self.turns)
         # coarser on a large map: the work is bounded, as every update's is
         width = max(TURNED_CELL * self.step_length,
                     area / TURNED_CELLS if profile else np.sqrt(area / TURNED_CELLS))
         shape = np.array([max(1, int(np.ceil(x_max / width))),
-                          1 if profile else max(1, int(np.ceil(y_max / width))), turns],
-                         dtype=np.int64)
-        pitch = np.array([x_max / shape[0], 0.0 if profile else y_max / shape[1],
-                          np.deg2rad(TURN)])
-        return shape, pitch, np.pi if profile else float(pitch[2])
+                          1 if profile else max(1, int(np.ceil(y_max / width))),
+                          len(self.turns)], dtype=np.int64)
+        return shape, np.array([x_max / shape[0], 0.0 if profile else y_max / shape[1], 0.0])
 
     def _anchor(self, history: np.ndarray) -> tuple[int, np.ndarray]:
         """The reading to judge cells from, and the `readings` others nearest it.
@@ -230,6 +245,28 @@ class Sweep:
         if not self.surface.map.is_profile:
             inside &= (starts[:, 1] >= 0) & (starts[:, 1] <= y_max)
         return on_pose_space(self.surface, starts[inside])
+
+
+def turns_to_check(surface: ContactSurface) -> np.ndarray:
+    """The turns (radians) under which a part may repeat a feature: every multiple of `TURN`
+    degrees (a half turn on a profile), and the turns other than quarter turns the surface
+    nearly repeats under as a whole (`symmetry.symmetries`: a hexagonal lattice's 60
+    degrees, a gear's teeth). A knurl declared 60 degrees off: that turn was in no list the
+    check screened, and the images of single motions missed the lattice shift that the
+    truth lay at; the screen moves the turned pose anywhere. A surface of revolution
+    repeats under every turn, each about its axis alone: its images stand for them all
+    (`symmetry.revolution_centre`)."""
+    if surface.map.is_profile:
+        return np.array([np.pi])
+    turns = list(np.deg2rad(np.arange(TURN, 360.0 - 1e-9, TURN)))
+    motions = symmetries(surface)
+    if revolution_centre(motions, surface.map.extent) is not None:
+        return np.array(turns)
+    for k in np.unique(np.round(motions[:, 0] * 90.0, 1)):
+        if k % 90.0 and np.all(np.abs(wrap_angle(np.deg2rad(k) - np.array(turns)))
+                               > np.deg2rad(SAME_TURN)):
+            turns.append(float(np.deg2rad(k)))
+    return np.array(sorted(turns))
 
 
 def _coprime_stride(n: int) -> int:

@@ -29,6 +29,10 @@ symmetry's bar) and with every turn between it and the nearest quarter turns und
 second: a lattice (a 60-degree knurl correlates with its 60-degree turn at 0.83, and with
 its 30-degree turn at 0.03), where a smooth shell or terrain correlates with any turn at
 0.5-0.9 over some shift."""
+LATTICE_TURN = 0.7
+"""`LATTICE`'s first bar for turns other than quarter turns: over the whole map a 12 mm
+diamond knurl correlates with its 60-degree turn at 0.75 only (its worn patch and the
+map's corners), and a pose 60 degrees off was declared."""
 OTHER_TURN_SIDE = 100
 """Samples along the map's side at which those turns are tried (a coarse map is plenty to
 find a pattern's turn, and each turn costs a correlation)."""
@@ -91,14 +95,29 @@ def _find(surface: ContactSurface, threshold: float, min_overlap: float, limit: 
             found.append((k, -shift_x[i] * h, -shift_y[i] * h, ncc[u[i], v[i]],
                           overlap[u[i], v[i]] / a.size))
     found.sort(key=lambda f: -f[3])
-    if a.shape[0] == a.shape[1]:  # other turns keep a share of the room: a lattice's
-        # shifts and half turns alone correlate better and would fill it
-        others = _other_turns(surface.centre_heights, surface.map.spacing, threshold,
-                              min_overlap)
-        # the most overlap first: their images land on the map, near the truth's
-        others = sorted(others, key=lambda f: -f[3] * f[4])[:limit // 4]
-        found = sorted(found[:limit - len(others)] + others, key=lambda f: -f[3])
+    # other turns keep a share of the room: a lattice's shifts and half turns alone
+    # correlate better and would fill it; a surface of revolution keeps every turn. (On
+    # a long rectangle a turned copy overlaps too little to tell a turn from chance.)
+    others = _other_turns(surface.centre_heights, surface.map.spacing, threshold,
+                          min_overlap) if a.shape[0] == a.shape[1] else []
+    # the most overlap first: their images land on the map, near the truth's
+    others = _each_turn_a_share(sorted(others, key=lambda f: -f[3] * f[4]),
+                                max(limit // 4, len({round(f[0] * 90.0) for f in others})))
+    found = sorted(found[:limit - len(others)] + others, key=lambda f: -f[3])
     return np.array(found[:limit], dtype=np.float64).reshape(-1, 5)
+
+
+def _each_turn_a_share(found: list, room: int) -> list:
+    """Up to `room` of `found` (best first), taken from each turn in turn: one turn's many
+    shifts must not crowd out another turn's."""
+    by_turn: dict[float, list] = {}
+    for f in found:
+        by_turn.setdefault(round(f[0] * 90.0), []).append(f)
+    queues = list(by_turn.values())
+    kept = []
+    for rank in range(max((len(q) for q in queues), default=0)):
+        kept += [q[rank] for q in queues if rank < len(q)]
+    return kept[:room]
 
 
 def _other_turns(a: np.ndarray, h: float, threshold: float, min_overlap: float
@@ -121,12 +140,24 @@ def _other_turns(a: np.ndarray, h: float, threshold: float, min_overlap: float
     a = a - a.mean()
     h = h * coarse
     angles = np.arange(0.0, 360.0, OTHER_TURN_STEP)
-    best = np.array([1.0 if deg % 90.0 == 0.0 else float(_turned_ncc(a, deg, min_overlap)[0].max())
-                     for deg in angles])  # a quarter turn: found exactly, a wall between peaks
+    # a quarter turn: found exactly, a wall between peaks
+    tried = np.array([deg % 90.0 != 0.0 for deg in angles])
+    best = np.ones(len(angles))
+    peak: dict[int, tuple[float, float, float, float, float]] = {}
+    for i in np.flatnonzero(tried):
+        ncc, overlap = _turned_ncc(a, angles[i], min_overlap)
+        u, v = np.unravel_index(int(np.argmax(ncc)), ncc.shape)
+        best[i] = ncc[u, v]
+        peak[i] = _motion(ncc, overlap, u, v, angles[i], a.shape, h)
+    if np.all(best[tried] >= threshold):
+        # the surface repeats under every turn, each about one centre: a surface of
+        # revolution (a turned part, rings, a bowl), whose truth lies at any turn of a pose
+        # about it; a turn every `OTHER_TURN_STEP` degrees, the best shift of each
+        return [peak[i] for i in np.flatnonzero(tried)]
     found = []
     n = len(angles)
     for i, deg in enumerate(angles):
-        if deg % 90.0 == 0.0 or best[i] < min(threshold, LATTICE[0]) \
+        if not tried[i] or best[i] < min(threshold, LATTICE_TURN) \
                 or best[i] < max(best[(i - 1) % n], best[(i + 1) % n]):
             continue  # not a peak over the turn
         # below the bar on the way to the nearest quarter turn, either side
@@ -134,7 +165,7 @@ def _other_turns(a: np.ndarray, h: float, threshold: float, min_overlap: float
         right = next(j for j in range(1, n) if angles[(i + j) % n] % 90.0 == 0.0)
         dips = max(min(best[(i - j) % n] for j in range(1, left)) if left > 1 else 1.0,
                    min(best[(i + j) % n] for j in range(1, right)) if right > 1 else 1.0)
-        bar = LATTICE[0] if dips < LATTICE[1] else threshold if dips < threshold else None
+        bar = LATTICE_TURN if dips < LATTICE[1] else threshold if dips < threshold else None
         if bar is None:
             continue
         fine = deg + np.arange(-1.0, 1.01, 0.1) * OTHER_TURN_STEP / 2
@@ -142,11 +173,19 @@ def _other_turns(a: np.ndarray, h: float, threshold: float, min_overlap: float
         k = int(np.argmax([t[0].max() for t in turns]))
         ncc, overlap = turns[k]
         peaks = (ncc >= bar) & (ncc == ndimage.maximum_filter(ncc, size=5))
-        for u, v in zip(*np.nonzero(peaks), strict=True):
-            dy, dx = _subsample(ncc, u, v)
-            found.append((fine[k] / 90.0, -(v + dx - (a.shape[1] - 1)) * h,
-                          -(u + dy - (a.shape[0] - 1)) * h, ncc[u, v], overlap[u, v] / a.size))
+        found += [_motion(ncc, overlap, u, v, fine[k], a.shape, h)
+                  for u, v in zip(*np.nonzero(peaks), strict=True)]
     return found
+
+
+def _motion(ncc: np.ndarray, overlap: np.ndarray, u: int, v: int, deg: float,
+            shape: tuple[int, ...], h: float) -> tuple[float, float, float, float, float]:
+    """The motion (quarter turns, dx, dy, correlation, overlap share) of the peak at sample
+    (u, v) of the correlation with the surface turned by `deg`, its shift refined to a
+    fraction of a sample."""
+    dy, dx = _subsample(ncc, u, v)
+    return (deg / 90.0, -(v + dx - (shape[1] - 1)) * h, -(u + dy - (shape[0] - 1)) * h,
+            float(ncc[u, v]), float(overlap[u, v]) / (shape[0] * shape[1]))
 
 
 def _turned_ncc(a: np.ndarray, deg: float, min_overlap: float
@@ -183,6 +222,29 @@ def _convolve(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     padded = [fft.next_fast_len(n, real=True) for n in shape]
     out = fft.irfft2(fft.rfft2(a, padded) * fft.rfft2(b, padded), padded)
     return out[:shape[0], :shape[1]]
+
+
+REVOLUTION_TURNS = 90
+"""Distinct turns (other than quarter turns) that make a surface of revolution: every turn
+tried, `OTHER_TURN_STEP` degrees apart, counts on one (`_other_turns`)."""
+
+
+def revolution_centre(motions: np.ndarray, extent: tuple[float, float]
+                      ) -> tuple[float, float] | None:
+    """Where a surface of revolution's axis lies (metres), or None if `motions` are not
+    those of one: the fixed point of its turns, each g(q) = m + R(q + delta - m) about the
+    map's centre m (`images`), the median over them."""
+    other = motions[motions[:, 0] != np.round(motions[:, 0])]
+    if len(np.unique(np.round(other[:, 0] * 90.0))) < REVOLUTION_TURNS:
+        return None
+    centre = np.array(extent) / 2
+    points = []
+    for k, dx, dy in other:
+        c, s = np.cos(k * np.pi / 2), np.sin(k * np.pi / 2)
+        turn = np.array([[c, -s], [s, c]])
+        points.append(centre + np.linalg.solve(np.eye(2) - turn, turn @ np.array([dx, dy])))
+    x, y = np.median(points, axis=0)
+    return float(x), float(y)
 
 
 def images(surface: ContactSurface, pose: np.ndarray, motions: np.ndarray) -> np.ndarray:
