@@ -98,8 +98,8 @@ def _find(surface: ContactSurface, threshold: float, min_overlap: float, limit: 
     # other turns keep a share of the room: a lattice's shifts and half turns alone
     # correlate better and would fill it; a surface of revolution keeps every turn. (On
     # a long rectangle a turned copy overlaps too little to tell a turn from chance.)
-    others = _other_turns(surface.centre_heights, surface.map.spacing, threshold,
-                          min_overlap) if a.shape[0] == a.shape[1] else []
+    others = _other_turns(surface.centre_heights, surface.map.spacing, surface.map.extent,
+                          threshold, min_overlap) if a.shape[0] == a.shape[1] else []
     # the most overlap first: their images land on the map, near the truth's
     others = _each_turn_a_share(sorted(others, key=lambda f: -f[3] * f[4]),
                                 max(limit // 4, len({round(f[0] * 90.0) for f in others})))
@@ -120,8 +120,8 @@ def _each_turn_a_share(found: list, room: int) -> list:
     return kept[:room]
 
 
-def _other_turns(a: np.ndarray, h: float, threshold: float, min_overlap: float
-                 ) -> list[tuple[float, float, float, float, float]]:
+def _other_turns(a: np.ndarray, h: float, extent: tuple[float, float], threshold: float,
+                 min_overlap: float) -> list[tuple[float, float, float, float, float]]:
     """Near symmetries under turns that are not quarter turns (a hexagonal grid of bumps
     under 60 degrees, a gear under its teeth's pitch), as motions with a fractional count
     of quarter turns. Each turn of `OTHER_TURN_STEP` degrees is tried; one counts where the
@@ -152,8 +152,11 @@ def _other_turns(a: np.ndarray, h: float, threshold: float, min_overlap: float
     if np.all(best[tried] >= threshold):
         # the surface repeats under every turn, each about one centre: a surface of
         # revolution (a turned part, rings, a bowl), whose truth lies at any turn of a pose
-        # about it; a turn every `OTHER_TURN_STEP` degrees, the best shift of each
-        return [peak[i] for i in np.flatnonzero(tried)]
+        # about it; a turn every `OTHER_TURN_STEP` degrees about the axis. (Each turn's
+        # best shift alone may be a ring's pitch off: rings alike but for the innermost.)
+        motions = [peak[i] for i in np.flatnonzero(tried)]
+        axis = np.median([_fixed_point(m[0], m[1], m[2], extent) for m in motions], axis=0)
+        return [(k, *_about(axis, k, extent), corr, share) for k, _, _, corr, share in motions]
     found = []
     n = len(angles)
     for i, deg in enumerate(angles):
@@ -232,19 +235,33 @@ tried, `OTHER_TURN_STEP` degrees apart, counts on one (`_other_turns`)."""
 def revolution_centre(motions: np.ndarray, extent: tuple[float, float]
                       ) -> tuple[float, float] | None:
     """Where a surface of revolution's axis lies (metres), or None if `motions` are not
-    those of one: the fixed point of its turns, each g(q) = m + R(q + delta - m) about the
-    map's centre m (`images`), the median over them."""
+    those of one: the fixed point of its turns (`_other_turns` makes them all turns about
+    it)."""
     other = motions[motions[:, 0] != np.round(motions[:, 0])]
     if len(np.unique(np.round(other[:, 0] * 90.0))) < REVOLUTION_TURNS:
         return None
-    centre = np.array(extent) / 2
-    points = []
-    for k, dx, dy in other:
-        c, s = np.cos(k * np.pi / 2), np.sin(k * np.pi / 2)
-        turn = np.array([[c, -s], [s, c]])
-        points.append(centre + np.linalg.solve(np.eye(2) - turn, turn @ np.array([dx, dy])))
-    x, y = np.median(points, axis=0)
+    x, y = np.median([_fixed_point(k, dx, dy, extent) for k, dx, dy in other[:, :3]], axis=0)
     return float(x), float(y)
+
+
+def _fixed_point(k: float, dx: float, dy: float, extent: tuple[float, float]) -> np.ndarray:
+    """The point a turn by `k` quarter turns then shift (`images`: q -> m + R(q + delta - m),
+    m the map's centre) leaves where it is: m + (I - R)^-1 R delta."""
+    turn = _turn(k)
+    return np.array(extent) / 2 + np.linalg.solve(np.eye(2) - turn, turn @ np.array([dx, dy]))
+
+
+def _about(axis: np.ndarray, k: float, extent: tuple[float, float]) -> tuple[float, float]:
+    """The shift delta of the motion that turns by `k` quarter turns about `axis`:
+    R^-1 (c - m) - (c - m), c the axis, m the map's centre."""
+    arm = axis - np.array(extent) / 2
+    dx, dy = _turn(k).T @ arm - arm
+    return float(dx), float(dy)
+
+
+def _turn(k: float) -> np.ndarray:
+    c, s = np.cos(k * np.pi / 2), np.sin(k * np.pi / 2)
+    return np.array([[c, -s], [s, c]])
 
 
 def images(surface: ContactSurface, pose: np.ndarray, motions: np.ndarray) -> np.ndarray:
