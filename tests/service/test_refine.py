@@ -7,6 +7,7 @@ import pytest
 
 from service.localization.localizers.fitting import gauss_newton, sample
 from service.localization.localizers.refine import (
+    _inverse,
     assess,
     correlated_spread,
     reading_sigmas,
@@ -151,3 +152,19 @@ def test_a_spread_the_readings_cannot_bound_is_unbounded(surface):
     h = np.zeros((6, 3))
     position, heading = correlated_spread(surface, h, TRUTH, 2e-4, 0.0, 2e-4, 0.01)
     assert position == np.inf and heading == np.inf
+
+
+def test_a_spread_the_readings_barely_bound_is_unbounded():
+    """Normal equations a hair from singular (on a plain with two small holes, a helper's
+    held-out surface, the x and heading columns of one step's Jacobian): their inverse is
+    round-off, with variances below zero or in the billions, and the spread read 0.0 mm at
+    one step and 640 m at the one before. It is unbounded, as for equations that are
+    singular outright; well-conditioned ones invert as before."""
+    rng = np.random.default_rng(0)
+    x = rng.normal(size=8)
+    jac = np.column_stack([x, 3.0 * x + 1e-9 * rng.normal(size=8), np.ones(8)])
+    seen = jac.T @ jac
+    assert np.linalg.cond(seen) > 1e12  # np.linalg.inv still returns numbers here
+    assert np.all(np.isinf(_inverse(seen)))
+    well = np.array([[4.0, 1.0, 0.0], [1.0, 3.0, 0.5], [0.0, 0.5, 2.0]])
+    assert np.allclose(_inverse(well) @ well, np.eye(3))
