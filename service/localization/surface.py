@@ -45,6 +45,12 @@ class HeightMap:
                 f"map '{self.name}' is {heights.shape[0]}x{heights.shape[1]} samples; "
                 "it needs at least 2 samples along one axis"
             )
+        if heights.shape[1] == 1:
+            raise MapError(
+                f"map '{self.name}' is a single column of {heights.shape[0]} samples; a "
+                "profile is a single row: transpose it (one line of a CSV, or "
+                "numpy.save(path, heights.T))"
+            )
         if not np.all(np.isfinite(heights)):
             bad = int(np.count_nonzero(~np.isfinite(heights)))
             raise MapError(

@@ -86,6 +86,7 @@ def test_single_row_is_a_profile_extruded_along_y():
     (np.zeros((1, 1)), 0.001, "at least 2 samples"),
     (np.zeros((3, 3)), 0.0, "spacing"),
     (np.array([["a", "b"]]), 0.001, "must be real"),
+    (np.zeros((200, 1)), 0.001, "single column .* a profile is a single row: transpose"),
 ])
 def test_invalid_maps_are_rejected_with_the_reason(heights, spacing, message):
     with pytest.raises(MapError, match=message):
