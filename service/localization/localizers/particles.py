@@ -88,14 +88,11 @@ TURNED_SLICE = 8192
 TURNED = 128
 """Of those, the best that take `TRIAL_STEPS` of polish (and rivals the check keeps)."""
 TRIAL_STEPS = 2
-TURNED_POLISHED = 16
-"""Of those, how many are then polished the rest of `SWEEP_STEPS`: the best on every
-reading."""
 TURNED_DRIFT = np.deg2rad(5.0)
 """Radians the leader's heading may move before its turned check starts again."""
 LOOSE = 50.0
 """Nats below the declared pose, at one sd for every reading, within which a turned pose
-is weighed again reading by reading (`Particles._slope_weighed`)."""
+is polished to the end and weighed again reading by reading (`Particles._slope_weighed`)."""
 SWEEP_STEPS = 8
 """Gauss-Newton steps that polish a pose the sweep hands over onto every reading."""
 
@@ -463,10 +460,13 @@ class Particles:
         screened = self.sweep.turned(self.history, self._turned_heading, self._turned_cursor,
                                      TURNED_SLICE, TURNED)
         self._turned_cursor += TURNED_SLICE
-        # every screened cell a couple of steps on; the best few the rest of the way
+        # every screened cell a couple of steps on; every one that may still fit the rest of
+        # the way: on a lattice dozens fit alike, and the best 16 of them once left the
+        # truth out (a knurl declared a half turn off)
         found, below = polished(screened, TRIAL_STEPS)
-        best = np.sort(np.argsort(below, kind="stable")[:TURNED_POLISHED])
-        found, below = polished(found[best], SWEEP_STEPS - TRIAL_STEPS)
+        if not np.any(below <= LOOSE):
+            return
+        found, below = polished(found[below <= LOOSE], SWEEP_STEPS - TRIAL_STEPS)
         found = found[(below <= LOOSE) & ~within(found, pose, *self.same_pose)]
         if len(found):
             self._add(found)
