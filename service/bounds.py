@@ -167,11 +167,10 @@ def check_fields(obj: Any, prefix: str = "", *, flags: bool = False) -> None:
             object.__setattr__(obj, f.name, value)
 
 
-def check_keywords(target: Callable[..., Any], options: dict[str, Any], what: str) -> None:
-    """Check keyword `options` against `target`'s keyword-only parameters (a class: those of
-    its `__init__` and, through `**options`, its bases'): known names, and values of the
-    type each parameter's annotation names (int, float, bool, str or None)."""
-    params: dict[str, Any] = {}
+def keyword_params(target: Callable[..., Any]) -> dict[str, tuple[Any, Any]]:
+    """`target`'s keyword-only parameters (a class: those of its `__init__` and, through
+    `**options`, its bases'), each as (type hint, default)."""
+    params: dict[str, tuple[Any, Any]] = {}
     inits = [c.__init__ for c in inspect.getmro(target)] if inspect.isclass(target) \
         else [target]
     for init in inits:
@@ -180,27 +179,54 @@ def check_keywords(target: Callable[..., Any], options: dict[str, Any], what: st
         except (TypeError, ValueError):
             break
         try:
-            hints = typing.get_type_hints(init)
+            hints = typing.get_type_hints(init, include_extras=True)
         except Exception:  # annotations we cannot resolve: names are still checked
             hints = {}
         for name, p in signature.parameters.items():
             if p.kind is inspect.Parameter.KEYWORD_ONLY:
-                params.setdefault(name, hints.get(name))
+                params.setdefault(name, (hints.get(name), p.default))
         if not any(p.kind is inspect.Parameter.VAR_KEYWORD
                    for p in signature.parameters.values()):
             break
+    return params
+
+
+def settable(hint: Any) -> bool:
+    """Whether a configuration can give a parameter of this type hint (a plain scalar)."""
+    return _kinds(_unwrapped(hint)[0]) is not None
+
+
+def check_keywords(target: Callable[..., Any], options: dict[str, Any], what: str) -> None:
+    """Check keyword `options` against `target`'s keyword-only parameters
+    (`keyword_params`): known names, values of the type each parameter's annotation names
+    (int, float, bool, str or None), and inside the `Bound` an `Annotated` one carries
+    (`Count`, ...): checked here, when a client sets them, not when an episode starts with
+    them and faults (`initial = -1` latched a fault, torque off, at every later start)."""
+    params = keyword_params(target)
     for name, value in options.items():
         if name not in params:
-            close = difflib.get_close_matches(name, list(params), n=1)
+            known = [n for n, (h, _) in params.items() if settable(h)]
+            close = difflib.get_close_matches(name, known, n=1)
             hint = f"did you mean '{close[0]}'? " if close else ""
             raise ConfigError(f"{what} has no option '{name}'; {hint}its options: "
-                              f"{', '.join(params) or 'none'}")
-        kinds = _kinds(params[name])
+                              f"{', '.join(known) or 'none'}")
+        hint, bounds = _unwrapped(params[name][0])
+        kinds = _kinds(hint)
         if kinds is None:
             raise ConfigError(f"{what} option '{name}' cannot be set from a configuration")
         if not any(_matches(kind, value) for kind in kinds):
             raise ConfigError(f"{what} option '{name}' must be "
                               f"{' or '.join(sorted(kinds))}, got {_show(value)}")
+        for bound in bounds:
+            bound.check(f"{what} option '{name}'", value)
+
+
+def _unwrapped(hint: Any) -> tuple[Any, list[Bound]]:
+    """A type hint without its `Annotated` wrapper, and the `Bound`s that wrapper carried."""
+    if typing.get_origin(hint) is typing.Annotated:
+        hint, *extras = typing.get_args(hint)
+        return hint, [b for b in extras if isinstance(b, Bound)]
+    return hint, []
 
 
 def _kinds(hint: Any) -> set[str] | None:
@@ -213,6 +239,19 @@ def _kinds(hint: Any) -> set[str] | None:
 
 
 _UnionType = type(int | None)
+
+Count = typing.Annotated[int, Bound("int", lo=1, hi=1_000_000)]
+"""A localizer option that counts what it holds or tries: at least one, at most a million
+(a pool of a billion poses is a MemoryError at the first update, under a fault)."""
+Headings = typing.Annotated[int, Bound("int", lo=1, hi=720)]
+"""Headings a table or grid holds per position (half a degree apart at most)."""
+Pitch = typing.Annotated[float | None, Bound("float", lo=1e-5, hi=1.0, unit="m",
+                                             optional=True)]
+"""A cell's width, or None for the localizer's own choice."""
+Share = typing.Annotated[float, Bound("float", lo=0.0, hi=1.0)]
+Contraction = typing.Annotated[float, Bound("float", lo=0.01, hi=1.0)]
+Gate = typing.Annotated[float, Bound("float", lo=0.1, hi=1000.0)]
+"""A threshold in sigmas or nats."""
 
 
 def _matches(kind: str, value: Any) -> bool:

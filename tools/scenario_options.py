@@ -3,12 +3,11 @@
 from __future__ import annotations
 
 import argparse
-import difflib
-import inspect
 import math
 import textwrap
 from typing import Any
 
+from service.bounds import check_keywords, keyword_params, settable
 from service.episode.scenario import RunSettings
 from service.errors import ConfigError
 from service.localization.models import HARDWARE_SENSOR_SIGMA
@@ -20,19 +19,8 @@ SCALAR_TYPES = frozenset({"int", "float", "str", "bool", "None"})
 def localizer_options(name: str) -> dict[str, Any]:
     """The keywords `--localizer-option` can set for localizer `name`, with their defaults:
     its constructor's (and, through `**options`, its base classes') scalar keywords."""
-    options: dict[str, Any] = {}
-    for cls in LOCALIZERS.load(name).__mro__:
-        init = cls.__dict__.get("__init__")
-        if init is None:
-            continue
-        params = list(inspect.signature(init).parameters.values())[1:]
-        for p in params:
-            kinds = {part.strip() for part in str(p.annotation).split("|")}
-            if p.kind is p.KEYWORD_ONLY and kinds <= SCALAR_TYPES:
-                options.setdefault(p.name, p.default)
-        if not any(p.kind is p.VAR_KEYWORD for p in params):
-            break
-    return options
+    return {option: default for option, (hint, default)
+            in keyword_params(LOCALIZERS.load(name)).items() if settable(hint)}
 
 
 def localizer_options_help() -> str:
@@ -47,14 +35,9 @@ def localizer_options_help() -> str:
 
 
 def check_localizer_options(algorithm: str, options: dict[str, Any]) -> None:
-    """ConfigError naming a mistyped option, the closest valid name and the valid names."""
-    valid = localizer_options(algorithm)
-    for name in options:
-        if name not in valid:
-            close = difflib.get_close_matches(name, valid, n=1)
-            hint = f"did you mean '{close[0]}'? " if close else ""
-            raise ConfigError(f"--localizer-option: {algorithm} has no option '{name}'; "
-                              f"{hint}its options: {', '.join(valid)}")
+    """ConfigError naming a mistyped option (with the closest valid name and the valid
+    names) or a value out of its range."""
+    check_keywords(LOCALIZERS.load(algorithm), options, f"--localizer-option: {algorithm}")
 
 
 def add_scenario_options(parser: argparse.ArgumentParser, *, defaults: RunSettings,

@@ -11,10 +11,12 @@ import pytest
 
 from firmware_if.errors import HandConfigError
 from firmware_if.hand import hand_from_dict, load_hand
+from service.bounds import check_keywords, keyword_params, settable
 from service.daemon.config import DaemonConfig, from_dict
 from service.daemon.harness import loopback_config, running_node
 from service.episode.scenario import RunSettings
 from service.errors import ConfigError
+from service.registry import LOCALIZERS
 from service.wire import envelope as wire
 from service.wire.client import Client, CommandFailed
 
@@ -39,6 +41,10 @@ REPRODUCTIONS = [
     ("scenario", "radius", 20.0),
     ("scenario", "localizer_options", {"work": "abc"}),
     ("scenario", "localizer_options", {"wrok": 10}),
+    ("scenario", "localizer_options", {"initial": -1}),   # accepted; every start faulted
+    ("scenario", "localizer_options", {"children": -1}),  # faulted mid-episode
+    ("scenario", "localizer_options", {"capacity": 10**9}),
+    ("scenario", "localizer_options", {"contraction": 0.0}),
     ("backend", "options", {"port": "/dev/null"}),
     ("loop", "stats_window", 10**9),
     ("endpoints", "sndhwm", 0),
@@ -216,3 +222,8 @@ def test_replay_of_a_message_without_its_fields_is_one_line(tmp_path: Path, caps
 
 def test_defaults_are_inside_their_own_bounds() -> None:
     assert from_dict({}) == DaemonConfig()
+    for name in LOCALIZERS.names():  # every localizer's option defaults pass their bounds
+        target = LOCALIZERS.load(name)
+        defaults = {option: default for option, (hint, default)
+                    in keyword_params(target).items() if settable(hint) and default is not None}
+        check_keywords(target, defaults, name)

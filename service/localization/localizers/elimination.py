@@ -22,10 +22,11 @@ supports it.
 
 from __future__ import annotations
 
-from typing import ClassVar
+from typing import Annotated, ClassVar
 
 import numpy as np
 
+from service.bounds import Bound, Headings, Pitch
 from service.errors import ConfigError
 from service.localization import kernels
 from service.localization.localizers.base import (
@@ -48,13 +49,16 @@ JUDGED = 8
 """With noise, survivors are judged once at most this many remain."""
 
 
+Sweep = Annotated[str, Bound("str", choices=("full", "paper"))]
+ExactPerStep = Annotated[int, Bound("int", lo=0, hi=10_000)]
+
 class Elimination:
     """Algorithm III over a discrete pose table."""
 
     name: ClassVar[str] = "elimination"
 
-    def __init__(self, ctx: LocalizerContext, *, pitch: float | None = None, headings: int = 11,
-                 sweep: str = "paper", exact_per_step: int = 5,
+    def __init__(self, ctx: LocalizerContext, *, pitch: Pitch = None, headings: Headings = 11,
+                 sweep: Sweep = "paper", exact_per_step: ExactPerStep = 5,
                  poses: np.ndarray | None = None) -> None:
         if sweep not in ("full", "paper"):
             raise ConfigError(f"elimination sweep must be 'full' or 'paper', got '{sweep}'")

@@ -22,11 +22,12 @@ from __future__ import annotations
 
 import time
 from collections.abc import Iterator
-from typing import ClassVar
+from typing import Annotated, ClassVar
 
 import numpy as np
 from scipy import ndimage
 
+from service.bounds import Bound, Count, Headings, Pitch, Share
 from service.errors import ConfigError
 from service.localization import kernels
 from service.localization.localizers.base import (
@@ -58,14 +59,17 @@ EDGE_MISS = 1e-6
 a trace, not nothing, so a mistaken wall cannot erase the truth for good."""
 
 
+HeadingSd = Annotated[float, Bound("float", lo=0.01, hi=180.0)]
+"""Degrees of heading noise a step is assumed to add."""
+
 class Grid:
     """Algorithm I over (position[, heading]) cells of the current finger position."""
 
     name: ClassVar[str] = "grid"
 
-    def __init__(self, ctx: LocalizerContext, *, cell: float | None = None, headings: int = 36,
-                 epsilon: float = 0.1, heading_sd_deg: float = 2.0, keep: int = 3000,
-                 rivals: int = 8, rule: ConvergenceRule | None = None) -> None:
+    def __init__(self, ctx: LocalizerContext, *, cell: Pitch = None, headings: Headings = 36,
+                 epsilon: Share = 0.1, heading_sd_deg: HeadingSd = 2.0, keep: Count = 3000,
+                 rivals: Count = 8, rule: ConvergenceRule | None = None) -> None:
         if headings < 1:
             raise ConfigError(f"grid headings must be >= 1, got {headings}")
         if ctx.surface.map.is_profile:

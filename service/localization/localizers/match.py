@@ -15,6 +15,7 @@ from typing import ClassVar
 
 import numpy as np
 
+from service.bounds import Count, Gate, Headings
 from service.localization.localizers.base import LocalizerContext, wrap_angle
 from service.localization.localizers.fitting import gauss_newton, offset_residuals
 from service.localization.localizers.grid import Grid
@@ -30,8 +31,8 @@ class Match(Grid):
 
     name: ClassVar[str] = "match"
 
-    def __init__(self, ctx: LocalizerContext, *, headings: int = 1, keep: int = 200,
-                 matched: int = 200, gate: float = 4.0, **options) -> None:
+    def __init__(self, ctx: LocalizerContext, *, headings: Headings = 1, keep: Count = 200,
+                 matched: Count = 200, gate: Gate = 4.0, **options) -> None:
         super().__init__(ctx, headings=headings, keep=keep, **options)
         self.matched = matched
         self.gate = gate

@@ -14,10 +14,11 @@ modes (`object_judge.judge`), never declared for standing alone.
 
 from __future__ import annotations
 
-from typing import ClassVar
+from typing import Annotated, ClassVar
 
 import numpy as np
 
+from service.bounds import Bound, Gate
 from service.localization.localizers.base import Budget, Estimate, Hypotheses
 from service.localization.localizers.contour_fit import (
     distinct_places,
@@ -43,13 +44,17 @@ POLISHED = 3000
 """Survivors are polished once no more than this many remain."""
 
 
+HeadingStep = Annotated[float, Bound("float", lo=1e-4, hi=float(np.pi / 2), unit="rad")]
+ArcStep = Annotated[float, Bound("float", lo=1e-5, hi=0.05, unit="m")]
+HEADING_STEP = float(np.deg2rad(2.0))
+
 class ObjectElimination(TrackJudged):
     """Algorithm III over a table of object poses."""
 
     name: ClassVar[str] = "elimination"
 
-    def __init__(self, ctx: ObjectContext, *, heading_step: float = np.deg2rad(2.0),
-                 arc_step: float = 0.0005, gate: float = 5.0,
+    def __init__(self, ctx: ObjectContext, *, heading_step: HeadingStep = HEADING_STEP,
+                 arc_step: ArcStep = 0.0005, gate: Gate = 5.0,
                  rule: ConvergenceRule | None = None) -> None:
         kernels.warm_up()
         self.ctx = ctx

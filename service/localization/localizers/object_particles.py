@@ -26,6 +26,7 @@ from typing import ClassVar
 
 import numpy as np
 
+from service.bounds import Contraction, Count, Gate
 from service.localization.localizers.base import Budget, Estimate, Hypotheses
 from service.localization.localizers.contour_fit import (
     distinct_places,
@@ -62,11 +63,11 @@ class ObjectParticles(TrackJudged):
 
     name: ClassVar[str] = "particles"
 
-    def __init__(self, ctx: ObjectContext, *, initial: int = 20000, capacity: int = 1500,
-                 work: int = 1000, min_capacity: int = 150, children: int = 100,
-                 polish: int = 150,
-                 fresh: int = 200, scanned: int = 2000, drop: float = 40.0,
-                 contraction: float = 0.6, rivals: int = 32, kept_modes: int = 128,
+    def __init__(self, ctx: ObjectContext, *, initial: Count = 20000, capacity: Count = 1500,
+                 work: Count = 1000, min_capacity: Count = 150, children: Count = 100,
+                 polish: Count = 150, fresh: Count = 200, scanned: Count = 2000,
+                 drop: Gate = 40.0, contraction: Contraction = 0.6, rivals: Count = 32,
+                 kept_modes: Count = 128,
                  rule: ConvergenceRule | None = None) -> None:
         kernels.warm_up()
         self.ctx = ctx

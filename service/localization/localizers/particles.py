@@ -39,6 +39,7 @@ from typing import ClassVar
 
 import numpy as np
 
+from service.bounds import Contraction, Count, Gate
 from service.localization import kernels
 from service.localization.localizers.base import (
     READING_COLUMNS,
@@ -102,12 +103,11 @@ class Particles:
 
     name: ClassVar[str] = "particles"
 
-    def __init__(self, ctx: LocalizerContext, *, initial: int = 20000, capacity: int = 3000,
-                 work: int = 2000,
-                 min_capacity: int = 200, children: int = 100, fresh: int = 200,
-                 scanned: int = 2000,
-                 polish: int = 100_000, drop: float = 40.0, contraction: float = 0.6,
-                 rivals: int = 32, kept_modes: int = 256,
+    def __init__(self, ctx: LocalizerContext, *, initial: Count = 20000, capacity: Count = 3000,
+                 work: Count = 2000, min_capacity: Count = 200, children: Count = 100,
+                 fresh: Count = 200, scanned: Count = 2000, polish: Count = 100_000,
+                 drop: Gate = 40.0, contraction: Contraction = 0.6, rivals: Count = 32,
+                 kept_modes: Count = 256,
                  rule: ConvergenceRule | None = None,
                  sweep: SweepSettings | None = None) -> None:
         kernels.warm_up()  # compile before the first update, not during it
