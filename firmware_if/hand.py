@@ -6,6 +6,7 @@ Loaded from TOML (a preset name from `firmware_if/hands/` or a file path), valid
 
 from __future__ import annotations
 
+import difflib
 import math
 import tomllib
 from collections.abc import Sequence
@@ -263,31 +264,58 @@ def _list(value: Any, where: str) -> list[Any]:
     return value
 
 
+HAND_KEYS = ("name", "model", "fingers", "baud", "return_delay_us", "goal_current_a",
+             "profile_velocity_rad_s", "grasp_centre")
+FINGER_KEYS = ("name", "model", "joints", "tip", "radius", "home", "base", "tip_roll")
+JOINT_KEYS = ("name", "id", "axis", "origin", "limits", "zero_ticks", "direction", "model")
+TIP_ROLL_KEYS = ("id", "zero_ticks", "direction")
+
+
+def _known(table: dict[str, Any], keys: tuple[str, ...], where: str) -> dict[str, Any]:
+    """`table`, refused if it has a key not in `keys`: a misspelt `goal_current` (for
+    `goal_current_a`) was ignored, and the servos ran at the default current."""
+    for key in table:
+        if key not in keys:
+            close = difflib.get_close_matches(key, keys, n=1)
+            hint = f"did you mean '{close[0]}'? " if close else ""
+            raise HandConfigError(f"{where}: unknown field '{key}'; {hint}fields: "
+                                  f"{', '.join(keys)}")
+    return table
+
+
+def _field(table: dict[str, Any], key: str, where: str) -> Any:
+    if key not in table:
+        raise HandConfigError(f"{where}: missing field '{key}'")
+    return table[key]
+
+
 def _finger_from_dict(data: dict[str, Any], name: str, model: str) -> Finger:
     where = f"finger '{name}'"
     joints = []
     for i, entry in enumerate(_list(data.get("joints", []), f"{where}: joints")):
         w = f"{where}: joints[{i}]"
-        j = _table(entry, w)
+        j = _known(_table(entry, w), JOINT_KEYS, w)
         joints.append(Joint(
-            name=str(j.get("name", f"joint{i}")), id=_whole(j["id"], f"{w}: id"),
-            axis=j["axis"], origin=j.get("origin", (0.0, 0.0, 0.0)),
-            limits=tuple(_number(v, f"{w}: limits") for v in _list(j["limits"], f"{w}: limits")),
+            name=str(j.get("name", f"joint{i}")), id=_whole(_field(j, "id", w), f"{w}: id"),
+            axis=_field(j, "axis", w), origin=j.get("origin", (0.0, 0.0, 0.0)),
+            limits=tuple(_number(v, f"{w}: limits")
+                         for v in _list(_field(j, "limits", w), f"{w}: limits")),
             zero_ticks=_whole(j.get("zero_ticks", POSITION_CENTRE), f"{w}: zero_ticks"),
             direction=_whole(j.get("direction", 1), f"{w}: direction"),
             model=str(j.get("model", data.get("model", model)))))
     roll = data.get("tip_roll")
     if roll is not None:
-        roll = _table(roll, f"{where}: tip_roll")
+        roll = _known(_table(roll, f"{where}: tip_roll"), TIP_ROLL_KEYS, f"{where}: tip_roll")
     tip_roll = None if roll is None else TipRoll(
-        id=_whole(roll["id"], f"{where}: tip_roll: id"),
+        id=_whole(_field(roll, "id", f"{where}: tip_roll"), f"{where}: tip_roll: id"),
         zero_ticks=_whole(roll.get("zero_ticks", POSITION_CENTRE),
                           f"{where}: tip_roll: zero_ticks"),
         direction=_whole(roll.get("direction", 1), f"{where}: tip_roll: direction"))
-    return Finger(name=str(data.get("name", name)), joints=tuple(joints), tip=data["tip"],
-                  radius=_number(data["radius"], f"{where}: radius"),
+    return Finger(name=str(data.get("name", name)), joints=tuple(joints),
+                  tip=_field(data, "tip", where),
+                  radius=_number(_field(data, "radius", where), f"{where}: radius"),
                   home=tuple(_number(q, f"{where}: home")
-                             for q in _list(data["home"], f"{where}: home")),
+                             for q in _list(_field(data, "home", where), f"{where}: home")),
                   tip_roll=tip_roll, base=tuple(data.get("base", (0.0, 0.0, 0.0))))
 
 
@@ -305,10 +333,17 @@ def hand_from_dict(data: dict[str, Any], name: str = "hand") -> Hand:
             if "joints" in data:
                 raise HandConfigError(f"hand '{hand_name}': give [[fingers]] or top-level "
                                       "[[joints]], not both")
-            fingers = tuple(_finger_from_dict(_table(f, f"{where}: fingers[{i}]"),
-                                              f"finger{i}", model)
-                            for i, f in enumerate(_list(data["fingers"], f"{where}: fingers")))
-        else:
+            _known(data, HAND_KEYS, where)
+            fingers = tuple(_finger_from_dict(
+                _known(_table(f, f"{where}: fingers[{i}]"), FINGER_KEYS,
+                       f"{where}: fingers[{i}]"), f"finger{i}", model)
+                for i, f in enumerate(_list(data["fingers"], f"{where}: fingers")))
+        else:  # one finger, its fields at the top level
+            _known(data, tuple(dict.fromkeys(HAND_KEYS + FINGER_KEYS)), where)
+            if "tip" not in data and "joints" not in data:
+                raise HandConfigError(f"{where}: no fingers; list them as [[fingers]], each "
+                                      "with joints, tip, radius and home (or give one "
+                                      "finger's at the top level)")
             fingers = (_finger_from_dict(data, hand_name, model),)
         return Hand(name=hand_name, fingers=fingers,
                     baud=_whole(data.get("baud", 1_000_000), f"{where}: baud"),

@@ -38,6 +38,17 @@ def test_presets_load_and_classify():
     (lambda d: d.pop("tip"), "missing field 'tip'"),
     (lambda d: d["joints"][0].pop("axis"), "missing field 'axis'"),
     (lambda d: d.update(goal_current_a=0), "goal_current_a"),
+    # misspelt safety settings were ignored: the servos ran at the default current, full speed
+    (lambda d: d.update(goal_current=0.1), "unknown field 'goal_current'; did you mean "
+     "'goal_current_a'?"),
+    (lambda d: d.update(profile_velocity=2.0), "unknown field 'profile_velocity'; did you "
+     "mean 'profile_velocity_rad_s'?"),
+    (lambda d: d.update(wrist=1), "unknown field 'wrist'"),
+    (lambda d: d["joints"][1].update(gear=3), "joints\\[1\\]: unknown field 'gear'"),
+    (lambda d: d["joints"][1].pop("id"), "joints\\[1\\]: missing field 'id'"),
+    (lambda d: d["tip_roll"].update(speed=1), "tip_roll: unknown field 'speed'"),
+    (lambda d: [d.pop(k) for k in ("joints", "tip", "radius", "home", "tip_roll")],
+     "no fingers; list them as"),
 ])
 def test_validator_names_the_field(edit, message):
     data = copy.deepcopy(spatial_dict())
@@ -84,6 +95,8 @@ def two_finger_dict() -> dict:
      "every joint axis must be \\[0, 1, 0\\]"),
     (lambda d: d["fingers"][0].update(base=[0, 0]), "base must be \\[x, z, angle\\]"),
     (lambda d: d["fingers"][1].pop("radius"), "missing field 'radius'"),
+    (lambda d: d["fingers"][1].update(goal_current_a=0.1), "fingers\\[1\\]: unknown field "
+     "'goal_current_a'"),  # a hand's setting, not a finger's
     (lambda d: d.update(grasp_centre=[0, "a"]), "grasp_centre"),
     (lambda d: d.update(joints=[]), "not both"),
 ])
