@@ -14,6 +14,7 @@ world follows the map and seed), or a daemon without a working one (unconfigured
 from __future__ import annotations
 
 import contextlib
+import inspect
 import json
 import threading
 from dataclasses import asdict
@@ -23,7 +24,10 @@ from typing import Any
 import numpy as np
 
 from firmware_if.backend import Backend
-from service.daemon.config import DaemonConfig
+from firmware_if.errors import HandConfigError
+from service.bounds import keyword_params
+from service.daemon.config import BACKEND_BUILDER_ARGS, DaemonConfig
+from service.daemon.quiet_files import quiet_hand_error
 from service.daemon.worker_link import WorkerLink
 from service.episode.hand_scenario import HandSettings
 from service.episode.scenario import RunSettings, Truth
@@ -148,10 +152,22 @@ def make_backend(config: DaemonConfig, settings: RunSettings | HandSettings,
     if config.backend.name != "sim":
         options = dict(config.backend.options)
         factory = getattr(cls, "from_cli", None)  # the hardware backends' builder, if any
+        if factory is not None:
+            missing = [name for name, (_, default) in keyword_params(factory).items()
+                       if default is inspect.Parameter.empty and name not in options
+                       and name not in BACKEND_BUILDER_ARGS]
+            if missing:
+                raise ConfigError(
+                    f"backend.options for '{config.backend.name}' need {', '.join(missing)} "
+                    f"beside what they give ({', '.join(options) or 'nothing'}): a configure "
+                    "replaces the whole table, e.g. backend.options={\"port\": \"/dev/ttyUSB0\","
+                    " \"hand\": \"planar\"}")
         try:
             if factory is not None:
                 return factory(radius=settings.radius, step=settings.step, **options)
             return cls(**options)
+        except HandConfigError as exc:  # a hand file's content is not the client's business
+            raise quiet_hand_error(str(options.get("hand", "")), exc) from None
         except TypeError as exc:
             raise ConfigError(f"backend '{config.backend.name}' options: {exc}") from None
     from service.localization.surface import ContactSurface, HeightMap

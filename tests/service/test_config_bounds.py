@@ -227,3 +227,26 @@ def test_defaults_are_inside_their_own_bounds() -> None:
         defaults = {option: default for option, (hint, default)
                     in keyword_params(target).items() if settable(hint) and default is not None}
         check_keywords(target, defaults, name)
+
+
+def test_a_finger_backends_hand_file_tells_a_client_nothing_and_a_missing_hand_is_named(
+        tmp_path: Path) -> None:
+    """A hand file named in backend.options answered with its TOML parser's line and column
+    (of /etc/shadow, say): it is quieted as scenario.hand's is. Options without a hand
+    answered with a Python TypeError; they name what is missing and how to give it."""
+    hand = tmp_path / "hand.toml"
+    hand.write_text('name = "x"\nhunter2 = \n')
+    with running_node(loopback_config()) as node, Client(node.endpoints["cmd"]) as ctl:
+        before = ctl.call("get_config")
+        for options, words in (({"port": "/dev/null", "hand": str(hand)}, "cannot be used"),
+                               ({"port": "/dev/null", "hand": str(tmp_path / "no.toml")},
+                                "cannot be used"),
+                               ({"port": "/dev/null"}, "need hand beside what they give")):
+            with pytest.raises(CommandFailed) as err:
+                ctl.call("configure", changes={"backend": {"name": "dynamixel",
+                                                           "options": options}})
+            message = str(err.value)
+            assert err.value.code == "bad_config" and words in message, message
+            for leak in ("hunter2", "line", "column", "exist", "TypeError", "keyword"):
+                assert leak not in message, message
+        assert ctl.call("get_config") == before
