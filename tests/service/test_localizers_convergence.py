@@ -336,6 +336,12 @@ def test_turns_other_than_quarter_turns_are_found_and_their_images_read_alike(he
      "the truth lay at"),
     ("knurl_map", 237, "66 mm and 60 degrees off: the turn was found, but no image landed "
      "on the truth"),
+    ("knurl12_map", 270, "155 mm and a half turn off: the turned check polished the best 16 "
+     "of the turned poses that fit, and on a lattice dozens fit alike"),
+    ("knurl_map", 55, "15.9 mm off, a lattice shift, once the turned check screened the "
+     "knurl's own turns (the same cause)"),
+    ("twins_map", 17, "105 mm and a half turn off: the finger read only the pocket and the "
+     "gap between the blocks, which the half turn maps onto themselves"),
 ])
 def test_no_wrong_declaration_where_a_turn_of_a_pattern_was_declared(request, surface, seed,
                                                                      was):
@@ -373,19 +379,13 @@ def test_no_wrong_declaration_on_a_surface_of_revolution(rings_map, seed, was):
 
 
 @pytest.mark.parametrize("surface, seed", [
-    pytest.param("twins_map", 17, marks=pytest.mark.xfail(
-        strict=True, reason="not fixed: declared 105 mm and a half turn off; the finger read "
-        "only the pocket and the gap between the blocks, which the half turn maps onto "
-        "themselves (fits 0.384 against 0.361 mm RMS), and noise-level differences decided")),
-    pytest.param("knurl12_map", 270, marks=pytest.mark.xfail(
-        strict=True, reason="not fixed: declared 155 mm and a half turn off; a lattice has "
-        "more poses that read alike than the turned check polishes (its best 16 of each "
-        "slice), and the truth was not among them")),
-    pytest.param("knurl_map", 55, marks=pytest.mark.xfail(
-        strict=True, reason="not fixed: declared 15.9 mm off, a lattice shift; the truth, "
-        "refitted by least squares, fails the map's edge test (a blocked step's target "
-        "comes back on the map), so the last comparison leaves poses there out; comparing "
-        "with a margin wider by the tolerance cost 17 of 60 successes on this knurl")),
+    pytest.param("knurl12_map", 250, marks=pytest.mark.xfail(
+        strict=True, reason="not fixed: declared 172 mm and a half turn off; the truth, "
+        "refitted, puts a reading 1.3 mm past the map's edge (the finger's dead reckoning "
+        "drifts by about 0.1 mm a step), so the checks that weigh rivals leave it out; "
+        "weighed with that distance as an error it holds 2.3 % (`scratch` diagnosis)")),
+    pytest.param("knurl_map", 184, marks=pytest.mark.xfail(
+        strict=True, reason="not fixed: declared 192 mm and a half turn off; not diagnosed")),
 ])
 def test_no_wrong_declaration_on_the_held_out_patterns_left(request, surface, seed):
     """Helpers' held-out checks and mine found these wrong declarations; not fixed."""
