@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import logging
 from typing import TYPE_CHECKING, Any
 
 from firmware_if.errors import HardwareFault
@@ -49,6 +50,7 @@ class CommandHandlers:
             "timing": timing, "published": dict(self.pub.sent),
             "commands": {"handled": self.cmd.handled, "errors": self.cmd.errors},
             "backend": self.config.backend.name, "map": self.config.scenario.map,
+            "map_warnings": list(self.map_warnings),
             "object": scenario.object,
             "hand": None if scenario.object is None else scenario.hand_name,
             "loop_scheduling": self.scheduling and dataclasses.asdict(self.scheduling),
@@ -103,6 +105,9 @@ class CommandHandlers:
                                  truth_at=self.truth_at, hidden=self.hidden)
         self.episode_truth = None
         self.config = new
+        self.map_warnings = rc.warnings
+        for warning in rc.warnings:
+            logging.getLogger("hapticd").warning("map %s: %s", new.scenario.map, warning)
         self.lease.ttl_ns = int(new.lease.ttl_s * 1e9)
         if new.loop.period_ns != self.loop.period_ns or new.loop.overrun != self.loop.overrun:
             self.loop.overrun = new.loop.overrun
@@ -110,7 +115,7 @@ class CommandHandlers:
         self._apply_priority()  # commit runs in the loop's thread
         self._transition("configure")
         self._read()  # a first reading now, so the finger may be activated at once
-        rc.deferred.resolve({"state": self.lifecycle.state.value})
+        rc.deferred.resolve({"state": self.lifecycle.state.value, "warnings": rc.warnings})
 
     def activate(self: Node) -> dict[str, Any]:
         if self.lifecycle.state is State.UNCONFIGURED and self.configure_error:

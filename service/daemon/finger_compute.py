@@ -55,7 +55,9 @@ class FingerScenario:
 def setup(fields: dict[str, Any], backend: str, files: list[Path]
           ) -> tuple[FingerScenario, dict[str, Any]]:
     """The scenario of `fields` (RunSettings), checked whole, and the `ready` reply: the
-    simulator's hidden start and world (its arrays in `files`, for the loop to map)."""
+    simulator's hidden start and world (its arrays in `files`, for the loop to map), and the
+    map check's warnings (heights that look like millimetres, symmetries), which `haptic
+    run` prints and a client is told too."""
     from service.episode.scenario import (
         RunSettings,
         draw_truth,
@@ -81,7 +83,11 @@ def setup(fields: dict[str, Any], backend: str, files: list[Path]
     if backend == "sim":
         truth = draw_truth(settings, surface.map, truth_rng).as_tuple()
         world = _world(settings, surface, world_rng, files)
-    return scenario, {"truth": None if truth is None else list(truth), "world": world}
+    from service.localization.map_check import check_map
+
+    warnings = check_map(surface.map, settings.radius, settings.step).warnings
+    return scenario, {"truth": None if truth is None else list(truth), "world": world,
+                      "warnings": list(warnings)}
 
 
 def _world(settings: Any, surface: Any, rng: np.random.Generator, files: list[Path]

@@ -65,6 +65,8 @@ class Reconfiguration:
         self.backend: Backend | None = None
         self.truth: Truth | None = None
         self._world: dict[str, Any] | None = None
+        self.warnings: list[str] = []
+        """The map check's warnings on the new scenario's map."""
         self._thread: threading.Thread | None = None
         self.req = link.send("setup", settings=asdict(settings), backend=new.backend.name,
                              scenario="hand" if isinstance(settings, HandSettings) else "finger",
@@ -86,6 +88,7 @@ class Reconfiguration:
                 truth = msg.get("truth")
                 self.truth = None if truth is None else Truth(*truth)
                 self._world = msg.get("world")
+                self.warnings = [str(w) for w in msg.get("warnings") or []]
                 if self.rebuild_backend:
                     self.stage = Stage.OPENING
                     self._thread = threading.Thread(target=self._open, daemon=True,

@@ -7,6 +7,7 @@ import math
 from pathlib import Path
 
 import msgpack
+import numpy as np
 import pytest
 
 from firmware_if.errors import HandConfigError
@@ -250,3 +251,17 @@ def test_a_finger_backends_hand_file_tells_a_client_nothing_and_a_missing_hand_i
             for leak in ("hunter2", "line", "column", "exist", "TypeError", "keyword"):
                 assert leak not in message, message
         assert ctl.call("get_config") == before
+
+
+def test_a_map_in_millimetres_is_accepted_with_a_warning_the_client_sees(tmp_path: Path) -> None:
+    """Under hapticd a map whose heights were in millimetres was taken without a word, where
+    `haptic run` warns: the configure's reply and `status` carry the map check's warnings."""
+    rng = np.random.default_rng(0)
+    path = tmp_path / "mm.npy"
+    np.save(path, rng.normal(size=(201, 201)).cumsum(0).cumsum(1) * 0.01)
+    with running_node(loopback_config()) as node, Client(node.endpoints["cmd"]) as ctl:
+        reply = ctl.call("configure", changes={"scenario": {"map": str(path), "spacing": 0.001}})
+        assert any("look like millimetres" in w for w in reply["warnings"])
+        assert ctl.call("status")["map_warnings"] == reply["warnings"]
+        reply = ctl.call("set_map", map="bumps:20:1")
+        assert not any("millimetres" in w for w in reply["warnings"])
