@@ -66,8 +66,10 @@ def setup(fields: dict[str, Any], backend: str, files: list[Path]
         prepare_localizers,
         surface_for,
     )
+    from service.localization.maps import check_map_spec
 
     settings = for_backend(RunSettings(**fields), backend)
+    check_map_spec(settings.map, settings.spacing)  # the client's own mistake: told in full
     try:
         surface = surface_for(settings)
     except MapError as exc:

@@ -18,17 +18,30 @@ MAP_FILE_SUFFIXES = frozenset({".npy", ".csv", ".txt"})
 """What makes a map spec a file rather than a preset name."""
 
 
+def check_map_spec(spec: str, spacing: float | None) -> None:
+    """MapError for a map spec and spacing that cannot go together, before any file is
+    touched (so hapticd may tell a client, who learns nothing about the daemon's files)."""
+    suffix = Path(spec).suffix.lower()
+    if suffix in MAP_FILE_SUFFIXES:
+        if spacing is None:
+            raise MapError(f"map file '{spec}' needs its sample spacing in metres (`--spacing` "
+                           "on the command line, `scenario.spacing` in hapticd's "
+                           "configuration)")
+        return
+    if "/" in spec or suffix[1:].isalpha():
+        raise MapError(f"map file '{spec}': a map file is a grid of heights in metres, "
+                       f"{', '.join(sorted(MAP_FILE_SUFFIXES))}")
+    if spacing is not None:
+        raise MapError("a spacing (`--spacing`, `scenario.spacing`) applies to map files, "
+                       "not presets")
+
+
 def load_map(spec: str, spacing: float | None = None) -> HeightMap:
     """A preset name, or a `.npy` / `.csv` / `.txt` grid of heights in metres with `spacing`."""
     path = Path(spec)
+    check_map_spec(spec, spacing)
     if path.suffix.lower() not in MAP_FILE_SUFFIXES:
-        if spacing is not None:
-            raise MapError("a spacing (`--spacing`, `scenario.spacing`) applies to map files, "
-                           "not presets")
         return preset(spec)
-    if spacing is None:
-        raise MapError(f"map file '{spec}' needs its sample spacing in metres (`--spacing` "
-                       "on the command line, `scenario.spacing` in hapticd's configuration)")
     if not path.is_file():
         raise MapError(f"map file '{spec}' does not exist")
     try:

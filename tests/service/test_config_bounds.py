@@ -265,3 +265,18 @@ def test_a_map_in_millimetres_is_accepted_with_a_warning_the_client_sees(tmp_pat
         assert ctl.call("status")["map_warnings"] == reply["warnings"]
         reply = ctl.call("set_map", map="bumps:20:1")
         assert not any("millimetres" in w for w in reply["warnings"])
+
+
+def test_a_map_files_own_mistakes_are_told_in_full(tmp_path: Path) -> None:
+    """A map file named without its spacing, or in a format that is no map's, is the client's
+    own mistake and says nothing of the daemon's files: it is told as `haptic run` tells it,
+    not hidden behind "cannot be used" (the spacing's message reached only the log)."""
+    with running_node(loopback_config()) as node, Client(node.endpoints["cmd"]) as ctl:
+        before = ctl.call("get_config")
+        for changes, words in (({"map": str(tmp_path / "a.npy")}, "scenario.spacing"),
+                               ({"map": str(tmp_path / "a.npz")}, ".csv, .npy, .txt")):
+            with pytest.raises(CommandFailed) as err:
+                ctl.call("configure", changes={"scenario": changes})
+            assert err.value.code == "bad_config" and words in str(err.value)
+            assert "cannot be used" not in str(err.value) and "exist" not in str(err.value)
+        assert ctl.call("get_config") == before
