@@ -193,6 +193,10 @@ class DynamixelBackend(HandOfOne):
             except FirmwareError as exc:
                 self.bus.close()
                 self._fault = f"reset failed: {exc}"
+                if isinstance(exc, CommunicationError) and attempt == 1:
+                    raise CommunicationError(  # what to do, not only what the SDK said
+                        f"reset failed: a servo does not answer ({exc}); check the bus power "
+                        "and every servo's cable, then reset again", exc.servo_ids) from exc
                 if attempt == 1 or isinstance(exc, PortLost):
                     raise
         self._fault = None

@@ -127,8 +127,9 @@ def test_a_misbehaving_servo_faults_the_bus_and_reset_recovers(rig, inject: str)
     assert state.fault and "consecutive failed cycles" in state.fault
     assert bus.wait_until(lambda: not any(s.torque_on for s in bus.servos.values()))
     if inject == "mute":  # (a late servo would pile up a backlog of stale replies)
-        with pytest.raises(FirmwareError):
-            backend.clear_fault()  # still misbehaving: the fault stays
+        with pytest.raises(FirmwareError, match="check the bus power and every servo's "
+                           "cable, then reset again"):
+            backend.clear_fault()  # still misbehaving: the fault stays, and what to do
         assert backend.read_state().fault
     plan.mute, plan.corrupt, plan.late_s = False, 0, 0.0
     backend.clear_fault()
