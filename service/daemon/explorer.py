@@ -133,7 +133,9 @@ class Explorer:
                 self._req = self.link.send("cancel")
             est = {k: v for k, v in self.estimate_fields().items()
                    if k not in ("step", "kind", "displacement", "predicted_quality", "quality")}
-            cut = {**est, "steps": self.steps, "reason": reason,
+            # a step commanded but not yet read has no `step` event: it is not counted
+            done = self.steps - (self.phase in (Phase.STEPPING, Phase.UPDATING))
+            cut = {**est, "steps": done, "reason": reason,
                    "true_pose_eliminated": None, **({"dropped": False}
                                                     if self.kind == "hand" else {})}
         self.phase = Phase.IDLE

@@ -62,7 +62,9 @@ def wait_fault(sub: Subscriber) -> dict:
     assert fault is not None, "no fault event"
     done = sub.wait_for(lambda m: m.topic == "event" and m["event"] == "episode_done", 5.0)
     assert done is not None and done["reason"] == "fault" and not done["converged"]
-    assert done["steps"] >= 1 and done["candidates"] >= 1  # the estimate as of the cut
+    # the estimate as of the cut; the step under way when the fault came is not counted
+    # (it has no `step` event: episode_done said 5 where the stream held 4)
+    assert done["steps"] >= 0 and done["candidates"] >= 1
     state = sub.wait_for(lambda m: m.topic == "state", 5.0)
     assert state["state"] == "fault" and not state["torque_on"] and not state["exploring"]
     return fault.body
