@@ -106,8 +106,8 @@ def draw_truth(settings: RunSettings, height_map: HeightMap, rng: np.random.Gene
         x, y, heading = settings.start
         if not height_map.inside(np.array(x), np.array(y)):
             x_max, y_max = height_map.extent
-            raise ConfigError(f"--start ({x:.4g}, {y:.4g}) m lies outside the map "
-                              f"(0..{x_max:.4g}, 0..{y_max:.4g} m)")
+            raise ConfigError(f"start ({x:.4g}, {y:.4g}) m (`--start`, `scenario.start`) lies "
+                              f"outside the map (0..{x_max:.4g}, 0..{y_max:.4g} m)")
         return Truth(float(x), 0.0 if height_map.is_profile else float(y), float(heading))
     if not settings.noise:
         xs, ys = grid_positions(height_map, settings.step)

@@ -58,7 +58,7 @@ def test_a_mesh_cross_section_is_an_object(tmp_path, capsys):
     (["--object", "blob", "--mu", "0"], "mu must be > 0"),
     (["--object", "blob", "--start-quality", "0.5"],
      "start grasp quality (0.5 N) must be at least the threshold (1.0 N)"),
-    (["--object", "blob", "--plane", "z=0"], "--plane applies to mesh files"),
+    (["--object", "blob", "--plane", "z=0"], "`scenario.plane`) applies to mesh files"),
 ])
 def test_user_errors_are_one_line(argv, message, capsys):
     assert main(["run", *argv]) == 2

@@ -36,13 +36,15 @@ def load_object(spec: str, *, plane: str | None = None, units: str = "m") -> Con
     suffix = path.suffix.lower()
     if suffix not in OBJECT_FILE_SUFFIXES:
         if plane is not None:
-            raise ObjectError("--plane applies to mesh files (.stl, .obj, .ply), not presets")
+            raise ObjectError("a plane (`--plane`, `scenario.plane`) applies to mesh files "
+                              "(.stl, .obj, .ply), not presets")
         return preset_object(spec)
     if not path.is_file():
         raise ObjectError(f"object file '{spec}' does not exist")
     if suffix == ".csv":
         if plane is not None:
-            raise ObjectError("--plane applies to mesh files, not a CSV outline")
+            raise ObjectError("a plane (`--plane`, `scenario.plane`) applies to mesh files, "
+                              "not a CSV outline")
         return _csv(path, UNITS[units])
     return mesh_section(path, plane, UNITS[units])
 
