@@ -390,7 +390,7 @@ class Particles:
                                                np.deg2rad(20.0), 1).masses[0])
             return
         track = dict(sd=self.fit_sd, position_tol=self.same_pose[0],
-                     heading_tol=self.same_pose[1], margin=self.judging_margin,
+                     heading_tol=self.same_pose[1], margin=self.margin,
                      outlier_probability=self.outlier_p, outlier_range=self.outlier_range)
         leaders = self.poses[self._leaders(self.rivals)]
         lead = self.tracks.centres[0] if len(self.tracks.centres) else leaders[0]
@@ -402,7 +402,7 @@ class Particles:
         modes = Modes(centres=self.tracks.centres, masses=shares,
                       labels=np.full(len(self.poses), -1))
         v = judge(self.ctx.surface, self.history, modes, sigma=self.sigma, noisy=self.noisy,
-                  step_length=step, rule=self.rule, margin=self.judging_margin,
+                  step_length=step, rule=self.rule, margin=self.margin,
                   outlier_probability=self.outlier_p, outlier_range=self.outlier_range,
                   polish=0, position_sigma=self.ctx.motion.position_sigma,
                   previous=None if previous is None else previous.pose,
@@ -453,7 +453,7 @@ class Particles:
             poses = gauss_newton(surface, poses, self.history, w, iterations=iterations,
                                  max_move=self.sweep.start_reach)
             ll = fit_log_likelihood(surface, np.vstack([[pose], poses]), self.history,
-                                    self.fit_sd, self.judging_margin, self.outlier_p,
+                                    self.fit_sd, self.margin, self.outlier_p,
                                     self.outlier_range)
             return poses, ll[0] - ll[1:]
 
@@ -490,21 +490,11 @@ class Particles:
     def _slope_weighed(self, poses: np.ndarray, sd: float) -> np.ndarray:
         """Gaussian log likelihood of every reading for each pose, the height offset fitted,
         each reading's sd `sd` widened by the position noise times the slope under it."""
-        r, ok = offset_residuals(self.ctx.surface, poses, self.history, self.judging_margin)
+        r, ok = offset_residuals(self.ctx.surface, poses, self.history, self.margin)
         sds = reading_sigmas_each(self.ctx.surface, self.history, poses, sd,
                                   self.ctx.motion.position_sigma)
         ll = -0.5 * np.sum((r / sds) ** 2, axis=1) - np.sum(np.log(sds), axis=1)
         return np.where(ok.all(axis=1), ll, -np.inf)
-
-    @property
-    def judging_margin(self) -> float:
-        """How far past the map's edge a reading may fall under a pose the declaration
-        weighs: `margin`, and three times as far as the finger's dead reckoning may have
-        drifted over the readings (a step's position sd, over their count of steps). The
-        truth refitted by least squares puts a far reading a millimetre past the edge now and
-        then, and a rival left out so was declared wrong three times in 880 held-out runs
-        (knurl_12 seed 250, knurl_60 seed 55, rings seed 153)."""
-        return self.margin + 3.0 * self.ctx.motion.position_sigma * np.sqrt(len(self.history))
 
     # -- helpers ---------------------------------------------------------------------------
     def _random(self, count: int) -> np.ndarray:
