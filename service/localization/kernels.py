@@ -221,17 +221,21 @@ def log_likelihood(resid: np.ndarray, on_map: np.ndarray, sigma: np.ndarray,
 @numba.njit(**_JIT)
 def gauss_newton(grid: np.ndarray, spacing: float, poses: np.ndarray, history: np.ndarray,
                  weights: np.ndarray, iterations: int, damping: float, max_move: float,
-                 lever: float, profile: bool) -> np.ndarray:
+                 lever: float, profile: bool, extent: tuple[float, float]) -> np.ndarray:
     """Damped Gauss-Newton steps on (x0, y0, heading) per pose, the height offset
     eliminated; a step is capped at `max_move` metres (and max_move / lever radians);
     max_move <= 0 leaves it uncapped. On a profile only x0 moves: y0 means nothing there
-    and the direction is one of two, not a continuum. See `fitting.gauss_newton`."""
+    and the direction is one of two, not a continuum. A step never carries a reading
+    further past the map's edge (`extent`) than the pose had it: it is halved until it
+    does not, or not taken (the truth refitted freely put a far reading a millimetre past
+    the edge, and was then ruled out as off the map). See `fitting.gauss_newton`."""
     n, k = poses.shape[0], history.shape[0]
     w = weights / weights.sum()
     out = poses.copy()
     jac = np.empty((4, k))  # d/dx, d/dy, d/dheading, and the height residual
     normal = np.empty((3, 4))  # [A | b] of the normal equations
     for i in range(n):
+        past = _past_edge(out[i, 0], out[i, 1], out[i, 2], history, extent, profile)
         for _ in range(iterations):
             c, s = math.cos(out[i, 2]), math.sin(out[i, 2])
             for j in range(k):
@@ -265,11 +269,37 @@ def gauss_newton(grid: np.ndarray, spacing: float, poses: np.ndarray, history: n
             if max_move > 0:
                 scale = max(math.hypot(sx, sy) / max_move, abs(sh) * lever / max_move, 1.0)
                 sx, sy, sh = sx / scale, sy / scale, sh / scale
+            for _halving in range(6):
+                after = _past_edge(out[i, 0] - sx, out[i, 1] - sy, out[i, 2] - sh, history,
+                                   extent, profile)
+                if after <= past + 1e-12:
+                    break
+                sx, sy, sh = 0.5 * sx, 0.5 * sy, 0.5 * sh
+            else:
+                break  # no step along this way keeps the readings where they were
+            past = after
             out[i, 0] -= sx
             out[i, 1] -= sy
             out[i, 2] -= sh
         out[i, 2] = (out[i, 2] + math.pi) % (2 * math.pi) - math.pi
     return out
+
+
+@numba.njit(inline="always", **_JIT)
+def _past_edge(x0: float, y0: float, heading: float, history: np.ndarray,
+               extent: tuple[float, float], profile: bool) -> float:
+    """How far (metres) the reading furthest past the map's edge lies under a pose (0 if
+    every reading is on the map)."""
+    c, s = math.cos(heading), math.sin(heading)
+    worst = 0.0
+    for j in range(history.shape[0]):
+        x = x0 + c * history[j, 0] - s * history[j, 1]
+        out = max(-x, x - extent[0])
+        if not profile:
+            y = y0 + s * history[j, 0] + c * history[j, 1]
+            out = max(out, -y, y - extent[1])
+        worst = max(worst, out)
+    return worst
 
 
 @numba.njit(**_JIT)
@@ -530,7 +560,8 @@ def warm_up() -> None:
         r, ok = relative_residuals(g, 1.0, (1.0, 1.0), is_profile, poses, history, 0.0)
         offset_residuals(g, 1.0, (1.0, 1.0), is_profile, poses, history, 0.0)
         log_likelihood(r, ok, np.ones(2), 0.0, 1.0)
-        gauss_newton(g, 1.0, poses, history, np.ones(2), 1, 1e-4, 0.0, 1.0, is_profile)
+        gauss_newton(g, 1.0, poses, history, np.ones(2), 1, 1e-4, 0.0, 1.0, is_profile,
+                     (1.0, 1.0))
         heights_and_jacobian(g, 1.0, np.zeros(3), history)
         slope_squares(g, 1.0, poses, history)
         sweep_screen(g, g, 1.0, 1.0, (1.0, 1.0), is_profile, 0, 1, 1,

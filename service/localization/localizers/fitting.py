@@ -129,7 +129,8 @@ def gauss_newton(surface: ContactSurface, poses: np.ndarray, history: np.ndarray
     lever = max(float(np.max(np.hypot(history[:, 0], history[:, 1]))), max_move or 0.0)
     return kernels.gauss_newton(surface.centre_heights, surface.map.spacing, _rows(poses),
                                 history, _rows(weights), iterations,
-                                damping, max_move or 0.0, lever, surface.map.is_profile)
+                                damping, max_move or 0.0, lever, surface.map.is_profile,
+                                surface.map.extent)
 
 
 def on_pose_space(surface: ContactSurface, poses: np.ndarray) -> np.ndarray:
