@@ -170,18 +170,17 @@ def test_no_wrong_declaration_where_one_was_found(surface, seed, why):
     assert not _declares_wrongly(surface, seed), why
 
 
-@pytest.mark.xfail(strict=True, reason="not fixed (below)")
 @pytest.mark.parametrize("surface, seed, why", [
     ("pattern:20:22", 5, "a quarter turn, 34 mm off: the truth fits as well, but its turned "
                          "cell ranked 132nd-180th of its slice, behind cells crowding a few "
-                         "flat places, and only the best 128 are polished"),
+                         "flat places, and only the best 128 were screened and 16 polished"),
 ])
 def test_no_wrong_declaration_on_surfaces_no_benchmark_uses(surface, seed, why):
     """Map seeds 18-26, which no benchmark runs and no change was tuned on (`haptic bench
     objects --map-seeds 18,...,26`): 2 wrong declarations in 720 runs on `b6c53f0`, 1 since
     the valley scan toward the local fits (shell:20:22, seed 17, a near miss, is no longer
-    declared). Handing over one turned cell a basin fixes this one but was not kept
-    (BENCHMARKS.md)."""
+    declared), none since the turned check polishes every turned pose that may still fit
+    (`f697e28`)."""
     assert not _declares_wrongly(surface, seed), why
 
 
