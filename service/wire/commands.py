@@ -264,7 +264,8 @@ class CommandServer:
                 req = wire.unpack_map(payload, self.max_request_bytes)
             except wire.WireError as exc:
                 raise CommandError(exc.code, str(exc)) from None
-            rid = req.get("id") if isinstance(req.get("id"), (int, str)) else None
+            rid = req.get("id")  # echoed only if it is one (`true` is no id)
+            rid = rid if isinstance(rid, (int, str)) and not isinstance(rid, bool) else None
             rid, cmd, client, args, spec = validate(req)
             if self.curve is not None and not self.curve.authorized(peer.key):
                 raise CommandError("unauthorized", "this client's key is no longer in "

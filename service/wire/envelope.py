@@ -151,14 +151,45 @@ def unpack_map(data: bytes, max_bytes: int = MAX_MESSAGE_BYTES) -> dict[str, Any
         obj = msgpack.unpackb(bytes(data), raw=False, strict_map_key=True, use_list=True,
                               max_str_len=max_bytes, max_bin_len=max_bytes,
                               max_array_len=max_bytes, max_map_len=max_bytes // 2,
-                              max_ext_len=0, ext_hook=_refuse_ext)
+                              max_ext_len=0, ext_hook=_refuse_ext,
+                              object_pairs_hook=_string_keyed_map)
     except WireError:
         raise
     except Exception as exc:  # msgpack raises several unrelated types on garbage
-        raise WireError("malformed", f"not a msgpack message: {type(exc).__name__}") from None
+        raise WireError("malformed", f"not a msgpack message: {_why(exc)}") from None
     if not isinstance(obj, dict):
         raise WireError("malformed", "message must be a msgpack map")
     return obj
+
+
+def _string_keyed_map(pairs: list[tuple[Any, Any]]) -> dict[str, Any]:
+    """A map whose keys are strings, each once: a request with `cmd` twice ran the second
+    (a proxy that reads the first would see another command), and a bytes key was taken
+    where an integer one was refused."""
+    out: dict[str, Any] = {}
+    for key, value in pairs:
+        if not isinstance(key, str):
+            raise WireError("malformed", f"map keys must be strings, got {type(key).__name__}")
+        if key in out:
+            raise WireError("malformed", f"a map repeats the key '{key[:64]}'")
+        out[key] = value
+    return out
+
+
+def _why(exc: Exception) -> str:
+    """What is wrong with bytes msgpack refused, in words rather than the exception's
+    class name."""
+    if isinstance(exc, msgpack.ExtraData):
+        return "bytes left over after the message"
+    if isinstance(exc, UnicodeDecodeError):
+        return "a string that is not UTF-8"
+    if isinstance(exc, msgpack.StackError):
+        return "nested too deep"
+    if "ext" in str(exc):
+        return "msgpack extension types are not allowed"
+    if isinstance(exc, ValueError) and "exceeds" in str(exc):
+        return "a string, array or map longer than the message allows"
+    return "the bytes end early or hold an invalid msgpack type"
 
 
 def _refuse_ext(code: int, data: bytes) -> Any:

@@ -80,11 +80,17 @@ def test_garbage_gets_error_replies_and_changes_nothing(node: Node, raw: zmq.Soc
                             "pad": "x" * 70_000}), "too_large"),
             (b"\x00" * (1 << 20), "too_large"),
             (msgpack.packb(msgpack.ExtType(1, b"\x80\x04")), "malformed"),
+            # `cmd` twice: the second ran (activate where a proxy read status)
+            (b"\x85\xa1v\x02\xa4type\xa7request\xa2id\x09\xa3cmd\xa6status"
+             b"\xa3cmd\xa8activate", "malformed"),
+            (msgpack.packb({"v": 2, "type": "request", "id": True, "cmd": "ping"}),
+             "malformed"),
         ]
         for payload, code in cases:
             reply = ask(raw, payload)
             assert not reply["ok"] and reply["error"]["code"] == code, (payload[:40], reply)
             assert reply["error"]["message"]
+            assert reply["id"] is not True  # `true` is no id: the reply's id is nil
         reply = ask(raw, b"one", b"two")
         assert reply["error"]["code"] == "malformed"
         assert snapshot(ctl) == before

@@ -48,11 +48,22 @@ def test_big_endian_arrays_are_sent_little_endian() -> None:
     (msgpack.packb(msgpack.ExtType(5, b"x")), "malformed"),
     (b"\x00" * (wire.MAX_MESSAGE_BYTES + 1), "too_large"),
     (msgpack.packb({1: 2}), "malformed"),
+    (b"\x81\xc4\x03cmd\xa6status", "malformed"),  # a bytes key was taken as a key
+    (b"\x82\xa3cmd\xa6status\xa3cmd\xa8activate", "malformed"),  # `cmd` twice ran the second
+    (msgpack.packb({"a": {"b": 1}})[:-1], "malformed"),
 ])
 def test_unpack_refuses_garbage(data: bytes, code: str) -> None:
     with pytest.raises(wire.WireError) as err:
         wire.unpack_map(data)
     assert err.value.code == code
+    assert "Error" not in str(err.value)  # words, not an exception's class name
+
+
+def test_a_repeated_key_is_named_and_nested_maps_are_kept() -> None:
+    with pytest.raises(wire.WireError, match="a map repeats the key 'cmd'"):
+        wire.unpack_map(b"\x82\xa3cmd\xa6status\xa3cmd\xa8activate")
+    nested = {"a": {"b": [1, {"c": 2.5}]}, "d": None}
+    assert wire.unpack_map(msgpack.packb(nested)) == nested
 
 
 def test_bad_envelopes() -> None:
