@@ -378,7 +378,9 @@ class DxlBus:
     def _latch(self, reason: str) -> None:
         self.fault = reason
         self.torque(False, best_effort=True)
-        raise HardwareFault(f"bus on {self.port_name}: {reason}; torque is off, reset to recover")
+        # torque off goes out by sync write, which no servo acknowledges: say it was sent
+        raise HardwareFault(f"bus on {self.port_name}: {reason}; torque off sent to every "
+                            "servo, reset to recover")
 
     def reset(self) -> None:
         """Clear a latched fault: reboot servos that report a hardware error (their RAM
