@@ -43,7 +43,8 @@ def load_map(spec: str, spacing: float | None = None) -> HeightMap:
     if path.suffix.lower() not in MAP_FILE_SUFFIXES:
         return preset(spec)
     if not path.is_file():
-        raise MapError(f"map file '{spec}' does not exist")
+        raise MapError(f"map file '{spec}' is not a regular file" if path.exists()
+                       else f"map file '{spec}' does not exist")
     try:
         if path.suffix.lower() == ".npy":
             heights = np.load(path, allow_pickle=False)

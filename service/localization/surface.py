@@ -159,11 +159,14 @@ def check_radius(height_map: HeightMap, radius: float) -> None:
     k = int(np.floor(radius / height_map.spacing + 1e-9))
     footprint = (2 * k + 1) if height_map.is_profile else (2 * k + 1) ** 2
     if footprint * height_map.heights.size > DILATION_WORK_LIMIT:
+        # the spacing at which the work fits, and never finer than a tip needs
+        coarser = max(radius / 8, height_map.spacing
+                      * (footprint * height_map.heights.size / DILATION_WORK_LIMIT) ** 0.25)
         raise MapError(f"finger radius {radius * 1e3:g} mm spans {2 * k + 1} samples of map "
                        f"'{height_map.name}' ({height_map.shape[1]} x {height_map.shape[0]} "
                        f"samples at {height_map.spacing * 1e3:g} mm): its contact surface "
-                       f"would take too long to build; resample the map to a coarser spacing "
-                       f"(about {radius / 8 * 1e3:.2g} mm is plenty for this tip).{hint}")
+                       f"would take too long to build; crop the map, or resample it to a "
+                       f"spacing of {coarser * 1e3:.3g} mm or coarser.{hint}")
 
 
 def contact_surface(height_map: HeightMap, radius: float) -> ContactSurface:

@@ -40,8 +40,13 @@ def test_a_radius_the_map_cannot_take_is_refused(radius, message):
 
 def test_a_tip_too_many_samples_wide_is_refused_before_any_work():
     fine = HeightMap(np.zeros((2001, 2001)), 0.0001, name="fine")
-    with pytest.raises(MapError, match="coarser spacing"):
+    with pytest.raises(MapError, match="resample it to a spacing of 1 mm or coarser"):
         contact_surface(fine, 0.008)
+    # a map too large at a spacing already coarse enough for the tip: the advice is a spacing
+    # it does not have yet (it said "about 1 mm is plenty" of a map at 1 mm)
+    large = HeightMap(np.zeros((6000, 6000)), 0.001, name="large")
+    with pytest.raises(MapError, match=r"crop the map, or resample it to a spacing of 1.01 mm"):
+        contact_surface(large, 0.008)
 
 
 def test_plains_features_and_hidden_pits():

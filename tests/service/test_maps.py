@@ -48,6 +48,16 @@ def test_bad_map_specs(spec, spacing, message):
         load_map(spec, spacing)
 
 
+def test_a_path_that_is_no_regular_file_is_called_so(tmp_path):
+    """A directory or a FIFO named as a map was said not to exist."""
+    folder = tmp_path / "maps.npy"
+    folder.mkdir()
+    with pytest.raises(MapError, match="is not a regular file"):
+        load_map(str(folder), 0.001)
+    with pytest.raises(MapError, match="a map file is a grid of heights"):
+        load_map(str(tmp_path / "heights.npz"), 0.001)  # it was called a preset
+
+
 def test_file_needs_spacing(tmp_path):
     path = tmp_path / "s.npy"
     np.save(path, np.zeros((3, 3)))
