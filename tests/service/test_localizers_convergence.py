@@ -376,7 +376,7 @@ def test_a_surface_of_revolution_repeats_under_every_turn_about_its_axis(rings_m
                                        (24, "79.5 mm and 78.4 degrees off")])
 def test_no_wrong_declaration_on_a_surface_of_revolution(rings_map, seed, was):
     """A helper's held-out rings: every turn about their axis reads alike, and poses turned
-    by 66-173 degrees were declared in 23 of 560 runs, since no check tried those turns. Each
+    by 66-173 degrees were declared in 23 of 680 runs, since no check tried those turns. Each
     turn every 2 degrees is now an image the judge weighs."""
     report = simulate(RunSettings(map=str(rings_map), spacing=0.001, noise=True, seed=seed,
                                   max_steps=60))

@@ -63,17 +63,8 @@ def test_a_pose_turned_about_a_square_pocket_is_found_anywhere():
     heights = np.where((np.abs(x - 0.07) <= 0.015) & (np.abs(y - 0.07) <= 0.015), -0.005, 0.0)
     heights = heights + np.where(np.hypot(x - 0.15, y - 0.15) <= 0.01, 0.005, 0.0)
     surface = contact_surface(HeightMap(heights, 0.001), 0.008)
-    start = np.array([0.062, 0.066, 0.3])
-    centre, quarter = np.array([0.07, 0.07]), np.pi / 2
-    turn = np.array([[np.cos(quarter), -np.sin(quarter)], [np.sin(quarter), np.cos(quarter)]])
-    expected = np.append(centre + turn @ (start[:2] - centre), start[2] + quarter)
-    sweep = Sweep(surface, STEP, 0.0002, 0.0005)
-    readings = _readings(surface, start)
-    found = np.vstack([sweep.turned(readings, start[2], first, 8192, 64)
-                       for first in range(0, sweep.turned_cells, 8192)])
-    gap = np.hypot(found[:, 0] - expected[0], found[:, 1] - expected[1])
-    turned = np.abs(np.angle(np.exp(1j * (found[:, 2] - expected[2]))))
-    assert np.any((gap <= 0.3 * STEP) & (turned <= 1e-9))
+    assert _turned_check_finds(surface, np.array([0.062, 0.066, 0.3]),
+                               np.array([0.07, 0.07]), np.pi / 2, best=64, heading_tol=1e-9)
 
 
 def test_a_pose_turned_by_a_lattices_own_turn_is_found_anywhere(hex_map):
@@ -83,18 +74,27 @@ def test_a_pose_turned_by_a_lattices_own_turn_is_found_anywhere(hex_map):
     own bumps differ by up to 0.12 mm under it, a sampled map's smoothing)."""
     surface = contact_surface(load_map(str(hex_map), 0.001), 0.008)
     assert np.any(np.abs(np.rad2deg(turns_to_check(surface)) - 60.0) < SAME_TURN)
-    start = np.array([0.0877, 0.081, 1.29])
-    centre, sixth = np.array([0.1, 0.1]), np.pi / 3  # a bump of the lattice
-    turn = np.array([[np.cos(sixth), -np.sin(sixth)], [np.sin(sixth), np.cos(sixth)]])
-    expected = np.append(centre + turn @ (start[:2] - centre), start[2] + sixth)
+    # about a bump of the lattice; a lattice has hundreds of poses that read alike: all
+    # that fit are kept here
+    assert _turned_check_finds(surface, np.array([0.0877, 0.081, 1.29]),
+                               np.array([0.1, 0.1]), np.pi / 3, best=8192,
+                               heading_tol=np.deg2rad(SAME_TURN))
+
+
+def _turned_check_finds(surface, start: np.ndarray, centre: np.ndarray, angle: float, *,
+                        best: int, heading_tol: float) -> bool:
+    """Whether `Sweep.turned`, over all its cells (keeping the `best` of each slice), hands
+    over the pose `start` turned by `angle` about `centre`, from the readings of PATH."""
+    c, s = np.cos(angle), np.sin(angle)
+    expected = np.append(centre + np.array([[c, -s], [s, c]]) @ (start[:2] - centre),
+                         start[2] + angle)
     sweep = Sweep(surface, STEP, 0.0002, 0.0005)
     readings = _readings(surface, start)
-    # a lattice has hundreds of poses that read alike: all that fit are kept here
-    found = np.vstack([sweep.turned(readings, start[2], first, 8192, 8192)
+    found = np.vstack([sweep.turned(readings, start[2], first, 8192, best)
                        for first in range(0, sweep.turned_cells, 8192)])
     gap = np.hypot(found[:, 0] - expected[0], found[:, 1] - expected[1])
     turned = np.abs(np.angle(np.exp(1j * (found[:, 2] - expected[2]))))
-    assert np.any((gap <= 0.3 * STEP) & (turned <= np.deg2rad(SAME_TURN)))
+    return bool(np.any((gap <= 0.3 * STEP) & (turned <= heading_tol)))
 
 
 def test_a_surface_without_turns_of_its_own_is_checked_at_multiples_of_45_degrees(pattern):
