@@ -167,6 +167,7 @@ def summarize(reports: Sequence[EpisodeReport]) -> dict[str, Any]:
     all_ms = [s.compute_ms for r in reports for s in r.result.steps]
     later_ms = [s.compute_ms for r in reports for s in r.result.steps[1:]]
     policy_ms = [s.policy_ms for r in reports for s in r.result.steps]
+    background_ms = [s.background_ms for r in reports for s in r.result.steps]
     eliminated = [r.true_pose_eliminated for r in reports]
     ok = [r for r in reports if r.score.position_error is not None]
     return {
@@ -188,6 +189,8 @@ def summarize(reports: Sequence[EpisodeReport]) -> dict[str, Any]:
         "compute_ms_after_first_p99": percentile(later_ms, 99),
         "policy_ms_median": percentile(policy_ms, 50),
         "policy_ms_p99": percentile(policy_ms, 99),
+        "background_ms_median": percentile(background_ms, 50),
+        "background_ms_p99": percentile(background_ms, 99),
         "final_position_error_median": percentile((r.score.position_error for r in ok), 50),
         "final_position_error_p90": percentile((r.score.position_error for r in ok), 90),
         "final_heading_error_deg_median": percentile(

@@ -87,6 +87,9 @@ def print_table(s: dict, base: RunSettings) -> None:
                              f"p99 {fmt(s['compute_ms_p99'])} ms", PAPER["compute"]),
         ("policy per step", f"median {fmt(s['policy_ms_median'])} ms, "
                             f"p99 {fmt(s['policy_ms_p99'])} ms", ""),
+        ("work between steps", f"median {fmt(s['background_ms_median'])} ms, "
+                               f"p99 {fmt(s['background_ms_p99'])} ms (while the finger moves)",
+         ""),
     ]
     print(f"B1 paper: {base.algorithm} + {base.policy} on {base.map}, {s['runs']} runs")
     width = max(len(r[0]) for r in rows)

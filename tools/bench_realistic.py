@@ -49,6 +49,8 @@ def print_table(s: dict, base: RunSettings) -> None:
                              f"p99 {fmt(s['compute_ms_after_first_p99'])} ms"),
         ("policy per step", f"median {fmt(s['policy_ms_median'])} ms, "
                             f"p99 {fmt(s['policy_ms_p99'])} ms"),
+        ("work between steps", f"median {fmt(s['background_ms_median'])} ms, "
+                               f"p99 {fmt(s['background_ms_p99'])} ms (while the finger moves)"),
     ]
     width = max(len(r[0]) for r in rows)
     for name, value in rows:

@@ -97,6 +97,7 @@ def _run_sizes(args: argparse.Namespace, sizes: list[float], algorithms: list[st
                 "compute_ms_p99": s["compute_ms_p99"],
                 "compute_ms_after_first_median": s["compute_ms_after_first_median"],
                 "compute_ms_after_first_p99": s["compute_ms_after_first_p99"],
+                "background_ms_p99": s["background_ms_p99"],
             })
             print_row(rows[-1])
 
@@ -106,7 +107,8 @@ def print_row(r: dict) -> None:
           f"ok  wrong {r['wrong_declarations']}  steps {fmt(r['steps'], 'g'):>4}  compute "
           f"first {fmt(r['compute_ms_first_median']):>8} ms  after it median "
           f"{fmt(r['compute_ms_after_first_median']):>7} ms, p99 "
-          f"{fmt(r['compute_ms_after_first_p99']):>7} ms", flush=True)
+          f"{fmt(r['compute_ms_after_first_p99']):>7} ms; between steps p99 "
+          f"{fmt(r['background_ms_p99']):>6} ms", flush=True)
 
 
 def plot_rows(rows: list[dict], path) -> None:

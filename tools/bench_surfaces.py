@@ -88,6 +88,8 @@ def surface_row(name: str, outcomes: Sequence[Outcome]) -> dict[str, Any]:
             (r.result.steps[0].compute_ms for r in done if r.result.steps), 50),
         "compute_ms_after_first_p99": percentile(later, 99),
         "compute_ms_after_first_median": percentile(later, 50),
+        "background_ms_p99": percentile(
+            (s.background_ms for r in done for s in r.result.steps), 99),
         "wrong_runs": [{"map": r.settings.map, "seed": r.settings.seed,
                         "position_error": r.score.position_error,
                         "heading_error_deg": float(np.degrees(r.score.heading_error))}
@@ -107,7 +109,7 @@ def verdict(runs: int, success: int, wrong: int, errors: int) -> str:
 
 
 HEADER = (f"{'surface':<26} {'localized':>9} {'not yet':>7} {'WRONG':>5} {'errors':>6} "
-          f"{'steps med/p90':>13} {'first ms':>8} {'p99 after':>9}  verdict")
+          f"{'steps med/p90':>13} {'first ms':>8} {'p99 after':>9} {'between':>7}  verdict")
 
 
 def print_row(r: dict[str, Any]) -> None:
@@ -115,8 +117,8 @@ def print_row(r: dict[str, Any]) -> None:
     mark = "  <-- WRONG" if r["wrong_declarations"] else ""
     print(f"{r['surface']:<26} {r['successes']:>4}/{r['runs']:<4} {r['not_yet']:>7} "
           f"{r['wrong_declarations']:>5} {r['errors']:>6} {steps:>13} "
-          f"{fmt(r['compute_ms_first_median']):>8} {fmt(r['compute_ms_after_first_p99']):>9}  "
-          f"{r['verdict']}{mark}", flush=True)
+          f"{fmt(r['compute_ms_first_median']):>8} {fmt(r['compute_ms_after_first_p99']):>9} "
+          f"{fmt(r['background_ms_p99']):>7}  {r['verdict']}{mark}", flush=True)
 
 
 def run_families(args: argparse.Namespace, *, scenario: str, label: str,

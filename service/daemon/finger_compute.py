@@ -143,6 +143,9 @@ class FingerEpisode:
         self.blocked_here: set[int] = set()
         self.policy_ms = 0.0
         """The policy's time for the move under way (reported with its step)."""
+        self.background_ms = 0.0
+        """The localizer's background work while the previous move was under way (reported
+        with the step that move ends in)."""
 
     def start(self, body: dict[str, Any]) -> dict[str, Any]:
         """The first contact: the belief, and the first move."""
@@ -161,6 +164,8 @@ class FingerEpisode:
         from service.localization.localizers.base import Budget, Measurement
         from service.localization.policies.base import MOVES
 
+        if not self._finish_background(interrupted):
+            return None
         step, reading = int(body["step"]), body["reading"]
         finger = reading["fingers"][0]
         self.displacement = np.asarray(finger["centre"], dtype=np.float64) - self.origin
@@ -181,6 +186,25 @@ class FingerEpisode:
                 return None
         return self._belief(step, t0)
 
+    def between_steps(self, interrupted: Callable[[], bool]) -> None:
+        """While the move just chosen is under way: the localizer's background share
+        (`Localizer.background`), until done or a request arrives; the next update
+        finishes it first, so the outcome is `run_episode`'s however long the move takes."""
+        self._finish_background(interrupted)
+
+    def _finish_background(self, interrupted: Callable[[], bool]) -> bool:
+        """Run the background share to its end; False if a request cut it short."""
+        from service.localization.localizers.base import Budget
+
+        t0 = time.monotonic_ns()
+        try:
+            while not self.localizer.background(Budget.seconds(SLICE_S)):
+                if interrupted():
+                    return False
+            return True
+        finally:
+            self.background_ms += (time.monotonic_ns() - t0) / 1e6
+
     def _belief(self, step: int, t0: int) -> dict[str, Any]:
         """The estimate, a cloud of the same moment, what happened (the step, the end) and,
         if the episode goes on, the policy's next move."""
@@ -200,8 +224,9 @@ class FingerEpisode:
                 "measurement": [float(v) for v in self.displacement],
                 "blocked": self.blocked, "candidates": fields["candidates"],
                 "compute_ms": update_ms, "policy_ms": self.policy_ms,
-                "estimate": fields["pose"],
+                "background_ms": self.background_ms, "estimate": fields["pose"],
                 **{k: fields[k] for k in ("position_sd", "heading_sd", "mode_mass")}}))
+            self.background_ms = 0.0
         reason = ("converged" if est.converged else "eliminated" if est.candidates == 0
                   else "out_of_steps" if step >= sc.settings.max_steps else None)
         command = None

@@ -127,6 +127,9 @@ class HandEpisode:
             events.append(("dropped", {"step": step, "quality": quality}))
         return self._belief(step, state, t0, events, reading)
 
+    def between_steps(self, interrupted: Callable[[], bool]) -> None:
+        """A held object's localizers leave no work between steps."""
+
     def _belief(self, step: int, state: HandState, t0: int,
                 events: list[tuple[str, dict[str, Any]]], reading: dict[str, Any]
                 ) -> dict[str, Any]:

@@ -15,7 +15,8 @@ loop drops answers to requests it has moved past. Requests:
     commit   {req}                  the prepared setup becomes the current one
     discard  {req}                  it is dropped
     start    {req, truth, reading}  -> belief
-    update   {req, step, reading}   -> belief
+    update   {req, step, reading}   -> belief; then, while the move is under way, the
+                                       localizer's work between steps
     cancel   {req}                  the episode under way is dropped
     exit     {}
 
@@ -104,6 +105,8 @@ class Worker:
             self.episode = None  # cut short: the next request decides what follows
             return
         self._send("belief", req, belief)
+        if not belief["done"]:  # the move is under way: the localizer's background share
+            self.episode.between_steps(interrupted)
 
     def cancel(self, req: int, body: dict[str, Any]) -> None:
         self.episode = None

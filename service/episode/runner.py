@@ -10,7 +10,13 @@ import numpy as np
 
 from firmware_if.backend import Backend, FingerState, StepCommand
 from firmware_if.errors import BusTimeoutError, HardwareFault
-from service.localization.localizers.base import Estimate, Localizer, Measurement, update
+from service.localization.localizers.base import (
+    Estimate,
+    Localizer,
+    Measurement,
+    background,
+    update,
+)
 from service.localization.policies.base import MOVES, Policy, PolicyInput
 from service.localization.surface import ContactSurface
 
@@ -27,6 +33,9 @@ class StepRecord:
     """Localizer update time for this step."""
     policy_ms: float
     estimate: tuple[float, float, float] | None
+    background_ms: float = 0.0
+    """The localizer's work between updates (`Localizer.background`) while this step's move
+    was under way: it delays neither the move nor the update."""
     position_sd: float = float("nan")
     """Spread of the hypotheses after this step (m, rad) and the leading mode's probability,
     as the localizer's Estimate gives them (NaN where it has none)."""
@@ -86,6 +95,9 @@ def run_episode(backend: Backend, localizer: Localizer, policy: Policy, *,
                            estimate=estimate)
         move = policy.next_move(view)
         policy_ms = (time.perf_counter() - t0) * 1e3
+        t0 = time.perf_counter()
+        background(localizer)  # while the move is under way (the daemon's worker overlaps them)
+        background_ms = (time.perf_counter() - t0) * 1e3
         command = MOVES[move] * step_length
         state = execute_step(backend, StepCommand(float(command[0]), float(command[1])))
         displacement = np.asarray(state.centre) - origin
@@ -104,6 +116,7 @@ def run_episode(backend: Backend, localizer: Localizer, policy: Policy, *,
                             measurement=tuple(float(v) for v in displacement),
                             blocked=state.blocked, candidates=estimate.candidates,
                             compute_ms=compute_ms, policy_ms=policy_ms, estimate=estimate.pose,
+                            background_ms=background_ms,
                             position_sd=estimate.position_sd, heading_sd=estimate.heading_sd,
                             mode_mass=estimate.mode_mass)
         result.steps.append(record)

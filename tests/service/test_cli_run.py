@@ -18,6 +18,7 @@ def strip_timings(episode: dict) -> dict:
     for step in episode["steps"]:
         step.pop("compute_ms")
         step.pop("policy_ms")
+        step.pop("background_ms")
     return episode
 
 

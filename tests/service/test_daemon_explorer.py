@@ -33,10 +33,11 @@ def link() -> Iterator[WorkerLink]:
     link.close()
 
 
-def finger(settings: RunSettings, surface, seed: int) -> SimulatedFinger:
+def finger(settings: RunSettings, surface, seed: int, step_s: float = 0.0) -> SimulatedFinger:
     truth = draw_truth(settings, surface.map, np.random.default_rng(seed))
     f = SimulatedFinger(surface.map, SimConfig(start=truth.as_tuple(), radius=settings.radius,
-                                               noise=settings.noise_spec),
+                                               noise=settings.noise_spec,
+                                               step_duration_s=step_s),
                         np.random.default_rng(seed + 1))
     f.open()
     f.set_torque(True)
@@ -57,8 +58,11 @@ def configure(link: WorkerLink, settings: RunSettings) -> None:
     link.send("commit")
 
 
-@pytest.mark.parametrize("noise", [False, True])
-def test_exploration_matches_run_episode(link: WorkerLink, noise: bool) -> None:
+@pytest.mark.parametrize(("noise", "step_s"), [(False, 0.0), (True, 0.0), (False, 0.2)])
+def test_exploration_matches_run_episode(link: WorkerLink, noise: bool, step_s: float) -> None:
+    """With instant steps each update first finishes the localizer's work between steps
+    (`Localizer.background`); with steps of 0.2 s that work is done while the move is under
+    way. Either way the episode is `run_episode`'s."""
     settings = RunSettings(noise=noise, max_steps=40)
     surface = surface_for(settings)
     _, _, loc_rng, policy_rng = episode_streams(settings.seed)  # the first episode's
@@ -67,7 +71,7 @@ def test_exploration_matches_run_episode(link: WorkerLink, noise: bool) -> None:
                             step_length=settings.step, max_steps=settings.max_steps,
                             rng=policy_rng, walls=settings.walls)
     configure(link, settings)
-    f = finger(settings, surface, 3)
+    f = finger(settings, surface, 3, step_s)
     explorer = Explorer(link, settings)
     commands: list[HandCommand] = []
 

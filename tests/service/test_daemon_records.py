@@ -64,8 +64,8 @@ def test_every_cloud_is_one_moment_even_mid_update() -> None:
 
 
 def strip_timings(steps: list[dict]) -> list[dict]:
-    return [{k: v for k, v in s.items() if k not in ("compute_ms", "policy_ms", "episode", "event")}
-            for s in steps]
+    untimed = ("compute_ms", "policy_ms", "background_ms", "episode", "event")
+    return [{k: v for k, v in s.items() if k not in untimed} for s in steps]
 
 
 def events_of_one_episode(node, timeout_s: float = 60.0) -> list[dict]:

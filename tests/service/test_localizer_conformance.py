@@ -1,6 +1,7 @@
 """One conformance suite for every registered localizer (STYLE.md item 4).
 
-Each algorithm must: give the same answer however its updates are sliced; give the same
+Each algorithm must: give the same answer however its updates (and the work between them)
+are sliced; give the same
 answer for the same seed, bit for bit; find (and, if discrete, never drop) a noise-free
 true pose on `peaks`; hand out normalized hypotheses; report a sane estimate.
 """
@@ -12,7 +13,13 @@ import pytest
 
 from service.episode.scenario import RunSettings
 from service.episode.simulate import simulate
-from service.localization.localizers.base import Budget, LocalizerContext, Measurement, update
+from service.localization.localizers.base import (
+    Budget,
+    LocalizerContext,
+    Measurement,
+    background,
+    update,
+)
 from service.localization.maps import peaks
 from service.localization.models import NoiseSpec, models_for, rotate
 from service.localization.surface import contact_surface
@@ -55,12 +62,16 @@ def _run(localizer, measurements, budget: Budget | None = None) -> None:
     for m in measurements:
         if budget is None:
             update(localizer, m)
+            background(localizer)
         else:
             localizer.begin_update(m)
             calls = 0
             while not localizer.work(budget):
                 calls += 1
                 assert calls < 100_000, "work() never finishes"
+            while not localizer.background(budget):
+                calls += 1
+                assert calls < 100_000, "background() never finishes"
 
 
 @pytest.mark.parametrize("name", NAMES)
@@ -87,6 +98,7 @@ def _untimed(report: dict) -> dict:
     for step in report["steps"]:
         step.pop("compute_ms")
         step.pop("policy_ms")
+        step.pop("background_ms")
     return report
 
 

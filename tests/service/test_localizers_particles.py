@@ -88,3 +88,14 @@ def test_fresh_members_are_screened_to_fit_the_latest_readings_better_than_chanc
         return log_likelihood(r, ok, loc._sd(), 0.0, 1.0)
 
     assert np.median(fit(chosen)) > np.percentile(fit(candidates), 90)
+
+
+def test_the_sweep_between_steps_declares_sooner_on_a_large_map(monkeypatch):
+    """The global sweep, done while the finger moves (`Particles.background`), covers an
+    80-unit map in a few steps; at one share per update the declaration waited for it."""
+    settings = RunSettings(map="bumps:80:1", seed=0, noise=True, max_steps=60)
+    between = simulate(settings)
+    monkeypatch.setattr(Particles, "background", lambda self, budget: True)
+    per_update = simulate(settings)
+    assert between.score.success and per_update.score.success
+    assert len(between.result.steps) < len(per_update.result.steps)

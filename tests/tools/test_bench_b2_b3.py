@@ -52,7 +52,8 @@ def test_a_half_step_median_is_printed_as_it_is(capsys):
                "final_position_error_p90": None, "final_heading_error_deg_median": None,
                "final_heading_error_deg_p90": None, "compute_ms_first_median": None,
                "compute_ms_after_first_median": None, "compute_ms_after_first_p99": None,
-               "policy_ms_median": None, "policy_ms_p99": None}
+               "policy_ms_median": None, "policy_ms_p99": None,
+               "background_ms_median": None, "background_ms_p99": None}
     print_table(summary, RunSettings())
     line = next(x for x in capsys.readouterr().out.splitlines() if x.startswith("steps"))
     assert "median 14.5, p90 18.7, max 19" in line

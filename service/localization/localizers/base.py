@@ -3,6 +3,10 @@
 Updates are anytime (ARCHITECTURE.md "Bounded work"): `begin_update` hands over a
 measurement, `work(budget)` does a bounded slice and says whether the update is complete,
 so a real-time loop can spread one update over several ticks. `update` runs one to the end.
+`background(budget)` is work between updates that only a declaration waits on (a global
+check): a fixed share per step, run while the finger moves, so it delays neither the next
+move nor, however long a move takes, changes any result. Its finds count from the next
+update on.
 """
 
 from __future__ import annotations
@@ -129,6 +133,10 @@ class Localizer(Protocol):
     def work(self, budget: Budget) -> bool:
         """Process within `budget`; True once the queued update is complete."""
 
+    def background(self, budget: Budget) -> bool:
+        """This step's share of the work between updates, within `budget`; True once it is
+        done (or there is none)."""
+
     def estimate(self) -> Estimate:
         """The current belief."""
 
@@ -140,6 +148,12 @@ def update(localizer: Localizer, measurement: Measurement) -> None:
     """Run one update to completion."""
     localizer.begin_update(measurement)
     while not localizer.work(Budget.unlimited()):
+        pass
+
+
+def background(localizer: Localizer) -> None:
+    """Run this step's background share to the end."""
+    while not localizer.background(Budget.unlimited()):
         pass
 
 

@@ -98,6 +98,9 @@ class Elimination:
         self._cursor = 0
         self._suspicion = np.full(len(self.poses), -np.inf)
 
+    def background(self, budget: Budget) -> bool:
+        return True  # no global check waits between updates
+
     def work(self, budget: Budget) -> bool:
         m = self._pending
         if m is None:

@@ -113,6 +113,9 @@ class Grid:
     def begin_update(self, measurement: Measurement) -> None:
         self._job = AnytimeJob(lambda job: self._update(job, measurement))
 
+    def background(self, budget: Budget) -> bool:
+        return True  # no global check waits between updates
+
     def work(self, budget: Budget) -> bool:
         """Sliced between heading layers (or ring directions), then the judgement."""
         return True if self._job is None else self._job.work(budget)

@@ -122,6 +122,11 @@ class Sweep:
     def checked(self) -> bool:
         return self.checked_at is not None
 
+    @property
+    def remaining(self) -> int:
+        """Cells the sweep under way has still to screen (all, before one begins)."""
+        return self.cells - self.cursor if self.begun_at is not None else self.cells
+
     def run(self, history: np.ndarray, take: int | None = None
             ) -> Iterator[tuple[int, np.ndarray]]:
         """One update's share, in slices of about `take` cells (for an anytime job): yields
