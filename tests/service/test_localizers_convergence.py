@@ -162,7 +162,7 @@ def test_modes_group_and_merge():
     ("pattern:20:3", 10, "3.0 mm off at 11 claimed sds: the readings fit it, and a "
                          "least-squares fit started from the truth ran off the map"),
     # the second held-out check (map seeds 27-35), fixed by weighing the readings' shared
-    # error when the leader must beat its rivals (`_shared_error_mass`)
+    # error when the leader must beat its rivals (`shared_error_mass`)
     ("terrain:20:33", 11, "2.1 mm and 5.3 degrees off at 0.45 mm / 0.7 degrees claimed"),
     ("shell:20:30", 0, "2.5 mm and 2.6 degrees off at 0.8 mm / 1.0 degrees claimed"),
 ])
@@ -247,7 +247,7 @@ def test_readings_that_err_together_are_weighed_as_one_error(texture_map):
     from pathlib import Path
 
     from service.episode.scenario import surface_for
-    from service.localization.localizers.convergence import FLOOR, _shared_error_mass
+    from service.localization.localizers.convergence import FLOOR, shared_error_mass
     from service.localization.localizers.fitting import offset_residuals
     from service.localization.localizers.refine import reading_sigmas
 
@@ -262,8 +262,8 @@ def test_readings_that_err_together_are_weighed_as_one_error(texture_map):
     resid, _ = offset_residuals(surface, poses, history, case["margin"])
     independent = np.sum((resid / sds) ** 2, axis=1)
     assert independent[1] - independent[0] > 2 * np.log(1 / (1 - 0.999))  # it would pass
-    share = _shared_error_mass(surface, history, poses, sds, case["sigma"], step,
-                               case["margin"], 0.25 * step, np.deg2rad(5.0))
+    share = shared_error_mass(surface, history, poses, sds, case["sigma"], step,
+                              case["margin"], 0.25 * step, np.deg2rad(5.0))
     assert 0.5 < share < ConvergenceRule.mode_mass
 
 

@@ -304,7 +304,7 @@ def judge(surface: ContactSurface, history: np.ndarray, modes: Modes, *, sigma: 
         converged = rule.holds(readings=places - 1, noisy=noisy, mode_mass=mass,
                                fit=fit, step_length=step_length)
         # and it must lead by the readings' shared error too, against every mode weighed
-        converged = converged and (not noisy or _shared_error_mass(
+        converged = converged and (not noisy or shared_error_mass(
             surface, history, np.vstack([[fit.pose], poses[1:], centres[order[1:]]]),
             np.maximum(sds, FLOOR * step_length), sigma, step_length, margin,
             tol_pos, tol_head) >= rule.mode_mass)
@@ -322,7 +322,7 @@ def judge(surface: ContactSurface, history: np.ndarray, modes: Modes, *, sigma: 
                    float(share[1]) if len(order) > 1 else 0.0, converged)
 
 
-def _shared_error_mass(surface: ContactSurface, history: np.ndarray, poses: np.ndarray,
+def shared_error_mass(surface: ContactSurface, history: np.ndarray, poses: np.ndarray,
                        sds: np.ndarray, sigma: float, step_length: float, margin: float,
                        position_tol: float, heading_tol: float) -> float:
     """The share of `poses[0]` (with the poses within the tolerance of it: the same answer)
