@@ -305,9 +305,8 @@ def judge(surface: ContactSurface, history: np.ndarray, modes: Modes, *, sigma: 
                                fit=fit, step_length=step_length)
         # and it must lead by the readings' shared error too, against every mode weighed
         converged = converged and (not noisy or shared_error_mass(
-            surface, history, np.vstack([[fit.pose], poses[1:], centres[order[1:]]]),
-            np.maximum(sds, FLOOR * step_length), sigma, step_length, margin,
-            tol_pos, tol_head) >= rule.mode_mass)
+            surface, history, np.vstack([[fit.pose], poses[1:], centres[order[1:]]]), sds,
+            sigma, step_length, margin, tol_pos, tol_head) >= rule.mode_mass)
         # the spread is the fit's curvature; where the misfit is not a bowl (a flat valley
         # with a wall) it can claim half a millimetre while the readings allow three
         converged = converged and _valley_within(
@@ -323,17 +322,18 @@ def judge(surface: ContactSurface, history: np.ndarray, modes: Modes, *, sigma: 
 
 
 def shared_error_mass(surface: ContactSurface, history: np.ndarray, poses: np.ndarray,
-                       sds: np.ndarray, sigma: float, step_length: float, margin: float,
-                       position_tol: float, heading_tol: float) -> float:
+                      sds: np.ndarray, sigma: float, step_length: float, margin: float,
+                      position_tol: float, heading_tol: float) -> float:
     """The share of `poses[0]` (with the poses within the tolerance of it: the same answer)
-    among `poses` when the readings' errors are weighed as the
-    spread weighs them (`refine.correlated_spread`): each its own sd `sds`, plus an error
-    of the sensor's sd shared over a step (generalized least squares, the height offset
-    fitted the same way). Weighed as independent, readings that err together count many
+    among `poses` when the readings' errors are weighed as the spread weighs them
+    (`refine.correlated_spread`): each its own sd `sds` (at least `FLOOR` steps), plus an
+    error of the sensor's sd shared over a step (generalized least squares, the height
+    offset fitted the same way). Weighed as independent, readings that err together count many
     times over: on a texture whose only marks were a 0.6 mm bowl and a 0.3 mm bump, 38
     readings preferred a pose 107 mm and a quarter turn off by 16.5 in chi-square, and it
     was declared; counted as shared, by 3.8 (a held-out surface of a helper's, seed 10). A
     pose that puts a reading off the map is out."""
+    sds = np.maximum(sds, FLOOR * step_length)
     cov = np.diag(sds**2) + shared_error(history, sigma, step_length)
     try:
         inverse = np.linalg.inv(cov)

@@ -52,7 +52,6 @@ from service.localization.localizers.base import (
     wrap_angle,
 )
 from service.localization.localizers.convergence import (
-    FLOOR,
     ConvergenceRule,
     Modes,
     group_modes,
@@ -525,12 +524,10 @@ class Particles:
         # weighed as independent, 35 readings on a worn 12 mm knurl put the truth, a half
         # turn away, 7.4 nats below the leader, and the leader was declared; counted as
         # shared, the leader held 56 % (a held-out surface, seed 38)
-        step = self.ctx.step_length
         sds = reading_sigmas(self.ctx.surface, self.history, pose, max(self.sigma, 1e-9),
                              self.ctx.motion.position_sigma)
-        return shared_error_mass(self.ctx.surface, self.history, poses,
-                                 np.maximum(sds, FLOOR * step), self.sigma, step, self.margin,
-                                 *self.same_pose) >= share
+        return shared_error_mass(self.ctx.surface, self.history, poses, sds, self.sigma,
+                                 self.ctx.step_length, self.margin, *self.same_pose) >= share
 
     def _slope_weighed(self, poses: np.ndarray, sd: float) -> np.ndarray:
         """Gaussian log likelihood of every reading for each pose, the height offset fitted,
