@@ -7,6 +7,7 @@ import pytest
 
 from service.episode.scenario import RunSettings
 from service.episode.simulate import simulate
+from service.localization.localizers import particles
 from service.localization.localizers.base import LocalizerContext, Measurement, update
 from service.localization.localizers.fitting import log_likelihood, residuals
 from service.localization.localizers.particles import Particles
@@ -95,7 +96,7 @@ def test_the_sweep_between_steps_declares_sooner_on_a_large_map(monkeypatch):
     80-unit map in a few steps; at one share per update the declaration waited for it."""
     settings = RunSettings(map="bumps:80:1", seed=0, noise=True, max_steps=60)
     between = simulate(settings)
-    monkeypatch.setattr(Particles, "background", lambda self, budget: True)
+    monkeypatch.setattr(particles, "SWEEPS_BETWEEN", 0)  # the turned check stays between
     per_update = simulate(settings)
     assert between.score.success and per_update.score.success
     assert len(between.result.steps) < len(per_update.result.steps)
