@@ -35,7 +35,6 @@ from __future__ import annotations
 
 import time
 from collections.abc import Iterator
-from dataclasses import dataclass, field
 from typing import ClassVar
 
 import numpy as np
@@ -58,14 +57,10 @@ from service.localization.localizers.convergence import (
     distinct,
     group_modes,
     judge,
-    shared_error_mass,
-    within,
 )
 from service.localization.localizers.fitting import (
-    fit_log_likelihood,
     gauss_newton,
     log_likelihood,
-    offset_residuals,
     on_pose_space,
     residuals,
     sigmas,
@@ -78,60 +73,29 @@ from service.localization.localizers.pool import (
     systematic_resample,
     thin,
 )
-from service.localization.localizers.refine import Fit, reading_sigmas, reading_sigmas_each
+from service.localization.localizers.refine import Fit
 from service.localization.localizers.spread import pose_spread
 from service.localization.localizers.sweep import Sweep, SweepSettings
 from service.localization.localizers.symmetry import images, symmetries
 from service.localization.localizers.tracks import ModeTracks
+from service.localization.localizers.turned import (
+    DEEP,
+    DEEP_RIVALS,
+    TURNED,
+    TURNED_SLICE,
+    TurnedCheck,
+    Weighing,
+    rivals_clear,
+)
 
 CHUNK = 4096
 SCREEN_READINGS = 4
 """Readings a fresh candidate is screened on before it may join the pool."""
-TURNED_SLICE = 8192
-"""Turned cells (`Sweep.turned`) an update screens for the turned check."""
-TURNED = 128
-"""Of those, the best that take `TRIAL_STEPS` of polish (and rivals the check keeps)."""
-DEEP = 1024
-"""Of a share's cells, those the deep turned check polishes between steps. The screen's
-misfit is a bound that forgives readings near steep ground, so on a part with pockets it
-ranks coarsely: on plate:20:40 (seed 11, 15 readings) the truth's cells ranked 1,272nd
-and 1,842nd of 31,423, and a half turn was declared 113 mm off."""
-DEEP_RIVALS = 32
-"""Most distinct finds of a deep share kept as the deep check's rivals."""
-TRIAL_STEPS = 2
-TURNED_DRIFT = np.deg2rad(5.0)
-"""Radians the leader's heading may move before its turned check starts again."""
-LOOSE = 50.0
-"""Nats below the declared pose, at one sd for every reading, within which a turned pose
-is polished to the end and weighed again reading by reading (`Particles._slope_weighed`)."""
 SWEEP_STEPS = 8
 """Gauss-Newton steps that polish a pose the sweep hands over onto every reading."""
 SWEEPS_BETWEEN = 4
 """Sweep shares (`SweepSettings.cells_per_update` cells each) done between two updates,
 while the finger moves (`Particles.background`)."""
-
-
-@dataclass
-class TurnedCheck:
-    """How far a turned check of the leader's heading has come: the heading it checks, the
-    turned cells screened, the rivals found, and the readings there were when it began."""
-
-    heading: float | None = None
-    cursor: int = 0
-    since: int = 0
-    rivals: np.ndarray = field(default_factory=lambda: np.empty((0, 3)))
-
-    def follow(self, heading: float, readings: int) -> None:
-        """Start again for `heading` if it moved more than `TURNED_DRIFT` from the one
-        checked."""
-        if self.heading is None or abs(wrap_angle(heading - self.heading)) > TURNED_DRIFT:
-            self.heading, self.cursor, self.since = heading, 0, readings
-            self.rivals = np.empty((0, 3))
-
-    def covers(self, heading: float, cells: int) -> bool:
-        """Whether the check is complete for `heading` (within `TURNED_DRIFT`)."""
-        return (self.heading is not None and self.cursor >= cells
-                and abs(wrap_angle(heading - self.heading)) <= TURNED_DRIFT)
 
 
 class Particles:
@@ -191,6 +155,11 @@ class Particles:
         self._judge_ns = 0
         """How long the last judgement took: a hint for slicing, never for results."""
         self._sd_cache: tuple[tuple[int, float, float] | None, np.ndarray] = (None, np.empty(0))
+        self._weighing = Weighing(ctx.surface, self.sigma, self.fit_sd,
+                                  ctx.motion.position_sigma, self.margin, self.outlier_p,
+                                  self.outlier_range, step, self.same_pose,
+                                  self.rule.mode_mass)
+        """How the turned checks weigh poses against the readings."""
         self._turned = TurnedCheck()
         self._deep = TurnedCheck()
         """The turned check again, polishing `DEEP` cells a share, between steps: it only
@@ -503,22 +472,16 @@ class Particles:
                 and self._deep_clear(pose)
 
     def _turned_step(self, pose: np.ndarray) -> None:
-        """This update's share of the turned check: `TURNED_SLICE` cells of `pose` turned by
-        multiples of 45 degrees and moved anywhere (`Sweep.turned`), the best polished onto
-        the readings; those that fit nearly as well as `pose` join the pool and are kept as
-        the check's rivals. A new heading (by more than `TURNED_DRIFT`) starts it again.
-
-        The sweep ranks coarse cells that each stand for 15 degrees of heading, and near
-        any feature hundreds of them fit almost exactly: which of them it hands over
-        decided whether a part's turned feature was ever tried. On map seeds no benchmark
-        used, 9 of 11 wrong declarations in 1,440 runs were a 90-180 degree turn off
-        (pattern:20:7, seed 1, 21 mm off: the truth's fit was the better) while the truth,
-        a turn of the declared pose about a feature, never joined the pool."""
+        """This update's share of the turned check (`turned.py`): `TURNED_SLICE` cells of
+        `pose` turned and moved anywhere, the best `TURNED` polished onto the readings;
+        those that fit nearly as well as `pose` join the pool and are kept as the check's
+        rivals. A new heading (by more than `TURNED_DRIFT`) starts it again."""
         check = self._turned
         check.follow(float(pose[2]), len(self.history))
         if check.cursor >= self.sweep.turned_cells:
             return
-        found, _ = self._turned_finds(pose, check, TURNED)
+        found, _ = check.share(self._weighing, self.sweep, self.history,
+                               self._reading_weights(), pose, TURNED, SWEEP_STEPS)
         if len(found):
             self._add(found)
             check.rivals = np.vstack([check.rivals, found])[-TURNED:]
@@ -526,89 +489,27 @@ class Particles:
     def _deep_step(self, pose: np.ndarray) -> None:
         """A share of the deep turned check (`_deep`): the update's share again, polishing
         the best `DEEP` of its cells; the best distinct finds become its rivals only."""
-        found, below = self._turned_finds(pose, self._deep, DEEP)
+        found, below = self._deep.share(self._weighing, self.sweep, self.history,
+                                        self._reading_weights(), pose, DEEP, SWEEP_STEPS)
         found = found[distinct(found, -below, *self.same_pose)[:DEEP_RIVALS]]
         self._deep.rivals = np.vstack([self._deep.rivals, found])
 
     def _deep_clear(self, pose: np.ndarray) -> bool:
         """Whether the deep turned check of `pose`'s heading is complete and its rivals
-        would not hold the declaration back (`_rivals_clear`). If they would, they join the
+        would not hold the declaration back (`turned.rivals_clear`). If they would, they join the
         pool, where the judge weighs them as modes: explanations the pool had missed."""
         if not self._deep.covers(float(pose[2]), self.sweep.turned_cells):
             return False
-        if self._rivals_clear(pose, self._deep.rivals):
+        if rivals_clear(self._weighing, self.history, pose, self._deep.rivals):
             return True
         self._add(self._deep.rivals)
         return False
 
-    def _turned_finds(self, pose: np.ndarray, check: TurnedCheck, keep: int
-                      ) -> tuple[np.ndarray, np.ndarray]:
-        """The next share of `check`: its turned cells' best `keep` polished onto the
-        readings, those that still fit within `LOOSE` of `pose`, and how far below it each
-        scores."""
-        surface, w = self.ctx.surface, self._reading_weights()
-
-        def polished(poses: np.ndarray, iterations: int) -> tuple[np.ndarray, np.ndarray]:
-            """Poses a few more steps on, and how far below `pose` each then scores."""
-            poses = gauss_newton(surface, poses, self.history, w, iterations=iterations,
-                                 max_move=self.sweep.start_reach)
-            ll = fit_log_likelihood(surface, np.vstack([[pose], poses]), self.history,
-                                    self.fit_sd, self.margin, self.outlier_p,
-                                    self.outlier_range)
-            return poses, ll[0] - ll[1:]
-
-        assert check.heading is not None
-        screened = self.sweep.turned(self.history, check.heading, check.cursor, TURNED_SLICE,
-                                     keep)
-        check.cursor += TURNED_SLICE
-        # every screened cell a couple of steps on; every one that may still fit the rest of
-        # the way: on a lattice dozens fit alike, and the best 16 of them once left the
-        # truth out (a knurl declared a half turn off)
-        found, below = polished(screened, TRIAL_STEPS)
-        found, below = found[below <= LOOSE], below[below <= LOOSE]
-        if len(found):
-            found, below = polished(found, SWEEP_STEPS - TRIAL_STEPS)
-        kept = (below <= LOOSE) & ~within(found, pose, *self.same_pose)
-        return found[kept], below[kept]
-
     def _turned_clear(self, pose: np.ndarray) -> bool:
         """Whether the turned check of `pose`'s heading is complete and its rivals would not
-        hold the declaration back (`_rivals_clear`)."""
-        return self._turned.cursor >= self.sweep.turned_cells and self._rivals_clear(
-            pose, self._turned.rivals)
-
-    def _rivals_clear(self, pose: np.ndarray, rivals: np.ndarray) -> bool:
-        """Whether none of `rivals` would hold more than the rule's 1 - mode_mass of the
-        probability, each reading weighed as the refinement weighs it."""
-        rivals = rivals[~within(rivals, pose, *self.same_pose)]
-        if len(rivals) == 0:
-            return True
-        # at one sd for all, a wall's readings made the truth 17 nats worse than a quarter
-        # turn whose fit was in fact poorer (plate:20:5, seed 5)
-        poses = np.vstack([[pose], rivals])
-        ll = self._slope_weighed(poses, self.fit_sd)
-        share = self.rule.mode_mass
-        if np.any(ll[1:] >= ll[0] + np.log((1.0 - share) / share)):
-            return False
-        if not self.noisy:
-            return True
-        # and with the readings' shared error counted, as the judge weighs its own rivals:
-        # weighed as independent, 35 readings on a worn 12 mm knurl put the truth, a half
-        # turn away, 7.4 nats below the leader, and the leader was declared; counted as
-        # shared, the leader held 56 % (a held-out surface, seed 38)
-        sds = reading_sigmas(self.ctx.surface, self.history, pose, max(self.sigma, 1e-9),
-                             self.ctx.motion.position_sigma)
-        return shared_error_mass(self.ctx.surface, self.history, poses, sds, self.sigma,
-                                 self.ctx.step_length, self.margin, *self.same_pose) >= share
-
-    def _slope_weighed(self, poses: np.ndarray, sd: float) -> np.ndarray:
-        """Gaussian log likelihood of every reading for each pose, the height offset fitted,
-        each reading's sd `sd` widened by the position noise times the slope under it."""
-        r, ok = offset_residuals(self.ctx.surface, poses, self.history, self.margin)
-        sds = reading_sigmas_each(self.ctx.surface, self.history, poses, sd,
-                                  self.ctx.motion.position_sigma)
-        ll = -0.5 * np.sum((r / sds) ** 2, axis=1) - np.sum(np.log(sds), axis=1)
-        return np.where(ok.all(axis=1), ll, -np.inf)
+        hold the declaration back (`turned.rivals_clear`)."""
+        return self._turned.cursor >= self.sweep.turned_cells and rivals_clear(
+            self._weighing, self.history, pose, self._turned.rivals)
 
     # -- helpers ---------------------------------------------------------------------------
     def _random(self, count: int) -> np.ndarray:
