@@ -69,6 +69,10 @@ def _height(grid: np.ndarray, spacing: float, x: float, y: float) -> float:
     return top + ty * (bottom - top)
 
 
+height_at = _height
+"""`_height` for other kernel modules: one bilinear lookup, clamped at the edge."""
+
+
 @numba.njit(**_JIT)
 def sample(grid: np.ndarray, spacing: float, x: np.ndarray, y: np.ndarray
            ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -40,7 +40,7 @@ from typing import ClassVar
 import numpy as np
 
 from service.bounds import Contraction, Count, Gate
-from service.localization import kernels
+from service.localization import bound_kernels, kernels
 from service.localization.localizers.base import (
     READING_COLUMNS,
     Budget,
@@ -51,6 +51,7 @@ from service.localization.localizers.base import (
     reading_row,
     wrap_angle,
 )
+from service.localization.localizers.certificate import Certificate, certify
 from service.localization.localizers.convergence import (
     ConvergenceRule,
     Modes,
@@ -93,6 +94,10 @@ SCREEN_READINGS = 4
 """Readings a fresh candidate is screened on before it may join the pool."""
 SWEEP_STEPS = 8
 """Gauss-Newton steps that polish a pose the sweep hands over onto every reading."""
+CERTIFY_MASS = 0.9
+"""The leading mode's share from which the certificate a declaration needs is made ahead,
+between steps: made only once the judge would declare, it cost every declaration a step
+(B2's median 10 -> 11)."""
 SWEEPS_BETWEEN = 4
 """Sweep shares (`SweepSettings.cells_per_update` cells each) done between two updates,
 while the finger moves (`Particles.background`)."""
@@ -111,6 +116,7 @@ class Particles:
                  rule: ConvergenceRule | None = None,
                  sweep: SweepSettings | None = None) -> None:
         kernels.warm_up()  # compile before the first update, not during it
+        bound_kernels.warm_up()
         self.ctx = ctx
         self.initial, self.capacity, self.min_capacity = initial, capacity, min_capacity
         self.work_items = work
@@ -164,6 +170,10 @@ class Particles:
         self._deep = TurnedCheck()
         """The turned check again, polishing `DEEP` cells a share, between steps: it only
         holds a declaration back, and hands the rivals that do to the pool."""
+        self._certificate: Certificate | None = None
+        """The last search of the whole map for rivals of a pose about to be declared."""
+        self._to_certify: np.ndarray | None = None
+        """A pose every other check would declare, whose certificate the next steps make."""
 
     # -- updates ---------------------------------------------------------------------------
     def start(self, first: Measurement) -> None:
@@ -171,6 +181,7 @@ class Particles:
         self.history = np.zeros((1, READING_COLUMNS))
         self._sd_cache = (None, np.empty(0))
         self._turned, self._deep = TurnedCheck(), TurnedCheck()
+        self._certificate, self._to_certify = None, None
         self.tracks = ModeTracks()
         self.sweep.reset()
         self.poses = self._random(self.initial)
@@ -198,7 +209,9 @@ class Particles:
           is covered once (later sweeps refresh the pool, a share per update). On a map of
           20 x 20 steps the updates cover it in time. On B3's 80-unit map a share per
           update held the declaration back to a median of 29 steps.
-        * The deep turned check (`_deep_step`), at the update's turned check's pace."""
+        * The deep turned check (`_deep_step`), at the update's turned check's pace.
+        * The certificate of a pose every other check would declare (`certificate.py`):
+          the declaration waits for it, a step."""
         return True if self._between is None else self._between.work(budget)
 
     def _background(self, job: AnytimeJob) -> Iterator[int]:
@@ -220,6 +233,13 @@ class Particles:
                 len(self.history) - self._deep.since + 2)):
             self._deep_step(pose)
             yield DEEP
+        if self._to_certify is None and self._may_declare_next(pose):
+            self._to_certify = pose.copy()
+        if self._to_certify is not None:
+            self._certificate = Certificate(pose=self._to_certify, readings=len(self.history))
+            yield from certify(self._weighing, self.history, self._to_certify,
+                               self._certificate)
+            self._to_certify = None
 
     def _update(self, job: AnytimeJob, m: Measurement) -> Iterator[int]:
         self.history = np.vstack([self.history, reading_row(m, self.ctx.walls)])
@@ -469,7 +489,7 @@ class Particles:
             pose = np.asarray(v.fit.pose)
             self._turned_step(pose)
             self.converged = self.converged and self._turned_clear(pose) \
-                and self._deep_clear(pose)
+                and self._deep_clear(pose) and self._certified(pose)
 
     def _turned_step(self, pose: np.ndarray) -> None:
         """This update's share of the turned check (`turned.py`): `TURNED_SLICE` cells of
@@ -503,6 +523,35 @@ class Particles:
         if rivals_clear(self._weighing, self.history, pose, self._deep.rivals):
             return True
         self._add(self._deep.rivals)
+        return False
+
+    def _may_declare_next(self, pose: np.ndarray) -> bool:
+        """Whether the next update may declare `pose` (the sweep done, the leading mode
+        holding `CERTIFY_MASS`) and needs a certificate for it: made now, while the finger
+        moves, it is ready when the declaration is (`certificate.AGE`)."""
+        cert = self._certificate
+        needed = self.rule.min_readings_noisy if self.noisy else self.rule.min_readings
+        return (self.sweep.checked and self.mode_mass >= CERTIFY_MASS
+                and len(self.history) >= needed  # the next update's readings
+                and (cert is None or not cert.covers(pose, len(self.history) + 1,
+                                                     self.same_pose)))
+
+    def _certified(self, pose: np.ndarray) -> bool:
+        """Whether a search of the whole map (`certificate.py`) found no pose that would hold
+        the declaration of `pose` back (`turned.rivals_clear`). Without a certificate for
+        `pose` one is made between steps; the rivals of one that holds it back join the
+        pool, where the judge weighs them as modes. A search that ran out of room (on a
+        knurl's lattice every fine box fits within the bound: 100,000 of them) decides
+        nothing, and leaves the declaration to the other checks."""
+        cert = self._certificate
+        if cert is None or not cert.covers(pose, len(self.history), self.same_pose):
+            self._to_certify = pose.copy()
+            return False
+        if cert.overflowed:  # the map cannot rule enough out (a lattice): the other checks
+            return True      # stand alone, as they did before the certificate
+        if rivals_clear(self._weighing, self.history, pose, cert.rivals):
+            return True
+        self._add(cert.rivals)
         return False
 
     def _turned_clear(self, pose: np.ndarray) -> bool:
