@@ -258,31 +258,29 @@ def test_a_far_target_behind_a_wall_is_given_up():
     assert shuttles <= 2, f"shuttled: {places}"
 
 
-def test_localizes_four_alike_holes_whose_deciding_corner_lies_beyond_the_plan():
-    """pattern:20:0, seed 5: with a plan of six steps, 60 steps near the start left the
-    pattern's quarter turns equally likely; the far search reads the corner that decides."""
+def test_the_far_search_localizes_more_of_four_alike_holes():
+    """pattern:20:0: with a plan of six steps, 60 steps near the start can leave the
+    pattern's quarter turns equally likely; walking to the place that tells them apart (the
+    far search) localizes more seeds, and none wrong. Once two single seeds (5 and 1) were
+    the test, but which single seed localizes moves with a machine's floating point: on
+    another CPU seed 5 ended undecided with the far search and seed 1 localized without it.
+    Seeds 6-11 on this machine: 6 with it, 4 without (a gain it can never reach)."""
     from service.localization.maps import load_map
 
-    report = simulate(RunSettings(map="pattern:20:0", seed=5, noise=True, max_steps=60),
-                      load_map("pattern:20:0"))
-    assert report.score.success
+    surface = load_map("pattern:20:0")
 
+    def localized(far_gain: float) -> int:
+        count = 0
+        for seed in range(6, 12):
+            with pytest.MonkeyPatch.context() as patch:
+                patch.setattr(info_gain, "FAR_GAIN", far_gain)
+                score = simulate(RunSettings(map="pattern:20:0", seed=seed, noise=True,
+                                             max_steps=60), surface).score
+            assert not score.wrong_declaration
+            count += score.success
+        return count
 
-@pytest.mark.parametrize("far_gain, localizes", [(info_gain.FAR_GAIN, True), (np.inf, False)])
-def test_localizes_four_alike_holes_where_the_plan_in_reach_tells_a_little(
-        monkeypatch, far_gain, localizes):
-    """pattern:20:0, seed 1: without the far search (a gain it can never reach) 60 steps
-    end undecided between the pattern's quarter turns; walking to the place that tells
-    them apart at more than twice the rate in reach localizes it (in 34 steps). Seed 2 was
-    this case until the plan counted the error nearby readings share (`precision.Spread`); its
-    walk now tells the turns apart in reach."""
-    from service.localization.maps import load_map
-
-    monkeypatch.setattr(info_gain, "FAR_GAIN", far_gain)
-    report = simulate(RunSettings(map="pattern:20:0", seed=1, noise=True, max_steps=60),
-                      load_map("pattern:20:0"))
-    assert report.score.success == localizes
-    assert not report.score.wrong_declaration
+    assert localized(info_gain.FAR_GAIN) > localized(np.inf)
 
 
 def _with_estimate(view, pose, mass=1.0):
