@@ -9,7 +9,8 @@ fitted the readings 42 nats better (machined_plate, seed 77, on one machine).
 So before a declaration the whole pose space is searched with bounds that cannot miss:
 boxes of poses (position and heading) are judged on every reading at once. Under any pose
 in a box a reading lands within a disk, where the map's height lies between the least and
-the greatest of the blocks the disk touches (`bound_kernels.pyramid`); the least misfit
+the greatest of the blocks the disk touches (`bound_kernels.pyramid`) and within the
+steepest slope times the radius of the centre's height; the least misfit
 those ranges allow, with the height offset free, bounds every pose in the box from below.
 A box that cannot come within `SLACK` nats of the declared pose is ruled out; the rest are
 halved down to fine boxes, whose centres are polished onto the readings and weighed as the
@@ -33,9 +34,9 @@ from service.localization.localizers.turned import Weighing, slope_weighed
 from service.localization.surface import ContactSurface
 
 SLACK = 30.0
-"""Nats below the declared pose within which a box is searched further: a pose further
-below loses to it by more than the rule's share on any comparison the judge makes (the
-shared error counted), one reading later too."""
+"""Nats below the declared pose within which a box is searched further. A margin, not a
+proof: a pose ruled out by more is taken to lose to the declared pose on every comparison
+the judge makes, the readings' shared error counted, a reading or two later too (`AGE`)."""
 ROOT = 0.8
 """Half a root box's side, in step lengths."""
 ROOT_TURN = np.deg2rad(8.0)
