@@ -429,6 +429,18 @@ def test_no_wrong_declaration_where_the_checks_between_steps_once_went_wrong(
     assert not score.wrong_declaration, was
 
 
+@pytest.mark.xfail(strict=False, reason="a near miss inside the leader's basin: the "
+                   "spread claimed 0.75 mm and the pose was 2.86 mm off (3.8 sds), on this "
+                   "session's CPU; not strict, as another CPU's arithmetic takes another path")
+def test_no_near_miss_on_terrain_48_seed_12():
+    """Map seeds no benchmark had used (`haptic bench objects --map-seeds 48,49,50,51`):
+    terrain:20:48, seed 12, was declared 2.86 mm and 1.3 degrees off at step 33, on main
+    and with the certificate alike (within twice the same-pose tolerance, the certificate
+    leaves the leader's basin to the spread)."""
+    report = simulate(RunSettings(map="terrain:20:48", noise=True, seed=12, max_steps=60))
+    assert not report.score.wrong_declaration
+
+
 def test_no_wrong_declaration_on_the_machined_plate_seed_77(request):
     """Declared 123 mm and 79 degrees off at step 53 on one machine (the turn no multiple of
     45 degrees, so no turned check tries it), while the truth fitted the readings 42 nats
