@@ -118,7 +118,7 @@ def certify(weighing: Weighing, history: np.ndarray, pose: np.ndarray, cert: Cer
     pose = np.asarray(pose, dtype=np.float64)
     near = (NEAR * weighing.same_pose[0], NEAR * weighing.same_pose[1])
     if surface.map.is_profile:  # the sweep's cells tile a profile's poses exactly
-        cert.complete = True
+        cert.complete = True    # (`Particles` asks for none there)
         return
     anchor = history[:, :2].mean(axis=0)
     readings = np.ascontiguousarray(history[:, :3], dtype=np.float64)

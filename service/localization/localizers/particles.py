@@ -531,7 +531,8 @@ class Particles:
         moves, it is ready when the declaration is (`certificate.AGE`)."""
         cert = self._certificate
         needed = self.rule.min_readings_noisy if self.noisy else self.rule.min_readings
-        return (self.sweep.checked and self.mode_mass >= CERTIFY_MASS
+        return (not self.ctx.surface.map.is_profile and self.sweep.checked
+                and self.mode_mass >= CERTIFY_MASS
                 and len(self.history) >= needed  # the next update's readings
                 and (cert is None or not cert.covers(pose, len(self.history) + 1,
                                                      self.same_pose)))
@@ -543,6 +544,8 @@ class Particles:
         pool, where the judge weighs them as modes. A search that ran out of room (on a
         knurl's lattice every fine box fits within the bound: 100,000 of them) decides
         nothing, and leaves the declaration to the other checks."""
+        if self.ctx.surface.map.is_profile:  # the sweep's cells tile a profile's poses
+            return True                      # exactly: nothing to certify, no step to wait
         cert = self._certificate
         if cert is None or not cert.covers(pose, len(self.history), self.same_pose):
             self._to_certify = pose.copy()
