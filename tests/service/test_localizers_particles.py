@@ -7,7 +7,7 @@ import pytest
 
 from service.episode.scenario import RunSettings
 from service.episode.simulate import simulate
-from service.localization.localizers import particles
+from service.localization.localizers import declaration, particles
 from service.localization.localizers.base import LocalizerContext, Measurement, update
 from service.localization.localizers.fitting import log_likelihood, residuals
 from service.localization.localizers.particles import Particles
@@ -106,13 +106,13 @@ def test_a_declared_pose_carries_a_certificate_of_the_whole_map(monkeypatch):
     """No pose is declared until the search of the whole map (`certificate.py`) made for it,
     a step earlier, finds no rival that would hold it back."""
     made = []
-    original = particles.certify
+    original = declaration.certify
 
     def counted(weighing, history, pose, cert):
         made.append(cert)
         yield from original(weighing, history, pose, cert)
 
-    monkeypatch.setattr(particles, "certify", counted)
+    monkeypatch.setattr(declaration, "certify", counted)
     report = simulate(RunSettings(noise=True, seed=0, max_steps=60))
     assert report.score.success
     assert made and made[-1].complete and not made[-1].overflowed and made[-1].boxes > 0
@@ -138,9 +138,9 @@ def test_a_certificate_s_rivals_hold_the_declaration_back_and_join_the_pool(monk
         added.append(np.array(poses))
         original_add(self, poses)
 
-    clear = particles.rivals_clear
-    monkeypatch.setattr(particles, "certify", twin)
-    monkeypatch.setattr(particles, "rivals_clear", lambda weighing, history, pose, found: (
+    clear = declaration.rivals_clear
+    monkeypatch.setattr(declaration, "certify", twin)
+    monkeypatch.setattr(declaration, "rivals_clear", lambda weighing, history, pose, found: (
         clear(weighing, history, pose, found) if not any(
             np.array_equal(found, r[np.newaxis]) for r in rivals) else False))
     monkeypatch.setattr(Particles, "_add", add)
@@ -155,12 +155,13 @@ def test_the_certificate_alone_holds_back_a_turn_the_turned_checks_exist_for(mon
     of the whole map finds the truth and the episode localizes."""
     from service.localization.localizers.turned import TURNED_SLICE
 
-    def skipped(self, pose):
-        self._deep.cursor += TURNED_SLICE
+    def skipped(self, pose, history, weights):
+        self.deep.cursor += TURNED_SLICE
 
-    monkeypatch.setattr(Particles, "_turned_step", lambda self, pose: None)
-    monkeypatch.setattr(Particles, "_turned_clear", lambda self, pose: True)
-    monkeypatch.setattr(Particles, "_deep_clear", lambda self, pose: True)
-    monkeypatch.setattr(Particles, "_deep_step", skipped)
+    checks = declaration.DeclarationChecks
+    monkeypatch.setattr(checks, "turned_step", lambda self, *args: np.empty((0, 3)))
+    monkeypatch.setattr(checks, "turned_clear", lambda self, *args: True)
+    monkeypatch.setattr(checks, "deep_clear", lambda self, *args: True)
+    monkeypatch.setattr(checks, "_deep_step", skipped)
     report = simulate(RunSettings(map="plate:20:41", noise=True, seed=18, max_steps=60))
     assert not report.score.wrong_declaration

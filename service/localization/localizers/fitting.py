@@ -133,6 +133,17 @@ def gauss_newton(surface: ContactSurface, poses: np.ndarray, history: np.ndarray
                                 surface.map.extent)
 
 
+def unanchored(anchored: np.ndarray, anchor: np.ndarray) -> np.ndarray:
+    """Start poses (N, 3) of poses held by where they put the reading-frame point `anchor`
+    (x, y) and their heading: how the sweep's cells and the certificate's boxes, anchored
+    at a reading or the readings' centroid, become poses of the pool."""
+    c, s = np.cos(anchored[:, 2]), np.sin(anchored[:, 2])
+    starts = anchored.copy()
+    starts[:, 0] -= c * anchor[0] - s * anchor[1]
+    starts[:, 1] -= s * anchor[0] + c * anchor[1]
+    return starts
+
+
 def on_pose_space(surface: ContactSurface, poses: np.ndarray) -> np.ndarray:
     """`poses` (N, 3) as poses the surface allows: on a profile the start lies on the
     profile (y0 = 0) and faces along it, one way or the other (heading 0 or pi)."""

@@ -22,10 +22,10 @@ The paper proposed it and never built it. Here:
 * the plausible modes feed mode tracks (`tracks.py`) that only evidence removes, and on a
   periodic surface the leader's symmetric images join them (`symmetry.py`); the leading
   track is refined by least squares on all readings (`refine.py`) and declared only when
-  `convergence.py` agrees, and once the turned check is complete: the leader turned by
-  every multiple of 45 degrees and moved anywhere on the map (`Sweep.turned`, a slice per
-  update), where no turned pose may fit nearly as well (a part that repeats a feature
-  turned, which the sweep's coarse cells pass over).
+  `convergence.py` agrees, and once the checks of `declaration.py` let it: the turned
+  check (the leader turned by every multiple of 45 degrees and moved anywhere on the map,
+  where no turned pose may fit nearly as well: a part that repeats a feature turned, which
+  the sweep's coarse cells pass over), its deep pass, and the certificate of the whole map.
 
 The work per step is bounded by the pool's capacity and the number of readings, not by the
 map's area (BENCHMARKS.md B3).
@@ -51,14 +51,13 @@ from service.localization.localizers.base import (
     reading_row,
     wrap_angle,
 )
-from service.localization.localizers.certificate import Certificate, certify
 from service.localization.localizers.convergence import (
     ConvergenceRule,
     Modes,
-    distinct,
     group_modes,
     judge,
 )
+from service.localization.localizers.declaration import DeclarationChecks
 from service.localization.localizers.fitting import (
     gauss_newton,
     log_likelihood,
@@ -79,25 +78,13 @@ from service.localization.localizers.spread import pose_spread
 from service.localization.localizers.sweep import Sweep, SweepSettings
 from service.localization.localizers.symmetry import images, symmetries
 from service.localization.localizers.tracks import ModeTracks
-from service.localization.localizers.turned import (
-    DEEP,
-    DEEP_RIVALS,
-    TURNED,
-    TURNED_SLICE,
-    TurnedCheck,
-    Weighing,
-    rivals_clear,
-)
+from service.localization.localizers.turned import Weighing
 
 CHUNK = 4096
 SCREEN_READINGS = 4
 """Readings a fresh candidate is screened on before it may join the pool."""
 SWEEP_STEPS = 8
 """Gauss-Newton steps that polish a pose the sweep hands over onto every reading."""
-CERTIFY_MASS = 0.9
-"""The leading mode's share from which the certificate a declaration needs is made ahead,
-between steps: made only once the judge would declare, it cost every declaration a step
-(B2's median 10 -> 11)."""
 SWEEPS_BETWEEN = 4
 """Sweep shares (`SweepSettings.cells_per_update` cells each) done between two updates,
 while the finger moves (`Particles.background`)."""
@@ -161,27 +148,18 @@ class Particles:
         self._judge_ns = 0
         """How long the last judgement took: a hint for slicing, never for results."""
         self._sd_cache: tuple[tuple[int, float, float] | None, np.ndarray] = (None, np.empty(0))
-        self._weighing = Weighing(ctx.surface, self.sigma, self.fit_sd,
-                                  ctx.motion.position_sigma, self.margin, self.outlier_p,
-                                  self.outlier_range, step, self.same_pose,
-                                  self.rule.mode_mass)
-        """How the turned checks weigh poses against the readings."""
-        self._turned = TurnedCheck()
-        self._deep = TurnedCheck()
-        """The turned check again, polishing `DEEP` cells a share, between steps: it only
-        holds a declaration back, and hands the rivals that do to the pool."""
-        self._certificate: Certificate | None = None
-        """The last search of the whole map for rivals of a pose about to be declared."""
-        self._to_certify: np.ndarray | None = None
-        """A pose every other check would declare, whose certificate the next steps make."""
+        weighing = Weighing(ctx.surface, self.sigma, self.fit_sd, ctx.motion.position_sigma,
+                            self.margin, self.outlier_p, self.outlier_range, step,
+                            self.same_pose, self.rule.mode_mass)
+        self._checks = DeclarationChecks(weighing, self.sweep, self.rule, SWEEP_STEPS)
+        """The turned check, its deep pass and the certificate (`declaration.py`)."""
 
     # -- updates ---------------------------------------------------------------------------
     def start(self, first: Measurement) -> None:
         """The initial pool: uniform over the map and every heading."""
         self.history = np.zeros((1, READING_COLUMNS))
         self._sd_cache = (None, np.empty(0))
-        self._turned, self._deep = TurnedCheck(), TurnedCheck()
-        self._certificate, self._to_certify = None, None
+        self._checks.reset()
         self.tracks = ModeTracks()
         self.sweep.reset()
         self.poses = self._random(self.initial)
@@ -209,9 +187,8 @@ class Particles:
           is covered once (later sweeps refresh the pool, a share per update). On a map of
           20 x 20 steps the updates cover it in time. On B3's 80-unit map a share per
           update held the declaration back to a median of 29 steps.
-        * The deep turned check (`_deep_step`), at the update's turned check's pace.
-        * The certificate of a pose every other check would declare (`certificate.py`):
-          the declaration waits for it, a step."""
+        * The deep turned check, at the update's turned check's pace, and the certificate
+          of a pose the next update may declare (`declaration.py`)."""
         return True if self._between is None else self._between.work(budget)
 
     def _background(self, job: AnytimeJob) -> Iterator[int]:
@@ -224,22 +201,9 @@ class Particles:
             yield from self._swept(job)
         if self.fit is None:
             return
-        pose = np.asarray(self.fit.pose)
-        self._deep.follow(float(pose[2]), len(self.history))
-        # the update's check did its first share with the update that found the heading,
-        # so this one does two then, and one a step after: both are complete by the same
-        # update
-        while self._deep.cursor < min(self.sweep.turned_cells, TURNED_SLICE * (
-                len(self.history) - self._deep.since + 2)):
-            self._deep_step(pose)
-            yield DEEP
-        if self._to_certify is None and self._may_declare_next(pose):
-            self._to_certify = pose.copy()
-        if self._to_certify is not None:
-            self._certificate = Certificate(pose=self._to_certify, readings=len(self.history))
-            yield from certify(self._weighing, self.history, self._to_certify,
-                               self._certificate)
-            self._to_certify = None
+        yield from self._checks.between_steps(np.asarray(self.fit.pose), self.history,
+                                              self._reading_weights, self.mode_mass,
+                                              self.noisy)
 
     def _update(self, job: AnytimeJob, m: Measurement) -> Iterator[int]:
         self.history = np.vstack([self.history, reading_row(m, self.ctx.walls)])
@@ -487,81 +451,11 @@ class Particles:
             self._add(np.vstack([self.tracks.centres[:self.rivals], [v.fit.pose]]))
             # then the leader turned: rivals the sweep may have passed over
             pose = np.asarray(v.fit.pose)
-            self._turned_step(pose)
-            self.converged = self.converged and self._turned_clear(pose) \
-                and self._deep_clear(pose) and self._certified(pose)
-
-    def _turned_step(self, pose: np.ndarray) -> None:
-        """This update's share of the turned check (`turned.py`): `TURNED_SLICE` cells of
-        `pose` turned and moved anywhere, the best `TURNED` polished onto the readings;
-        those that fit nearly as well as `pose` join the pool and are kept as the check's
-        rivals. A new heading (by more than `TURNED_DRIFT`) starts it again."""
-        check = self._turned
-        check.follow(float(pose[2]), len(self.history))
-        if check.cursor >= self.sweep.turned_cells:
-            return
-        found, _ = check.share(self._weighing, self.sweep, self.history,
-                               self._reading_weights(), pose, TURNED, SWEEP_STEPS)
-        if len(found):
-            self._add(found)
-            check.rivals = np.vstack([check.rivals, found])[-TURNED:]
-
-    def _deep_step(self, pose: np.ndarray) -> None:
-        """A share of the deep turned check (`_deep`): the update's share again, polishing
-        the best `DEEP` of its cells; the best distinct finds become its rivals only."""
-        found, below = self._deep.share(self._weighing, self.sweep, self.history,
-                                        self._reading_weights(), pose, DEEP, SWEEP_STEPS)
-        found = found[distinct(found, -below, *self.same_pose)[:DEEP_RIVALS]]
-        self._deep.rivals = np.vstack([self._deep.rivals, found])
-
-    def _deep_clear(self, pose: np.ndarray) -> bool:
-        """Whether the deep turned check of `pose`'s heading is complete and its rivals
-        would not hold the declaration back (`turned.rivals_clear`). If they would, they join the
-        pool, where the judge weighs them as modes: explanations the pool had missed."""
-        if not self._deep.covers(float(pose[2]), self.sweep.turned_cells):
-            return False
-        if rivals_clear(self._weighing, self.history, pose, self._deep.rivals):
-            return True
-        self._add(self._deep.rivals)
-        return False
-
-    def _may_declare_next(self, pose: np.ndarray) -> bool:
-        """Whether the next update may declare `pose` (the sweep done, the leading mode
-        holding `CERTIFY_MASS`) and needs a certificate for it: made now, while the finger
-        moves, it is ready when the declaration is (`certificate.AGE`)."""
-        cert = self._certificate
-        needed = self.rule.min_readings_noisy if self.noisy else self.rule.min_readings
-        return (not self.ctx.surface.map.is_profile and self.sweep.checked
-                and self.mode_mass >= CERTIFY_MASS
-                and len(self.history) >= needed  # the next update's readings
-                and (cert is None or not cert.covers(pose, len(self.history) + 1,
-                                                     self.same_pose)))
-
-    def _certified(self, pose: np.ndarray) -> bool:
-        """Whether a search of the whole map (`certificate.py`) found no pose that would hold
-        the declaration of `pose` back (`turned.rivals_clear`). Without a certificate for
-        `pose` one is made between steps; the rivals of one that holds it back join the
-        pool, where the judge weighs them as modes. A search that ran out of room (on a
-        knurl's lattice every fine box fits within the bound: 100,000 of them) decides
-        nothing, and leaves the declaration to the other checks."""
-        if self.ctx.surface.map.is_profile:  # the sweep's cells tile a profile's poses
-            return True                      # exactly: nothing to certify, no step to wait
-        cert = self._certificate
-        if cert is None or not cert.covers(pose, len(self.history), self.same_pose):
-            self._to_certify = pose.copy()
-            return False
-        if cert.overflowed:  # the map cannot rule enough out (a lattice): the other checks
-            return True      # stand alone, as they did before the certificate
-        if rivals_clear(self._weighing, self.history, pose, cert.rivals):
-            return True
-        self._add(cert.rivals)
-        return False
-
-    def _turned_clear(self, pose: np.ndarray) -> bool:
-        """Whether the turned check of `pose`'s heading is complete and its rivals would not
-        hold the declaration back (`turned.rivals_clear`)."""
-        return self._turned.cursor >= self.sweep.turned_cells and rivals_clear(
-            self._weighing, self.history, pose, self._turned.rivals)
+            found = self._checks.turned_step(pose, self.history, self._reading_weights)
+            if len(found):
+                self._add(found)
+            self.converged = self.converged and self._checks.clear(pose, self.history,
+                                                                   self._add)
 
     # -- helpers ---------------------------------------------------------------------------
     def _random(self, count: int) -> np.ndarray:

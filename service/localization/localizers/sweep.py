@@ -40,6 +40,7 @@ from service.localization.localizers.fitting import (
     on_pose_space,
     steepest_near,
     typical_slope,
+    unanchored,
 )
 from service.localization.localizers.symmetry import revolution_centre, symmetries
 from service.localization.surface import ContactSurface
@@ -241,10 +242,7 @@ class Sweep:
         """Start poses of cells anchored at a reading `offset` (x, y in the start's frame)
         from the start, those on the map."""
         self.start_reach = self.reach[0] + float(np.hypot(*offset[:2])) * self.reach[1]
-        c, s = np.cos(anchored[:, 2]), np.sin(anchored[:, 2])
-        starts = anchored.copy()
-        starts[:, 0] -= c * offset[0] - s * offset[1]
-        starts[:, 1] -= s * offset[0] + c * offset[1]
+        starts = unanchored(anchored, offset)
         x_max, y_max = self.surface.map.extent
         inside = (starts[:, 0] >= 0) & (starts[:, 0] <= x_max)
         if not self.surface.map.is_profile:
