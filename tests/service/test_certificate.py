@@ -11,7 +11,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from service.localization import bound_kernels
-from service.localization.localizers.certificate import Certificate, certify
+from service.localization.localizers.certificate import KEPT, SLACK, Certificate, certify
 from service.localization.localizers.fitting import offset_residuals
 from service.localization.localizers.refine import reading_sigmas_each
 from service.localization.localizers.turned import Weighing, rivals_clear
@@ -84,12 +84,24 @@ def test_the_certificate_clears_a_feature_the_map_holds_once():
     assert rivals_clear(weighing, history, pose, cert.rivals)
 
 
-def test_a_certificate_stands_only_for_its_pose_and_a_reading_or_two_more():
-    cert = Certificate(pose=np.array([0.05, 0.05, 0.3]), readings=10, complete=True)
-    same = (0.0025, np.deg2rad(5.0))
-    assert cert.covers(np.array([0.051, 0.05, 0.31]), 11, same)
-    assert not cert.covers(np.array([0.055, 0.05, 0.3]), 11, same)
-    assert not cert.covers(np.array([0.05, 0.05, 0.3]), 14, same)
+def test_a_certificate_stands_for_its_pose_while_the_readings_since_keep_its_margin():
+    """A certificate made on 20 readings stands for its pose on 25 that the pose fits (each
+    costs the margin only the pose's shortfall from a perfect fit), not for a pose 5 mm
+    away, not on fewer readings than it was made on, and not once a reading since misfits
+    the pose by 7 sds (25 nats: `SLACK` - `KEPT` is 10)."""
+    weighing = _weighing(_feature(0.06, 0.06, 0.0))
+    pose = np.array([0.052, 0.05, 0.3])
+    history = _readings(weighing, pose, np.random.default_rng(2))
+    cert = _certified(weighing, history[:20], pose)
+    assert cert.margin(weighing, history[:20], pose) == pytest.approx(SLACK)
+    assert cert.covers(weighing, history, pose)
+    assert SLACK - 10.0 < cert.margin(weighing, history, pose) < SLACK
+    assert not cert.covers(weighing, history, pose + [0.005, 0.0, 0.0])
+    assert not cert.covers(weighing, history[:19], pose)
+    misfit = history.copy()
+    misfit[22, 2] += 7 * SD
+    assert not cert.covers(weighing, misfit, pose)
+    assert SLACK - KEPT < 0.5 * 7**2
 
 
 @settings(max_examples=60, deadline=None)

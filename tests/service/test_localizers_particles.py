@@ -9,6 +9,7 @@ from service.episode.scenario import RunSettings
 from service.episode.simulate import simulate
 from service.localization.localizers import declaration, particles
 from service.localization.localizers.base import LocalizerContext, Measurement, update
+from service.localization.localizers.convergence import within
 from service.localization.localizers.fitting import log_likelihood, residuals
 from service.localization.localizers.particles import Particles
 from service.localization.localizers.pool import (
@@ -17,6 +18,7 @@ from service.localization.localizers.pool import (
     systematic_resample,
     thin,
 )
+from service.localization.localizers.turned import slope_weighed
 from service.localization.maps import bumps
 from service.localization.models import NoiseSpec, models_for
 from service.localization.surface import contact_surface
@@ -116,8 +118,46 @@ def test_a_declared_pose_carries_a_certificate_of_the_whole_map(monkeypatch):
     report = simulate(RunSettings(noise=True, seed=0, max_steps=60))
     assert report.score.success
     assert made and made[-1].complete and not made[-1].overflowed and made[-1].boxes > 0
-    assert made[-1].covers(np.asarray(report.result.estimate.pose),
-                           len(report.result.steps) + 1, (0.0025, np.deg2rad(5.0)))
+    assert within(made[-1].pose[np.newaxis], np.asarray(report.result.estimate.pose),
+                  0.0025, np.deg2rad(5.0))[0]
+
+
+def test_a_certificate_larger_than_a_step_s_share_goes_on_over_the_next_steps(monkeypatch):
+    """The certificate's search gets `CERTIFY_WORK` of each step's background (and the
+    slice that crosses it), and goes on in the next steps' until complete: no update waits
+    for the whole map. Given a tenth of B2's search a step, the declaration still carries
+    a complete certificate, made over several steps."""
+    monkeypatch.setattr(declaration, "CERTIFY_WORK", 3_000)
+    made, largest_slice, per_step = [], [0], []
+    original_certify = declaration.certify
+    original_between = declaration.DeclarationChecks.between_steps
+
+    def sliced(weighing, history, pose, cert):
+        made.append(cert)
+        before = cert.work
+        for used in original_certify(weighing, history, pose, cert):
+            largest_slice[0] = max(largest_slice[0], cert.work - before)
+            before = cert.work
+            yield used
+
+    def between(self, *args):
+        pending = self.certifying[0] if self.certifying else None
+        before, complete = (pending.work if pending else 0), self.certificate
+        yield from original_between(self, *args)
+        now = self.certifying[0] if self.certifying else None
+        if now is None and self.certificate is not complete:
+            now = self.certificate  # completed in this step's share
+        if now is not None and now is not complete:
+            per_step.append((now, now.work - (before if now is pending else 0)))
+
+    monkeypatch.setattr(declaration, "certify", sliced)
+    monkeypatch.setattr(declaration.DeclarationChecks, "between_steps", between)
+    report = simulate(RunSettings(noise=True, seed=0, max_steps=60))
+    assert report.score.success and not report.score.wrong_declaration
+    last = made[-1]
+    assert last.complete and not last.overflowed
+    assert len([w for cert, w in per_step if cert is last and w > 0]) >= 2
+    assert max(w for _, w in per_step) <= declaration.CERTIFY_WORK + largest_slice[0]
 
 
 def test_a_certificate_s_rivals_hold_the_declaration_back_and_join_the_pool(monkeypatch):
@@ -128,6 +168,8 @@ def test_a_certificate_s_rivals_hold_the_declaration_back_and_join_the_pool(monk
     def twin(weighing, history, pose, cert):
         cert.rivals = np.array([[pose[0] + 0.05, pose[1], pose[2] + 1.0]])
         rivals.append(cert.rivals[0])
+        cert.lead = float(slope_weighed(weighing, history, pose[np.newaxis],
+                                        weighing.fit_sd)[0])
         cert.complete = True
         yield 1
 

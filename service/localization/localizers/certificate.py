@@ -37,7 +37,12 @@ from service.localization.surface import ContactSurface
 SLACK = 30.0
 """Nats below the declared pose within which a box is searched further. A margin, not a
 proof: a pose ruled out by more is taken to lose to the declared pose on every comparison
-the judge makes, the readings' shared error counted, a reading or two later too (`AGE`)."""
+the judge makes, the readings' shared error counted, while it keeps `KEPT` of it."""
+KEPT = 20.0
+"""Nats of `SLACK` a certificate must still hold for a later declaration: a reading taken
+since adds to a pose it ruled out at most what a perfect fit scores, and to the declared
+pose what it scores there, so the margin shrinks by the declared pose's shortfall on the
+readings since (`Certificate.margin`)."""
 ROOT = 0.8
 """Half a root box's side, in step lengths."""
 ROOT_TURN = np.deg2rad(8.0)
@@ -58,13 +63,12 @@ NEAR = 2.0
 its own basin, the spread's to judge: polished from fine boxes 2.5 mm off, poses on
 shell:20:40 (seed 5) and terrain:20:40 (seed 3) stopped 2.5 mm and 1-3 degrees from the
 leader, 10 nats below it, and held back declarations that were right."""
-AGE = 2
-"""Readings by which a certificate may be older than the declaration it clears: a pose
-ruled out by `SLACK` nats stays out on a reading or two more."""
 ROOTS = 64
 """Root boxes a slice of the search takes (a 20 x 20-step map has about 4,500)."""
 POLISHED = 512
 """Fine boxes a slice polishes."""
+POLISH_WORK = 4
+"""A fine box polished costs about as much as this many boxes judged (`Certificate.work`)."""
 
 
 @dataclass(frozen=True)
@@ -100,13 +104,28 @@ class Certificate:
     complete: bool = False
     overflowed: bool = False
     boxes: int = 0
+    work: int = 0
+    """Boxes judged plus `POLISH_WORK` per fine box polished: what a slice of it costs."""
+    lead: float = np.nan
+    """The declared pose's log likelihood on the certificate's readings (`slope_weighed`)."""
 
-    def covers(self, pose: np.ndarray, readings: int, same_pose: tuple[float, float]
-               ) -> bool:
-        """Whether this certificate stands for `pose` (within `same_pose`) on `readings`:
-        complete, on at most `AGE` fewer readings."""
-        return (self.complete and 0 <= readings - self.readings <= AGE
-                and bool(within(self.pose[np.newaxis], pose, *same_pose)[0]))
+    def margin(self, weighing: Weighing, history: np.ndarray, pose: np.ndarray) -> float:
+        """Nats by which every pose the search ruled out still trails `pose` on `history`
+        (the certificate's readings and any since): `SLACK`, less `pose`'s shortfall from
+        a perfect fit at the least sd on the readings since, and any loss on the rest."""
+        since = len(history) - self.readings
+        if since < 0 or not np.isfinite(self.lead):
+            return -np.inf
+        now = float(slope_weighed(weighing, history, pose[np.newaxis], weighing.fit_sd)[0])
+        return now - (self.lead - SLACK - since * np.log(weighing.fit_sd))
+
+    def covers(self, weighing: Weighing, history: np.ndarray, pose: np.ndarray,
+               kept: float = KEPT) -> bool:
+        """Whether this certificate stands for `pose` (within the judge's same-pose
+        tolerance) on `history`: complete, and still `kept` nats of margin."""
+        return (self.complete
+                and bool(within(self.pose[np.newaxis], pose, *weighing.same_pose)[0])
+                and self.margin(weighing, history, pose) >= kept)
 
 
 def certify(weighing: Weighing, history: np.ndarray, pose: np.ndarray, cert: Certificate
@@ -125,7 +144,7 @@ def certify(weighing: Weighing, history: np.ndarray, pose: np.ndarray, cert: Cer
     readings[:, :2] -= anchor
     reach = np.hypot(readings[:, 0], readings[:, 1])
     sd = weighing.fit_sd
-    lead = slope_weighed(weighing, history, pose[np.newaxis], sd)[0]
+    lead = cert.lead = float(slope_weighed(weighing, history, pose[np.newaxis], sd)[0])
     # the misfit (sum of z^2) a box may have and still hold a pose within SLACK of the
     # leader: the leader's log likelihood counts every reading's -log sd, a box's bound the
     # least sd
@@ -142,6 +161,7 @@ def certify(weighing: Weighing, history: np.ndarray, pose: np.ndarray, cert: Cer
             weighing.position_sigma, skip, np.array(near), MAX_BOXES - cert.boxes,
             MAX_LEAVES - sum(len(f) for f in found))
         cert.boxes += boxes
+        cert.work += boxes
         found.append(leaves)
         yield ROOTS
         if not done:
@@ -158,6 +178,7 @@ def certify(weighing: Weighing, history: np.ndarray, pose: np.ndarray, cert: Cer
         keep = (ll >= lead - SLACK) & ~within(polished, pose, *near)
         rivals = np.vstack([rivals, polished[keep]])
         scores = np.concatenate([scores, ll[keep]])
+        cert.work += POLISH_WORK * len(starts)
         yield POLISHED
     cert.rivals = rivals[distinct(rivals, scores, *weighing.same_pose)[:RIVALS]]
     cert.complete = True

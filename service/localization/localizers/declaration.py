@@ -13,8 +13,8 @@ from collections.abc import Callable, Iterator
 
 import numpy as np
 
-from service.localization.localizers.certificate import Certificate, certify
-from service.localization.localizers.convergence import ConvergenceRule, distinct
+from service.localization.localizers.certificate import KEPT, SLACK, Certificate, certify
+from service.localization.localizers.convergence import ConvergenceRule, distinct, within
 from service.localization.localizers.sweep import Sweep
 from service.localization.localizers.turned import (
     DEEP,
@@ -30,6 +30,15 @@ CERTIFY_MASS = 0.9
 """The leading mode's share from which the certificate a declaration needs is made ahead,
 between steps: made only once the judge would declare, it cost every declaration a step
 (B2's median 10 -> 11)."""
+CERTIFY_WORK = 100_000
+"""Work (`Certificate.work`, boxes judged) a step's background gives the certificate: about
+0.1-0.2 s on the project's machine (1.2-1.6 us a box). A larger search goes on over the
+next steps, so no update waits on the whole map, at a cost in steps where the map is
+large: B3's 80-unit map needs 0.23-1.0 million at its earliest (bumps:80:1, seeds 0-9),
+and its median steps went from 11 to 15 (20/20 localized either way)."""
+RENEW = 0.5 * (SLACK + KEPT)
+"""A certificate is made anew ahead once its margin falls below this (`Certificate.margin`),
+so that the next reading still finds one that stands."""
 
 Add = Callable[[np.ndarray], None]
 """Hands poses to the pool."""
@@ -53,9 +62,12 @@ class DeclarationChecks:
         """The turned check again, polishing `DEEP` cells a share, between steps: it only
         holds a declaration back, and hands the rivals that do to the pool."""
         self.certificate: Certificate | None = None
-        """The last search of the whole map for rivals of a pose about to be declared."""
+        """The last complete search of the whole map for rivals of a pose about to be
+        declared."""
         self.to_certify: np.ndarray | None = None
         """A pose every other check would declare, whose certificate the next steps make."""
+        self.certifying: tuple[Certificate, Iterator[int]] | None = None
+        """The search under way, `CERTIFY_WORK` a step, and where it goes on."""
 
     @property
     def _profile(self) -> bool:
@@ -109,7 +121,7 @@ class DeclarationChecks:
         if self._profile:
             return True
         cert = self.certificate
-        if cert is None or not cert.covers(pose, len(history), self.weighing.same_pose):
+        if cert is None or not cert.covers(self.weighing, history, pose):
             self.to_certify = pose.copy()
             return False
         if cert.overflowed:
@@ -135,9 +147,21 @@ class DeclarationChecks:
         if self.to_certify is None and self._may_declare_next(pose, history, mode_mass, noisy):
             self.to_certify = pose.copy()
         if self.to_certify is not None:
-            self.certificate = Certificate(pose=self.to_certify, readings=len(history))
-            yield from certify(self.weighing, history, self.to_certify, self.certificate)
+            if self.certifying is None or not within(
+                    self.certifying[0].pose[np.newaxis], self.to_certify,
+                    *self.weighing.same_pose)[0]:  # a search for another pose is moot
+                cert = Certificate(pose=self.to_certify, readings=len(history))
+                self.certifying = (cert, certify(self.weighing, history, self.to_certify,
+                                                 cert))
             self.to_certify = None
+        if self.certifying is not None:
+            cert, search = self.certifying
+            start = cert.work
+            for used in search:
+                yield used
+                if cert.work - start >= CERTIFY_WORK:
+                    return  # the rest in the next steps' background
+            self.certificate, self.certifying = cert, None
 
     def _deep_step(self, pose: np.ndarray, history: np.ndarray, weights: Weights) -> None:
         """A share of the deep turned check: the update's share again, polishing the best
@@ -151,10 +175,10 @@ class DeclarationChecks:
                           noisy: bool) -> bool:
         """Whether the next update may declare `pose` (the sweep done, the leading mode
         holding `CERTIFY_MASS`) and needs a certificate for it: made now, while the finger
-        moves, it is ready when the declaration is (`certificate.AGE`)."""
+        moves, it is ready when the declaration is; one whose margin fell below `RENEW` is
+        made anew."""
         cert = self.certificate
         needed = self.rule.min_readings_noisy if noisy else self.rule.min_readings
         return (not self._profile and self.sweep.checked and mode_mass >= CERTIFY_MASS
                 and len(history) >= needed  # the next update's readings
-                and (cert is None or not cert.covers(pose, len(history) + 1,
-                                                     self.weighing.same_pose)))
+                and (cert is None or not cert.covers(self.weighing, history, pose, RENEW)))
