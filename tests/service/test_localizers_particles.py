@@ -200,8 +200,12 @@ def test_the_certificate_alone_holds_back_a_turn_the_turned_checks_exist_for(mon
     def skipped(self, pose, history, weights):
         self.deep.cursor += TURNED_SLICE
 
+    def none_found(self, pose, history, weights):
+        self.turned.cursor += TURNED_SLICE
+        return np.empty((0, 3))
+
     checks = declaration.DeclarationChecks
-    monkeypatch.setattr(checks, "turned_step", lambda self, *args: np.empty((0, 3)))
+    monkeypatch.setattr(checks, "_turned_step", none_found)
     monkeypatch.setattr(checks, "turned_clear", lambda self, *args: True)
     monkeypatch.setattr(checks, "deep_clear", lambda self, *args: True)
     monkeypatch.setattr(checks, "_deep_step", skipped)

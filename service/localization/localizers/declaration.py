@@ -26,10 +26,12 @@ from service.localization.localizers.turned import (
     rivals_clear,
 )
 
-CERTIFY_MASS = 0.9
-"""The leading mode's share from which the certificate a declaration needs is made ahead,
-between steps: made only once the judge would declare, it cost every declaration a step
-(B2's median 10 -> 11)."""
+AHEAD_MASS = 0.9
+"""The leading mode's share from which the checks a declaration waits on are made ahead,
+between steps: the turned check and its deep pass to their end, and the certificate. Made
+only once the judge would declare, the certificate cost every declaration a step (B2's
+median 10 -> 11). Below it the turned check takes a share a step, as a leader whose heading
+still moves would start it again."""
 CERTIFY_WORK = 100_000
 """Work (`Certificate.work`, boxes judged) a step's background gives the certificate: about
 0.1-0.2 s on the project's machine (1.2-1.6 us a box). A larger search goes on over the
@@ -74,21 +76,6 @@ class DeclarationChecks:
         return self.weighing.surface.map.is_profile
 
     # -- in the update -----------------------------------------------------------------------
-    def turned_step(self, pose: np.ndarray, history: np.ndarray, weights: Weights) -> np.ndarray:
-        """This update's share of the turned check: `TURNED_SLICE` cells of `pose` turned
-        and moved anywhere, the best `TURNED` polished onto the readings; those that fit
-        nearly as well as `pose`, for the pool, and kept as the check's rivals. A new
-        heading (by more than `TURNED_DRIFT`) starts it again."""
-        check = self.turned
-        check.follow(float(pose[2]), len(history))
-        if check.cursor >= self.sweep.turned_cells:
-            return np.empty((0, 3))
-        found, _ = check.share(self.weighing, self.sweep, history, weights(), pose, TURNED,
-                               self.polish_steps)
-        if len(found):
-            check.rivals = np.vstack([check.rivals, found])[-TURNED:]
-        return found
-
     def clear(self, pose: np.ndarray, history: np.ndarray, add: Add) -> bool:
         """Whether the turned check, its deep pass and the certificate all let `pose` be
         declared, in that order; rivals that hold it back go to `add`."""
@@ -133,15 +120,27 @@ class DeclarationChecks:
 
     # -- between steps -----------------------------------------------------------------------
     def between_steps(self, pose: np.ndarray, history: np.ndarray, weights: Weights,
-                      mode_mass: float, noisy: bool) -> Iterator[int]:
-        """The deep turned check, at the update's turned check's pace, then the certificate
-        asked for (or, from `CERTIFY_MASS`, the one the next update may need)."""
-        self.deep.follow(float(pose[2]), len(history))
-        # the update's check did its first share with the update that found the heading,
-        # so this one does two then, and one a step after: both are complete by the same
-        # update
-        while self.deep.cursor < min(self.sweep.turned_cells, TURNED_SLICE * (
-                len(history) - self.deep.since + 2)):
+                      mode_mass: float, noisy: bool, add: Add) -> Iterator[int]:
+        """The turned check of `pose`'s heading and its deep pass, a share a step, or to
+        their end once the leading mode holds `AHEAD_MASS` (a new heading starts them
+        again); their finds join the pool. Then the certificate asked for (or, from
+        `AHEAD_MASS`, the one the next update may need).
+
+        The turned check ran a share per update, inside it, and held B2's declarations
+        back: of 30 episodes (peaks, seeds 0-29), 17 waited 1-4 updates after the rule
+        first held, 32 updates in all, for the turned check to complete. Run here, a
+        whole check costs milliseconds while the finger moves."""
+        heading = float(pose[2])
+        self.turned.follow(heading, len(history))
+        self.deep.follow(heading, len(history))
+        shares = self.sweep.turned_cells if mode_mass >= AHEAD_MASS else TURNED_SLICE
+        cells = min(self.sweep.turned_cells, self.turned.cursor + shares)
+        while self.turned.cursor < cells:
+            found = self._turned_step(pose, history, weights)
+            if len(found):
+                add(found)
+            yield TURNED
+        while self.deep.cursor < cells:
             self._deep_step(pose, history, weights)
             yield DEEP
         if self.to_certify is None and self._may_declare_next(pose, history, mode_mass, noisy):
@@ -163,6 +162,18 @@ class DeclarationChecks:
                     return  # the rest in the next steps' background
             self.certificate, self.certifying = cert, None
 
+    def _turned_step(self, pose: np.ndarray, history: np.ndarray, weights: Weights
+                     ) -> np.ndarray:
+        """A share of the turned check: `TURNED_SLICE` cells of `pose` turned and moved
+        anywhere, the best `TURNED` polished onto the readings; those that fit nearly as
+        well as `pose`, for the pool, and kept as the check's rivals."""
+        check = self.turned
+        found, _ = check.share(self.weighing, self.sweep, history, weights(), pose, TURNED,
+                               self.polish_steps)
+        if len(found):
+            check.rivals = np.vstack([check.rivals, found])[-TURNED:]
+        return found
+
     def _deep_step(self, pose: np.ndarray, history: np.ndarray, weights: Weights) -> None:
         """A share of the deep turned check: the update's share again, polishing the best
         `DEEP` of its cells; the best distinct finds become its rivals only."""
@@ -174,11 +185,11 @@ class DeclarationChecks:
     def _may_declare_next(self, pose: np.ndarray, history: np.ndarray, mode_mass: float,
                           noisy: bool) -> bool:
         """Whether the next update may declare `pose` (the sweep done, the leading mode
-        holding `CERTIFY_MASS`) and needs a certificate for it: made now, while the finger
+        holding `AHEAD_MASS`) and needs a certificate for it: made now, while the finger
         moves, it is ready when the declaration is; one whose margin fell below `RENEW` is
         made anew."""
         cert = self.certificate
         needed = self.rule.min_readings_noisy if noisy else self.rule.min_readings
-        return (not self._profile and self.sweep.checked and mode_mass >= CERTIFY_MASS
+        return (not self._profile and self.sweep.checked and mode_mass >= AHEAD_MASS
                 and len(history) >= needed  # the next update's readings
                 and (cert is None or not cert.covers(self.weighing, history, pose, RENEW)))

@@ -187,8 +187,9 @@ class Particles:
           is covered once (later sweeps refresh the pool, a share per update). On a map of
           20 x 20 steps the updates cover it in time. On B3's 80-unit map a share per
           update held the declaration back to a median of 29 steps.
-        * The deep turned check, at the update's turned check's pace, and the certificate
-          of a pose the next update may declare (`declaration.py`)."""
+        * The turned check and its deep pass (a share a step, all of it once the leading
+          mode is likely), and the certificate of a pose the next update may declare
+          (`declaration.py`)."""
         return True if self._between is None else self._between.work(budget)
 
     def _background(self, job: AnytimeJob) -> Iterator[int]:
@@ -203,7 +204,7 @@ class Particles:
             return
         yield from self._checks.between_steps(np.asarray(self.fit.pose), self.history,
                                               self._reading_weights, self.mode_mass,
-                                              self.noisy)
+                                              self.noisy, self._add)
 
     def _update(self, job: AnytimeJob, m: Measurement) -> Iterator[int]:
         self.history = np.vstack([self.history, reading_row(m, self.ctx.walls)])
@@ -449,13 +450,8 @@ class Particles:
         self.runner_up, self.runner_up_mass = v.runner_up, v.runner_up_mass
         if v.fit is not None:  # the polished modes and the fit join the pool
             self._add(np.vstack([self.tracks.centres[:self.rivals], [v.fit.pose]]))
-            # then the leader turned: rivals the sweep may have passed over
-            pose = np.asarray(v.fit.pose)
-            found = self._checks.turned_step(pose, self.history, self._reading_weights)
-            if len(found):
-                self._add(found)
-            self.converged = self.converged and self._checks.clear(pose, self.history,
-                                                                   self._add)
+            self.converged = self.converged and self._checks.clear(
+                np.asarray(v.fit.pose), self.history, self._add)
 
     # -- helpers ---------------------------------------------------------------------------
     def _random(self, count: int) -> np.ndarray:

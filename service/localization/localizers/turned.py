@@ -32,7 +32,7 @@ from service.localization.surface import ContactSurface
 TURNED_SLICE = 8192
 """Turned cells (`Sweep.turned`) a share of a turned check screens."""
 TURNED = 128
-"""Of those, the best that the update's check polishes (and the rivals it keeps)."""
+"""Of those, the best that the turned check polishes (and the rivals it keeps)."""
 DEEP = 1024
 """Of a share's cells, those the deep turned check polishes between steps. The screen's
 misfit is a bound that forgives readings near steep ground, so on a part with pockets it
