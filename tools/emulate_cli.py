@@ -76,10 +76,7 @@ def start_hand_emulator(args: argparse.Namespace) -> tuple[ServoBus, Truth]:
     from service.episode.hand_scenario import load_parts
 
     settings = hand_settings(args)
-    parts = load_parts(settings)
-    if len(parts.hand.fingers) < 2:
-        raise ConfigError(f"--object needs a hand of several fingers; '{args.hand}' has one "
-                          "(e.g. --hand two-finger)")
+    parts = load_parts(settings)  # refuses a hand of one finger
     sim, start = simulated_hand(settings, parts)
     plant = HandPlant(sim)
     bus = _bus(args, hand_bus_servos(parts.hand, plant), plant)

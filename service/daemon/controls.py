@@ -21,6 +21,7 @@ from service.errors import StateError
 from service.wire.commands import Deferred
 
 if TYPE_CHECKING:
+    from service.daemon.config import DaemonConfig
     from service.daemon.node import Node
 
 QUIET_COMMANDS = frozenset({"ping", "status", "get_config", "acquire"})
@@ -75,6 +76,7 @@ class CommandHandlers:
         self.link.start()  # (again, if the compute process died)
         rebuild = (self.backend is None or new.backend != self.config.backend
                    or new.backend.name == "sim"
+                   or _servos(new) != _servos(self.config)  # another hand on the bus
                    or self.lifecycle.state in (State.UNCONFIGURED, State.FAULT))
         deferred = Deferred()
         port = new.backend.options.get("port")
@@ -139,9 +141,10 @@ class CommandHandlers:
 
     def start_exploration(self: Node, repeat: bool) -> Deferred:
         """Start an episode here; the reply comes with its first belief."""
-        if self.lifecycle.state is not State.ACTIVE:
+        if self.lifecycle.state is not State.ACTIVE:  # from a fault, activate is refused too
+            first = "reset, then activate" if self.lifecycle.state is State.FAULT else "activate"
             raise StateError(f"cannot start exploration while {self.lifecycle.state.value}; "
-                             f"activate first")
+                             f"{first} first")
         if self.explorer.running:
             raise StateError("already exploring; stop_exploration first")
         if self._hold_until_ns is not None:
@@ -185,3 +188,11 @@ class CommandHandlers:
         self.loop.reset_stats()
         self.localizer_work.reset()
         return {}
+
+
+def _servos(config: DaemonConfig) -> str | None:
+    """What the backend drives besides its own options: the hand holding the object, or
+    None for a finger (its chain is a backend option). A held-out check changed
+    scenario.hand on a running Dynamixel daemon: accepted, the two-finger backend kept,
+    and the next episode failed in the compute process."""
+    return None if config.scenario.object is None else config.scenario.hand_name

@@ -128,7 +128,7 @@ class Explorer:
         """Stop the episode under way; returns its `episode_done` fields (cut short for
         `reason`, the estimate as of the cut), or None when none was under way."""
         cut = None
-        if self.phase is not Phase.IDLE:
+        if self.phase not in (Phase.IDLE, Phase.RESTART):  # RESTART: the last one is done
             with contextlib.suppress(WorkerDied):  # a dead process has nothing to cancel
                 self._req = self.link.send("cancel")
             est = {k: v for k, v in self.estimate_fields().items()
@@ -161,7 +161,8 @@ class Explorer:
         """Advance as far as this tick allows; `replies` are the compute process's."""
         out = TickOutput()
         if self.phase is Phase.RESTART:
-            self._begin(state, None if self._truth_at is None else self._truth_at(state))
+            if not self.paused:  # a lost lease's hold starts no episode
+                self._begin(state, None if self._truth_at is None else self._truth_at(state))
             return out
         for msg in replies:
             if int(msg.get("req", -1)) != self._req or self.phase is Phase.IDLE:

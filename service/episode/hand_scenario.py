@@ -64,7 +64,8 @@ class HandSettings:
 
     def __post_init__(self) -> None:
         if not (np.isfinite(self.step) and 0 < self.step <= 0.02):
-            raise ConfigError(f"--step must be in (0, 0.02] metres for a hand, got {self.step}")
+            raise ConfigError("the roll per step (--roll, scenario.roll) must be in (0, 0.02] "
+                              f"metres, got {self.step}")
         if self.max_steps < 1:
             raise ConfigError(f"--max-steps must be at least 1, got {self.max_steps}")
         if self.seed < 0:
@@ -112,6 +113,9 @@ def load_parts(settings: HandSettings) -> HandParts:
     """Object and hand of the settings, the object checked against the tips' radius."""
     contour = load_object(settings.object, plane=settings.plane, units=settings.units)
     hand = load_hand(settings.hand)
+    if len(hand.fingers) < 2:  # it said "found no hold ... too big, too small or too slippery"
+        raise ConfigError(f"hand '{settings.hand}' has one finger: holding an object needs a "
+                          "hand of several fingers (e.g. two-finger or three-finger)")
     if settings.single_finger:
         hand = dataclasses.replace(hand, fingers=hand.fingers[:1])
     for finger in hand.fingers:

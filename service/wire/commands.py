@@ -263,6 +263,7 @@ class CommandServer:
             try:
                 req = wire.unpack_map(payload, self.max_request_bytes)
             except wire.WireError as exc:
+                rid = exc.request_id  # a map whose keys are wrong still names its request
                 raise CommandError(exc.code, str(exc)) from None
             rid = req.get("id")  # echoed only if it is one (`true` is no id)
             rid = rid if isinstance(rid, (int, str)) and not isinstance(rid, bool) else None

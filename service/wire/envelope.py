@@ -41,11 +41,14 @@ MAX_ARRAY_DIMS = 4
 
 
 class WireError(InputError):
-    """A message could not be decoded or does not follow the envelope; `code` says which."""
+    """A message could not be decoded or does not follow the envelope; `code` says which.
+    `request_id` is the message's `id` when it could still be read (a map whose keys are
+    wrong decodes in full, so its reply can name the request)."""
 
-    def __init__(self, code: str, message: str) -> None:
+    def __init__(self, code: str, message: str, request_id: int | str | None = None) -> None:
         super().__init__(message)
         self.code = code
+        self.request_id = request_id
 
 
 @dataclass(frozen=True)
@@ -147,33 +150,55 @@ def unpack_map(data: bytes, max_bytes: int = MAX_MESSAGE_BYTES) -> dict[str, Any
     if len(data) > max_bytes:
         raise WireError("too_large", f"message of {len(data)} bytes exceeds the limit of "
                         f"{max_bytes} bytes")
+    keys = _KeyCheck()
     try:
-        obj = msgpack.unpackb(bytes(data), raw=False, strict_map_key=True, use_list=True,
+        # map keys of any type decode (`strict_map_key` off), so that the check below names
+        # the problem: msgpack's own refusal of an integer key read as garbage
+        obj = msgpack.unpackb(bytes(data), raw=False, strict_map_key=False, use_list=True,
                               max_str_len=max_bytes, max_bin_len=max_bytes,
                               max_array_len=max_bytes, max_map_len=max_bytes // 2,
                               max_ext_len=0, ext_hook=_refuse_ext,
-                              object_pairs_hook=_string_keyed_map)
+                              object_pairs_hook=keys.map)
     except WireError:
         raise
     except Exception as exc:  # msgpack raises several unrelated types on garbage
         raise WireError("malformed", f"not a msgpack message: {_why(exc)}") from None
     if not isinstance(obj, dict):
         raise WireError("malformed", "message must be a msgpack map")
+    if keys.problem is not None:
+        rid = None if "id" in keys.repeated.get(id(obj), ()) else obj.get("id")
+        raise WireError("malformed", keys.problem, rid if isinstance(rid, (int, str))
+                        and not isinstance(rid, bool) else None)
     return obj
 
 
-def _string_keyed_map(pairs: list[tuple[Any, Any]]) -> dict[str, Any]:
-    """A map whose keys are strings, each once: a request with `cmd` twice ran the second
+class _KeyCheck:
+    """Maps whose keys are strings, each once: a request with `cmd` twice ran the second
     (a proxy that reads the first would see another command), and a bytes key was taken
-    where an integer one was refused."""
-    out: dict[str, Any] = {}
-    for key, value in pairs:
-        if not isinstance(key, str):
-            raise WireError("malformed", f"map keys must be strings, got {type(key).__name__}")
-        if key in out:
-            raise WireError("malformed", f"a map repeats the key '{key[:64]}'")
-        out[key] = value
-    return out
+    where an integer one was refused. The first problem is kept, not raised, so the
+    message still decodes and its reply can echo the request's `id` (unless `id` itself
+    was repeated: then no one id is the request's)."""
+
+    def __init__(self) -> None:
+        self.problem: str | None = None
+        self.repeated: dict[int, set[str]] = {}
+        """Per decoded map (by `id()`), the keys it repeated."""
+
+    def map(self, pairs: list[tuple[Any, Any]]) -> dict[str, Any]:
+        out: dict[str, Any] = {}
+        for key, value in pairs:
+            if not isinstance(key, str):
+                self._note(f"map keys must be strings, got {type(key).__name__}")
+            elif key in out:
+                self._note(f"a map repeats the key '{key[:64]}'")
+                self.repeated.setdefault(id(out), set()).add(key)
+            else:
+                out[key] = value
+        return out
+
+    def _note(self, problem: str) -> None:
+        if self.problem is None:
+            self.problem = problem
 
 
 def _why(exc: Exception) -> str:

@@ -93,6 +93,10 @@ def test_garbage_gets_error_replies_and_changes_nothing(node: Node, raw: zmq.Soc
             assert reply["id"] is not True  # `true` is no id: the reply's id is nil
         reply = ask(raw, b"one", b"two")
         assert reply["error"]["code"] == "malformed"
+        # keys that are wrong leave the id readable: it is echoed (a held-out client)
+        reply = ask(raw, msgpack.packb({"v": 2, "type": "request", "id": "ik", "cmd": "ping",
+                                        3: 4}))
+        assert reply["id"] == "ik" and "keys must be strings" in reply["error"]["message"]
         assert snapshot(ctl) == before
         assert ctl.call("ping") == {"pong": True}  # still serving
 
@@ -215,6 +219,8 @@ def test_a_backend_fault_latches_until_reset(node: Node) -> None:
         assert state["state"] == "fault" and not state["torque_on"] and not state["exploring"]
         with pytest.raises(CommandFailed, match="bad_state"):
             ctl.call("activate")
+        with pytest.raises(CommandFailed, match="reset, then activate"):
+            ctl.call("start_exploration")  # it said "activate first", which is refused
         assert ctl.call("reset")["state"] == "inactive"
         assert sub.wait_for(lambda m: m.topic == "state" and m["state"] == "inactive", 5.0)
         assert ctl.call("activate")["state"] == "active"

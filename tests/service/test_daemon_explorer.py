@@ -128,6 +128,30 @@ def test_a_move_held_back_by_a_pause_dies_with_its_episode(link: WorkerLink) -> 
     explorer.stop()
 
 
+def test_a_hold_starts_no_new_episode_when_the_step_under_way_ends_one(
+        link: WorkerLink) -> None:
+    """With `repeat`, the lease lost during a step: the step completes and ends its episode
+    (one step allowed). The hold must not begin the next episode (a held-out client saw
+    `episode_started` during a hold, and its `episode_done` as "deactivated" at the end),
+    and stopping then reports nothing under way."""
+    settings = RunSettings(max_steps=1)
+    configure(link, settings)
+    f = finger(settings, surface_for(settings), 1)
+    explorer = Explorer(link, settings)
+    explorer.start(f.read_hand(), repeat=True)
+    while explorer.phase is not Phase.STEPPING:
+        explorer.tick(f.read_hand(), f.command_hand, link.poll(60.0))
+    explorer.paused = True  # the lease ends while the step is under way
+    while explorer.phase is not Phase.RESTART:
+        explorer.tick(f.read_hand(), f.command_hand, link.poll(1.0))
+    episode = explorer.episode
+    for _ in range(5):
+        out = explorer.tick(f.read_hand(), f.command_hand, link.poll(0.0))
+        assert not out.started and not out.events
+    assert explorer.phase is Phase.RESTART and explorer.episode == episode
+    assert explorer.stop() is None and explorer.phase is Phase.IDLE
+
+
 def test_a_refused_setup_leaves_the_current_scenario(link: WorkerLink) -> None:
     configure(link, RunSettings())
     link.send("setup", settings=asdict(RunSettings(map="/etc/hostname.txt", spacing=0.001)),

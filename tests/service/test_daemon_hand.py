@@ -54,6 +54,7 @@ def test_a_version_1_request_is_told_to_speak_version_2(node: Node) -> None:
     ({"object": "teapot"}, "teapot"),  # refused by the compute process, after a while
     ({"localizer": "grid"}, "unknown algorithm 'grid'"),
     ({"object": None, "hand": "two-finger"}, "set object too"),
+    ({"hand": "planar"}, "several fingers"),  # was accepted; the next episode failed
 ])
 def test_a_bad_hand_configure_is_refused_and_changes_nothing(node: Node, changes: dict,
                                                              words: str) -> None:
@@ -210,3 +211,39 @@ def test_a_subscriber_says_why_a_version_1_stream_cannot_be_read() -> None:
             assert sub.rejected and "protocol version 2" in sub.rejection
     finally:
         pub.close()
+
+
+def test_another_hand_on_a_running_dynamixel_daemon_opens_the_bus_again() -> None:
+    """A held-out check: `configure scenario.hand=three-finger` on a daemon driving a
+    two-finger bus was accepted, the two-finger backend kept, and the next episode failed
+    in the compute process. The hand is the backend's: changing it opens the bus again,
+    which has no servo 7, so the configure is refused and nothing changes."""
+    import argparse
+
+    from tools.emulate_cli import register, start_emulator
+
+    parser = argparse.ArgumentParser()
+    register(parser)
+    bus = start_emulator(parser.parse_args(
+        ["--hand", "two-finger", "--object", "keyed", "--seed", "2"]))[0]
+    try:
+        config = loopback_config({
+            "backend": {"name": "dynamixel", "options": {
+                "port": bus.port, "cycle_budget_s": 0.05}},  # a busy test machine is slow
+            "scenario": {"object": "keyed", "hand": "two-finger", "seed": 2,
+                         "max_steps": 2}})
+        with running_node(config) as node, \
+                Subscriber(node.endpoints["pub"], ["state"]) as sub, \
+                Controller(node.endpoints["cmd"], timeout_s=30.0) as c:
+            assert sub.wait_for(lambda m: len(m["fingers"]) == 2, 10.0)
+            before = c.call("get_config")
+            with pytest.raises(CommandFailed) as err:
+                c.call("configure", changes={"scenario": {"hand": "three-finger"}})
+            assert "servo 7" in str(err.value), err.value
+            assert c.call("get_config") == before
+            status = c.call("status")
+            assert status["hand"] == "two-finger" and status["state"] == "inactive"
+            c.call("activate")
+            assert c.call("start_exploration")["episode"] >= 1  # the old hand still runs
+    finally:
+        bus.stop()

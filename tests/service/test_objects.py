@@ -138,6 +138,22 @@ def test_mesh_section_through_a_plane(tmp_path):
         load_object(str(tmp_path / "junk.stl"))
 
 
+def test_a_mesh_whose_text_is_not_utf8_loads_and_a_cut_one_is_named(tmp_path):
+    """A held-out check: an ASCII STL named in Latin-1, and a binary STL cut short, were
+    both refused with "No module named 'charset_normalizer'" (trimesh decodes such text
+    with it, and it was not installed)."""
+    box = trimesh.creation.box(extents=(0.05, 0.03, 0.02))
+    text = trimesh.exchange.stl.export_stl_ascii(box).replace("solid", "solid pi\xe8ce", 1)
+    (tmp_path / "latin.stl").write_bytes(text.encode("latin-1"))
+    assert load_object(str(tmp_path / "latin.stl"), plane="z=0").area == pytest.approx(
+        0.05 * 0.03, rel=1e-6)
+    whole = trimesh.exchange.stl.export_stl(box)
+    (tmp_path / "cut.stl").write_bytes(whole[:len(whole) // 2])
+    with pytest.raises(ObjectError, match="cut.stl") as err:
+        load_object(str(tmp_path / "cut.stl"), plane="z=0")
+    assert "module" not in str(err.value)
+
+
 
 def test_carrying_one_pose_uses_the_warmed_up_kernel():
     """A single pose's fingertips broadcast to a batch of one are a read-only array: the

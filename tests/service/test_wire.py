@@ -59,6 +59,28 @@ def test_unpack_refuses_garbage(data: bytes, code: str) -> None:
     assert "Error" not in str(err.value)  # words, not an exception's class name
 
 
+@pytest.mark.parametrize(("request_map", "problem", "request_id"), [
+    ({"id": "dk", "cmd": "ping", 3: 4}, "map keys must be strings, got int", "dk"),
+    ({"id": 7, "args": {b"x": 1}}, "map keys must be strings, got bytes", 7),
+])
+def test_a_map_with_a_bad_key_is_named_and_keeps_its_request_id(request_map, problem,
+                                                                 request_id) -> None:
+    """A held-out client got "the bytes end early" for an integer key (msgpack's own
+    refusal), and no `id` in the reply though the request's was readable."""
+    with pytest.raises(wire.WireError, match=problem) as err:
+        wire.unpack_map(msgpack.packb(request_map))
+    assert err.value.code == "malformed" and err.value.request_id == request_id
+
+
+def test_a_repeated_key_keeps_the_request_id_unless_it_is_the_id() -> None:
+    with pytest.raises(wire.WireError, match="repeats the key 'cmd'") as err:
+        wire.unpack_map(b"\x83\xa2id\xa2dk\xa3cmd\xa4ping\xa3cmd\xa8activate")
+    assert err.value.request_id == "dk"
+    with pytest.raises(wire.WireError, match="repeats the key 'id'") as err:
+        wire.unpack_map(b"\x82\xa2id\x01\xa2id\x02")
+    assert err.value.request_id is None
+
+
 def test_a_repeated_key_is_named_and_nested_maps_are_kept() -> None:
     with pytest.raises(wire.WireError, match="a map repeats the key 'cmd'"):
         wire.unpack_map(b"\x82\xa3cmd\xa6status\xa3cmd\xa8activate")
