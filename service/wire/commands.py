@@ -263,10 +263,9 @@ class CommandServer:
             try:
                 req = wire.unpack_map(payload, self.max_request_bytes)
             except wire.WireError as exc:
-                rid = exc.request_id  # a map whose keys are wrong still names its request
+                rid = _echoed(exc.request_id)  # a map whose keys are wrong names its request
                 raise CommandError(exc.code, str(exc)) from None
-            rid = req.get("id")  # echoed only if it is one (`true` is no id)
-            rid = rid if isinstance(rid, (int, str)) and not isinstance(rid, bool) else None
+            rid = _echoed(req.get("id"))
             rid, cmd, client, args, spec = validate(req)
             if self.curve is not None and not self.curve.authorized(peer.key):
                 raise CommandError("unauthorized", "this client's key is no longer in "
@@ -382,3 +381,9 @@ def _peer(identity: bytes, frame: zmq.Frame) -> Peer:
     except zmq.ZMQError:
         fd = -1
     return Peer(identity, key or None, fd)
+
+
+def _echoed(rid: Any) -> int | str | None:
+    """A request's `id` as its reply echoes it: only an int or a string is one (`true` is
+    not)."""
+    return rid if isinstance(rid, (int, str)) and not isinstance(rid, bool) else None

@@ -42,10 +42,10 @@ MAX_ARRAY_DIMS = 4
 
 class WireError(InputError):
     """A message could not be decoded or does not follow the envelope; `code` says which.
-    `request_id` is the message's `id` when it could still be read (a map whose keys are
-    wrong decodes in full, so its reply can name the request)."""
+    `request_id` is the message's `id` as decoded, when it could still be read (a map whose
+    keys are wrong decodes in full, so its reply can name the request)."""
 
-    def __init__(self, code: str, message: str, request_id: int | str | None = None) -> None:
+    def __init__(self, code: str, message: str, request_id: Any = None) -> None:
         super().__init__(message)
         self.code = code
         self.request_id = request_id
@@ -165,10 +165,9 @@ def unpack_map(data: bytes, max_bytes: int = MAX_MESSAGE_BYTES) -> dict[str, Any
         raise WireError("malformed", f"not a msgpack message: {_why(exc)}") from None
     if not isinstance(obj, dict):
         raise WireError("malformed", "message must be a msgpack map")
-    if keys.problem is not None:
-        rid = None if "id" in keys.repeated.get(id(obj), ()) else obj.get("id")
-        raise WireError("malformed", keys.problem, rid if isinstance(rid, (int, str))
-                        and not isinstance(rid, bool) else None)
+    if keys.problem is not None:  # the top-level map is the last one decoded
+        raise WireError("malformed", keys.problem,
+                        None if "id" in keys.last_repeated else obj.get("id"))
     return obj
 
 
@@ -181,17 +180,18 @@ class _KeyCheck:
 
     def __init__(self) -> None:
         self.problem: str | None = None
-        self.repeated: dict[int, set[str]] = {}
-        """Per decoded map (by `id()`), the keys it repeated."""
+        self.last_repeated: set[str] = set()
+        """The keys the map decoded last repeated (msgpack decodes inner maps first)."""
 
     def map(self, pairs: list[tuple[Any, Any]]) -> dict[str, Any]:
         out: dict[str, Any] = {}
+        self.last_repeated = set()
         for key, value in pairs:
             if not isinstance(key, str):
                 self._note(f"map keys must be strings, got {type(key).__name__}")
             elif key in out:
                 self._note(f"a map repeats the key '{key[:64]}'")
-                self.repeated.setdefault(id(out), set()).add(key)
+                self.last_repeated.add(key)
             else:
                 out[key] = value
         return out

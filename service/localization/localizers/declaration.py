@@ -84,18 +84,22 @@ class DeclarationChecks:
 
     def turned_clear(self, pose: np.ndarray, history: np.ndarray) -> bool:
         """Whether the turned check of `pose`'s heading is complete and its rivals would not
-        hold the declaration back (`turned.rivals_clear`)."""
-        return self.turned.cursor >= self.sweep.turned_cells and rivals_clear(
-            self.weighing, history, pose, self.turned.rivals)
+        hold the declaration back (`turned.rivals_clear`); its finds are in the pool
+        already."""
+        return self._check_clear(self.turned, pose, history, None)
 
     def deep_clear(self, pose: np.ndarray, history: np.ndarray, add: Add) -> bool:
-        """Whether the deep turned check of `pose`'s heading is complete and its rivals
-        would not hold the declaration back; if they would, they go to `add`."""
-        if not self.deep.covers(float(pose[2]), self.sweep.turned_cells):
+        """The same for the deep pass, whose rivals go to `add` when they hold it back."""
+        return self._check_clear(self.deep, pose, history, add)
+
+    def _check_clear(self, check: TurnedCheck, pose: np.ndarray, history: np.ndarray,
+                     add: Add | None) -> bool:
+        if not check.covers(float(pose[2]), self.sweep.turned_cells):
             return False
-        if rivals_clear(self.weighing, history, pose, self.deep.rivals):
+        if rivals_clear(self.weighing, history, pose, check.rivals):
             return True
-        add(self.deep.rivals)
+        if add is not None:
+            add(check.rivals)
         return False
 
     def certified(self, pose: np.ndarray, history: np.ndarray, add: Add) -> bool:
@@ -131,8 +135,8 @@ class DeclarationChecks:
         first held, 32 updates in all, for the turned check to complete. Run here, a
         whole check costs milliseconds while the finger moves."""
         heading = float(pose[2])
-        self.turned.follow(heading, len(history))
-        self.deep.follow(heading, len(history))
+        self.turned.follow(heading)
+        self.deep.follow(heading)
         shares = self.sweep.turned_cells if mode_mass >= AHEAD_MASS else TURNED_SLICE
         cells = min(self.sweep.turned_cells, self.turned.cursor + shares)
         while self.turned.cursor < cells:

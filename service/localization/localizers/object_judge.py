@@ -219,9 +219,10 @@ def judge(ctx: ObjectContext, points: np.ndarray, radii: np.ndarray, tracks: Obj
         ll = temper * prior[[order[0]] + rivals] + _offset_log_likelihood(
             ctx, np.array([f.pose for f in fits]), points, radii, max(sigma, 0.002 * scale),
             temper)
-        images_ll = _rivals_beside(ctx, tracks, order[0], fit, centres[rivals], ll[1:],
-                                   temper * prior[rivals], motions, points, radii, temper)
-        ll = np.concatenate([ll, images_ll])
+        rivals_ll, images_ll = _rivals_beside(ctx, tracks, order[0], fit, centres[rivals],
+                                              ll[1:], temper * prior[rivals], motions,
+                                              points, radii, temper)
+        ll = np.concatenate([ll[:1], rivals_ll, images_ll])
         rest = share[1 + len(rivals):].sum()
         w = np.exp(ll - ll.max())
         mass = float(w[0] / w.sum()) * (1.0 - rest) if ll[0] >= ll.max() else 0.0
@@ -240,32 +241,33 @@ def judge(ctx: ObjectContext, points: np.ndarray, radii: np.ndarray, tracks: Obj
 def _rivals_beside(ctx: ObjectContext, tracks: ObjectTracks, leader: int, fit: Fit,
                    rivals: np.ndarray, refined_ll: np.ndarray, rivals_prior: np.ndarray,
                    motions: np.ndarray, points: np.ndarray, radii: np.ndarray,
-                   temper: float) -> np.ndarray:
-    """The final comparison's rivals judged fairly: each refined rival (`refined_ll`, updated
-    in place) at no worse than where it started, and the refined leader's own images, which
-    fit as well as it does except where the one feature tells them apart; those beside a
-    rival raise it, the rest are returned as rivals of their own (their log likelihoods).
+                   temper: float) -> tuple[np.ndarray, np.ndarray]:
+    """The final comparison's rivals judged fairly: each refined rival (`refined_ll`) at no
+    worse than where it started, and the refined leader's own images, which fit as well as
+    it does except where the one feature tells them apart. Returns the rivals' log
+    likelihoods, raised by any image beside them, and those of the other images.
 
     From 5 readings of three fingers, a refinement took an ellipse's half-turned image 6
     degrees off onto a poorer fit, and the leader was declared at 0.9997 against its exact
     mirror (ellipse:14, seed 14, three fingers)."""
     sd = max(ctx.sigma, 0.002 * ctx.scale)
+    rivals_ll = refined_ll.copy()
     if len(rivals):
-        refined_ll[:] = np.maximum(refined_ll, rivals_prior + _offset_log_likelihood(
+        rivals_ll = np.maximum(rivals_ll, rivals_prior + _offset_log_likelihood(
             ctx, rivals, points, radii, sd, temper))
     if leader >= len(tracks.centres):
-        return np.empty(0)
+        return rivals_ll, np.empty(0)
     mirrored, prior = _images(ctx, tracks, leader, np.asarray(fit.pose), motions, points,
                               radii)
     if len(mirrored) == 0:
-        return np.empty(0)
+        return rivals_ll, np.empty(0)
     ll = temper * prior + _offset_log_likelihood(ctx, mirrored, points, radii, sd, temper)
     beside = near(mirrored, rivals, 0.25 * ctx.scale, float(np.deg2rad(5.0)))
     for i, row in enumerate(beside):
         if row.any():
             j = int(np.argmax(row))
-            refined_ll[j] = max(refined_ll[j], ll[i])
-    return ll[~beside.any(axis=1)]
+            rivals_ll[j] = max(rivals_ll[j], ll[i])
+    return rivals_ll, ll[~beside.any(axis=1)]
 
 
 def _images(ctx: ObjectContext, tracks: ObjectTracks, lead: int, pose: np.ndarray,

@@ -76,18 +76,17 @@ class Weighing:
 @dataclass
 class TurnedCheck:
     """How far a turned check of the leader's heading has come: the heading it checks, the
-    turned cells screened, the rivals found, and the readings there were when it began."""
+    turned cells screened and the rivals found."""
 
     heading: float | None = None
     cursor: int = 0
-    since: int = 0
     rivals: np.ndarray = field(default_factory=lambda: np.empty((0, 3)))
 
-    def follow(self, heading: float, readings: int) -> None:
+    def follow(self, heading: float) -> None:
         """Start again for `heading` if it moved more than `TURNED_DRIFT` from the one
         checked."""
         if self.heading is None or abs(wrap_angle(heading - self.heading)) > TURNED_DRIFT:
-            self.heading, self.cursor, self.since = heading, 0, readings
+            self.heading, self.cursor = heading, 0
             self.rivals = np.empty((0, 3))
 
     def covers(self, heading: float, cells: int) -> bool:
