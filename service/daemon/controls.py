@@ -66,10 +66,11 @@ class CommandHandlers:
         if self.reconf is not None:
             raise StateError("a configure is under way; try again when it is answered")
 
-    def configure(self: Node, changes: dict[str, Any]) -> Deferred:
+    def configure(self: Node, changes: dict[str, Any], command: str = "configure"
+                  ) -> Deferred:
         """Validate the whole change now; prepare it off the loop; commit when all of it
-        has worked (`_commit`)."""
-        self.lifecycle.check("configure")
+        has worked (`_commit`). `command`: the request's name, for its refusals."""
+        self.lifecycle.check("configure", command)
         self._not_configuring()
         new = self.config.updated(changes)
         settings = new.run_settings()

@@ -45,14 +45,16 @@ class Lifecycle:
     def allowed(self, event: str) -> bool:
         return self.state in TRANSITIONS.get(event, {})
 
-    def check(self, event: str) -> State:
-        """The state `event` leads to, or StateError saying which states allow it."""
+    def check(self, event: str, command: str | None = None) -> State:
+        """The state `event` leads to, or StateError saying which states allow it (naming
+        `command`, the request that asked for it, if not the event itself)."""
         table = TRANSITIONS.get(event)
         if table is None:
             raise StateError(f"unknown lifecycle event '{event}'")
         if self.state not in table:
             allowed = ", ".join(s.value for s in table)
-            raise StateError(f"cannot {event} while {self.state.value}; allowed in: {allowed}")
+            raise StateError(f"cannot {command or event} while {self.state.value}; allowed in: "
+                             f"{allowed}")
         return table[self.state]
 
     def apply(self, event: str, reason: str | None = None) -> tuple[State, State]:

@@ -133,12 +133,14 @@ TABLE: dict[str, Command] = {
     "estop": Command(lambda n, a: n.estop(a.get("reason", "estop")), False,
                      {"reason": "str"}, "anyone: torque off now, latch a fault"),
     "set_map": Command(lambda n, a: n.configure({"scenario": {
-        "map": a["map"], "spacing": a.get("spacing")}}), True,
+        "map": a["map"], "spacing": a.get("spacing")}}, "set_map"), True,
         {"map": "str", "spacing": "number?"}, "change the map", ("map",)),
     "set_localizer": Command(lambda n, a: n.configure({"scenario": {
-        "localizer": a["name"], "localizer_options": a.get("options", {})}}), True,
+        "localizer": a["name"], "localizer_options": a.get("options", {})}},
+        "set_localizer"), True,
         {"name": "str", "options": "map"}, "change the localizer", ("name",)),
-    "set_policy": Command(lambda n, a: n.configure({"scenario": {"policy": a["name"]}}), True,
+    "set_policy": Command(lambda n, a: n.configure({"scenario": {"policy": a["name"]}},
+                                                   "set_policy"), True,
                           {"name": "str"}, "change the exploration policy", ("name",)),
     "reset_stats": Command(lambda n, a: n.reset_stats(), True, {}, "restart timing statistics"),
 }
@@ -259,6 +261,7 @@ class CommandServer:
         self.handled += 1
         peer = peer or Peer(b"")
         rid: Any = None
+        key: tuple[Any, ...] | None = None
         try:
             try:
                 req = wire.unpack_map(payload, self.max_request_bytes)
@@ -296,7 +299,10 @@ class CommandServer:
                 return None
             return self._accepted(cmd, peer, rid, key, bytes(payload), result)
         except Exception as exc:
-            return self._error(rid, *error_code(exc))
+            out = self._error(rid, *error_code(exc))
+            if key is not None:  # a refusal is answered again as it was, like an acceptance
+                self._remember(key, bytes(payload), out)
+            return out
 
     def _accepted(self, cmd: str, peer: Peer, rid: Any, key: tuple[Any, ...], payload: bytes,
                   result: dict[str, Any]) -> bytes:
@@ -306,10 +312,14 @@ class CommandServer:
             self.lease.release()
         self.controls.on_command(cmd, peer.name())
         out = self._encode(rid, True, result=result)
+        self._remember(key, payload, out)
+        return out
+
+    def _remember(self, key: tuple[Any, ...], payload: bytes, out: bytes) -> None:
+        """Keep a request's reply, refused or accepted, for its retries (the last 256)."""
         self._recent[key] = (payload, out)
         while len(self._recent) > 256:
             self._recent.popitem(last=False)
-        return out
 
     def _defer(self, deferred: Deferred, cmd: str, peer: Peer, rid: Any,
                key: tuple[Any, ...], payload: bytes, head: list[bytes] | None, *,
@@ -331,8 +341,11 @@ class CommandServer:
             if (error is not None and took and self.lease.holds(peer) and not self.lease.busy
                     and self._controls_accepted == accepted):
                 self.lease.release()
-            out = (self._accepted(cmd, peer, rid, key, payload, result) if error is None
-                   else self._error(rid, *error_code(error)))
+            if error is None:
+                out = self._accepted(cmd, peer, rid, key, payload, result)
+            else:
+                out = self._error(rid, *error_code(error))
+                self._remember(key, payload, out)
             if head is not None:
                 with contextlib.suppress(zmq.ZMQError):  # the client went away
                     self._sock.send_multipart(head + [out], flags=zmq.NOBLOCK)

@@ -154,6 +154,30 @@ def test_retry_with_same_id_does_not_run_twice(node: Node, raw: zmq.Socket) -> N
     assert first["ok"] and second == first  # the cached reply, not "cannot activate"
 
 
+def test_retry_of_a_refused_request_is_refused_again(node: Node, raw: zmq.Socket) -> None:
+    """A held-out client's finding: the retry of a request refused for want of the lease ran
+    once the lease was free, took it and answered ok; the docs promise the first reply."""
+    payload = msgpack.packb({"v": 2, "type": "request", "id": "refused", "cmd": "reset_stats",
+                             "client": "retrier"})
+    with Client(node.endpoints["cmd"], client_id="holder") as holder:
+        holder.call("acquire")
+        first = ask(raw, payload)
+        holder.call("release")
+        second = ask(raw, payload)
+        assert holder.status()["lease"]["holder"] is None
+    assert first["error"]["code"] == "lease_held" and second == first
+
+
+def test_a_refusal_names_the_command_that_was_sent(node: Node) -> None:
+    """set_map while active was refused as "cannot configure while active"."""
+    with Client(node.endpoints["cmd"]) as ctl:
+        ctl.call("activate")
+        with pytest.raises(CommandFailed, match="cannot set_map while active") as refused:
+            ctl.call("set_map", map="bumps")
+        assert refused.value.code == "bad_state"
+        assert ctl.status()["map"] == "peaks"
+
+
 def test_req_sockets_work_too(node: Node) -> None:
     ctx = zmq.Context()
     req = ctx.socket(zmq.REQ)
