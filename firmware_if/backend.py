@@ -118,8 +118,9 @@ class Backend(Protocol):
     def command_step(self, step: StepCommand) -> None:
         """A single finger's shorthand: `command_hand` with one move (dx, dy)."""
 
-    def clear_fault(self) -> None:
-        """Reset a latched fault (torque stays off)."""
+    def clear_fault(self) -> list[str]:
+        """Reset a latched fault (torque stays off). Returns what the reset found and did
+        that the operator should know, in words (a servo with a hardware error rebooted)."""
 
 
 def check_can_step(*, fault: str | None, torque_on: bool, busy: bool) -> None:

@@ -52,6 +52,10 @@ SETUP_ATTEMPTS = 3
 """Tries of a single read or write outside the control cycle before its timeout counts: a
 reply can miss its window on a loaded host or a noisy line (make test under load: a
 configure's read-back failed), and reading or writing a register again is harmless."""
+TORQUE_CHECK_CYCLES = 20
+"""Control cycles between reads of every servo's Torque Enable while torque should be on: a
+servo that restarts (a brown-out) answers as before, with its torque off and its RAM at
+defaults, and only this read tells (a fifth of a second at 100 Hz)."""
 PORT_ERRORS = (OSError, termios.error)
 """What a failing serial port raises (pyserial's SerialException is an OSError)."""
 T = TypeVar("T")
@@ -93,6 +97,8 @@ class DxlBus:
         self.use_fast_read = use_fast_read
         self.stats = BusStats()
         self.fault: str | None = None
+        self.torque_on = False
+        """Torque was last switched on (and no fault has switched it off since)."""
         self._port: PacedPortHandler | None = None
         self._ph = FixedPacketHandler()
 
@@ -264,6 +270,8 @@ class DxlBus:
         writer = GroupSyncWrite(port, self._ph, REG["torque_enable"].address, 1)
         for sid in self.ids:
             writer.addParam(sid, [int(on)])
+        if not on:
+            self.torque_on = False
         try:
             result = self._sdk(f"torque {'on' if on else 'off'}", writer.txPacket)
         except FirmwareError:
@@ -273,6 +281,7 @@ class DxlBus:
         if result != COMM_SUCCESS and not best_effort:
             raise CommunicationError(f"torque {'on' if on else 'off'}: "
                                      f"{self._ph.getTxRxResult(result)}", self.ids)
+        self.torque_on = on
 
     # -- the control cycle -----------------------------------------------------------------
     def cycle(self, goals: dict[int, int] | None = None) -> dict[int, ServoReading]:
@@ -308,6 +317,8 @@ class DxlBus:
                 except CommunicationError:
                     detail.append(f"servo {sid}: alert")
             self._latch("; ".join(detail))
+        if self.torque_on and self.stats.cycles % TORQUE_CHECK_CYCLES == 0:
+            self._check_torque()
         if goals:
             self.write_goals(goals)
         self.stats.cycles += 1
@@ -356,6 +367,31 @@ class DxlBus:
             raise CommunicationError(f"fast sync read: {exc}", self.ids, bytes(rx)) from None
         return {sid: _reading(data, error) for sid, (error, data) in decoded.items()}
 
+    def _check_torque(self) -> None:
+        """Latch a fault if a servo's torque went off by itself (one Sync Read of Torque
+        Enable). A read that fails says nothing: the control cycle's own read counts those."""
+        port = self._require()
+        address, ids = REG["torque_enable"].address, list(self.ids)
+        port.budget_ms = self.cycle_budget_s * 1e3 / 2
+        try:
+            if self._sdk("torque check", self._ph.syncReadTx, port, address, 1, ids, len(ids),
+                         False) != COMM_SUCCESS:
+                return
+            off = []
+            for sid in ids:
+                data, result, _ = self._sdk("torque check", self._ph.readRx, port, sid, 1)
+                if result != COMM_SUCCESS:
+                    return
+                if not data[0]:
+                    off.append(sid)
+        except CommunicationError:
+            return
+        finally:
+            port.budget_ms = SETUP_TIMEOUT_MS
+        if off:
+            self._latch(f"servo {', '.join(map(str, off))} lost torque by itself (it "
+                        "restarted: a brown-out? check its power supply and cable)")
+
     def _silent_servos(self) -> str:
         """Which servos do not answer a ping, as words for a fault (one silent servo spoils
         a sync read of all: the read alone cannot say which). It runs in the tick that
@@ -382,17 +418,23 @@ class DxlBus:
         raise HardwareFault(f"bus on {self.port_name}: {reason}; torque off sent to every "
                             "servo, reset to recover")
 
-    def reset(self) -> None:
+    def reset(self) -> list[str]:
         """Clear a latched fault: reboot servos that report a hardware error (their RAM
-        returns to defaults: the caller configures them again), count afresh."""
+        returns to defaults: the caller configures them again), count afresh. Returns a
+        line for each servo rebooted: its error may be news (one that arose while another
+        fault was latched was reported by nothing else)."""
+        rebooted = []
         for sid in self.ids:
             try:
-                if self.read(sid, "hardware_error_status"):
+                if bits := self.read(sid, "hardware_error_status"):
                     self.reboot(sid)
+                    rebooted.append(f"servo {sid} reported {describe_hardware_error(bits)}: "
+                                    "rebooted it (find out why before you activate)")
             except CommunicationError:
                 pass
         self.fault = None
         self.stats.consecutive_failures = 0
+        return rebooted
 
 
 def _reading(data: bytes, error: int) -> ServoReading:

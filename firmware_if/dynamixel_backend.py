@@ -177,17 +177,19 @@ class DynamixelBackend(HandOfOne):
         self._nominal_xy = None
         self._touch_down()
 
-    def clear_fault(self) -> None:
+    def clear_fault(self) -> list[str]:
         """Recover from any fault: open the port afresh (an unplugged adapter or a restarted
-        emulator at the same path), reboot servos that report a hardware error, and write
-        every setting of `open` to every servo again. If that fails the fault stays."""
+        emulator at the same path), reboot servos that report a hardware error (each named
+        in the lines returned), and write every setting of `open` to every servo again. If
+        that fails the fault stays."""
         self._torque = False
         self._step = None
         self._pending_goals = None
+        rebooted: list[str] = []
         for attempt in range(2):  # once more: a late reply still in flight can spoil one
             try:
                 self.bus.reopen()
-                self.bus.reset()
+                rebooted += self.bus.reset()
                 self._set_up()
                 break
             except FirmwareError as exc:
@@ -200,6 +202,7 @@ class DynamixelBackend(HandOfOne):
                 if attempt == 1 or isinstance(exc, PortLost):
                     raise
         self._fault = None
+        return rebooted
 
     # -- I/O -------------------------------------------------------------------------------
     def read_state(self) -> FingerState:

@@ -27,8 +27,9 @@ class FaultLatch:
         if not on:
             self._cut_step()
 
-    def clear_fault(self) -> None:
+    def clear_fault(self) -> list[str]:
         self._fault = None
+        return []
 
     def inject_fault(self, reason: str) -> None:
         """Latch a fault (tests and fault drills): torque drops, like a real servo."""

@@ -155,7 +155,7 @@ def test_a_fault_latches_torque_off_and_clears(make_rig):
         rig.backend.command_step(StepCommand(STEP, 0.0))
     with pytest.raises(HardwareFault):
         rig.backend.set_torque(True)
-    rig.backend.clear_fault()
+    assert isinstance(rig.backend.clear_fault(), list)  # what the reset did, in words
     state = rig.backend.read_state()
     assert state.fault is None and not state.torque_on
     rig.backend.set_torque(True)

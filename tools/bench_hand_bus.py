@@ -18,6 +18,7 @@ from typing import Any
 
 import numpy as np
 
+from firmware_if.dxl_bus import TORQUE_CHECK_CYCLES
 from firmware_if.dynamixel_hand import DynamixelHand
 from service.episode.hand_episode import HandEpisodeReport, simulate_hand, simulated_hand
 from service.episode.hand_scenario import HandSettings, load_parts
@@ -148,7 +149,8 @@ def run(args: argparse.Namespace) -> int:
     for r in ticks:
         print(f"{r['read']:>15s}: hand {r['hand']} ({r['servos']} servos), {r['ticks']} reads: "
               f"p50 {r['p50_ms']:.3f} ms, p99 {r['p99_ms']:.3f} ms, max {r['max_ms']:.3f} ms, "
-              f"{r['packets_per_tick']:.2f} instruction packets per read, "
+              f"{r['packets_per_tick']:.2f} instruction packets per read (one, and a check "
+              f"of torque every {TORQUE_CHECK_CYCLES}), "
               f"failures {r['failures']}")
     ratio = ticks[1]["p50_ms"] / ticks[0]["p50_ms"]
     print(f"sync read / fast sync read p50 ratio: {ratio:.2f}")

@@ -175,10 +175,13 @@ class CommandHandlers:
         self._not_configuring()
         if self.backend is None:
             raise StateError("no backend: configure first")
-        self.backend.clear_fault()  # raises (a FirmwareError) if it cannot: still faulted
+        # raises (a FirmwareError) if it cannot: still faulted
+        rebooted = self.backend.clear_fault()
+        for line in rebooted:
+            logging.getLogger("hapticd").warning("reset: %s", line)
         self.last_state = None
         self._transition("reset")
-        return {"state": self.lifecycle.state.value}
+        return {"state": self.lifecycle.state.value, "rebooted": rebooted}
 
     def estop(self: Node, reason: str) -> dict[str, Any]:
         if self.lifecycle.state is not State.UNCONFIGURED:

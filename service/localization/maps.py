@@ -52,5 +52,21 @@ def load_map(spec: str, spacing: float | None = None) -> HeightMap:
             delimiter = "," if path.suffix.lower() == ".csv" else None
             heights = np.loadtxt(path, delimiter=delimiter, ndmin=2)
     except (ValueError, OSError, EOFError) as exc:
-        raise MapError(f"map file '{spec}' could not be read: {exc}".splitlines()[0]) from None
+        raise MapError(_unreadable(spec, path.suffix.lower(), exc)) from None
     return HeightMap(heights, spacing, name=path.stem)
+
+
+def _unreadable(spec: str, suffix: str, exc: Exception) -> str:
+    """Why a map file could not be read, and how to write one that can: NumPy's own words
+    would advise loading a pickle (`allow_pickle=`) or `usecols`, neither of which helps."""
+    if suffix == ".npy":
+        return (f"map file '{spec}' is not a NumPy array of numbers (it is not a .npy file, "
+                "or it holds objects, which are never unpickled): write one with "
+                "numpy.save(path, heights), heights a 2-D float array in metres")
+    sep = "commas" if suffix == ".csv" else "spaces"
+    return (f"map file '{spec}' is not a grid of numbers ({_first_clause(exc)}): every row "
+            f"needs the same count of numbers, separated by {sep}, heights in metres")
+
+
+def _first_clause(exc: Exception) -> str:
+    return str(exc).splitlines()[0].split(";")[0].rstrip(". ")

@@ -10,6 +10,7 @@ from pathlib import Path
 import pytest
 
 from firmware_if.backend import StepCommand
+from firmware_if.dxl_bus import TORQUE_CHECK_CYCLES
 from firmware_if.dynamixel_backend import DynamixelBackend, StepSettings
 from firmware_if.errors import FirmwareError, HardwareFault, PortLost
 from firmware_if.hand import Hand, load_hand
@@ -104,10 +105,47 @@ def test_a_hardware_error_reboot_restores_every_ram_register(rig) -> None:
     bus.inject_hardware_error(2, 0x04)  # overheating: torque off, alert bit set
     state = backend.read_state()
     assert state.fault and "servo 2" in state.fault
-    backend.clear_fault()  # reboots servo 2: its RAM returns to defaults, then is rewritten
+    # reboots servo 2: its RAM returns to defaults, then is rewritten
+    assert backend.clear_fault() == ["servo 2 reported overheating error: rebooted it (find "
+                                     "out why before you activate)"]
     assert bus.servos[2].get("hardware_error_status") == 0
     assert ram(bus) == opened
     backend.set_torque(True)  # touches down again
+    assert not execute_step(backend, StepCommand(0.01, 0.0)).blocked
+
+
+def test_a_hardware_error_behind_another_fault_is_named_by_the_reset(rig) -> None:
+    """A held-out fault campaign's finding: servo 2 overloaded while a mute servo's fault
+    was latched; nothing reported it, and the reset rebooted it without a word."""
+    backend, bus, _ = rig
+    backend.set_torque(True)
+    plan = bus.fault(1)
+    plan.mute = True
+    for _ in range(SETTINGS.failure_tolerance):
+        state = backend.read_state()
+    assert state.fault and "servo 1" in state.fault
+    bus.inject_hardware_error(2, 0x20)  # overload, behind the latched fault
+    plan.mute = False
+    assert backend.clear_fault() == ["servo 2 reported overload error: rebooted it (find out "
+                                     "why before you activate)"]
+    assert bus.servos[2].get("hardware_error_status") == 0
+
+
+def test_a_servo_that_restarts_by_itself_faults_the_bus(rig) -> None:
+    """A held-out fault campaign's finding: a servo rebooted by a brown-out answers as before
+    with its torque off, and the finger explored on with a limp joint, every step blocked."""
+    backend, bus, _ = rig
+    opened = ram(bus)
+    backend.set_torque(True)
+    bus.servos[2].reboot()
+    for _ in range(TORQUE_CHECK_CYCLES + 1):
+        state = backend.read_state()
+        if state.fault:
+            break
+    assert state.fault and "servo 2 lost torque" in state.fault and not state.torque_on
+    backend.clear_fault()
+    assert ram(bus) == opened
+    backend.set_torque(True)
     assert not execute_step(backend, StepCommand(0.01, 0.0)).blocked
 
 

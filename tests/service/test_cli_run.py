@@ -96,7 +96,7 @@ def test_bad_input_is_one_line_and_status_2(args, message, capsys):
 
 
 @pytest.mark.parametrize("content, message", [
-    (b"\x93NUMPY garbage", "could not be read"),
+    (b"\x93NUMPY garbage", "is not a NumPy array of numbers"),
     (None, "3 dimensions"),
     ("nan", "non-finite"),
     ("tiny", "at least 2 samples"),

@@ -53,8 +53,9 @@ def _csv(path: Path, scale: float) -> Contour:
     try:
         points = np.loadtxt(path, delimiter=",", comments="#", ndmin=2)
     except (ValueError, OSError) as exc:
-        raise ObjectError(f"object file '{path}' could not be read as x,z rows: "
-                          f"{str(exc).splitlines()[0]}") from None
+        raise ObjectError(f"object file '{path}' could not be read as x,z rows "
+                          f"({str(exc).splitlines()[0].split(';')[0].rstrip('. ')}): each row "
+                          "needs two numbers separated by a comma") from None
     return make_contour(points * scale, path.stem, closed=True)
 
 
