@@ -316,7 +316,8 @@ class DxlBus:
                     detail.append(f"servo {sid}: {describe_hardware_error(bits) or 'alert'}")
                 except CommunicationError:
                     detail.append(f"servo {sid}: alert")
-            self._latch("; ".join(detail))
+            self._latch("; ".join(detail) + " (find out why before you reset: the load, the "
+                        "temperature, the supply voltage)")
         if self.torque_on and self.stats.cycles % TORQUE_CHECK_CYCLES == 0:
             self._check_torque()
         if goals:
@@ -407,7 +408,9 @@ class DxlBus:
         if not silent:
             return ""
         if len(silent) == len(self.ids):
-            return "; no servo answers a ping: check the bus power and the adapter"
+            return ("; no servo answers a ping: check the bus power and the adapter, and that "
+                    "replies are not late (a USB adapter's latency timer, 16 ms by default "
+                    "on FTDI, should be 1 ms: `haptic bus check` tells)")
         return (f"; servo {', '.join(map(str, silent))} does not answer a ping: check its "
                 f"cable and power")
 

@@ -23,6 +23,7 @@ from firmware_if import kinematics as kin
 from firmware_if.backend import FingerState, HandOfOne, StepCommand, check_can_step
 from firmware_if.dxl_bus import DxlBus, ServoReading
 from firmware_if.errors import (
+    BusTimeoutError,
     CommunicationError,
     FirmwareError,
     HandConfigError,
@@ -124,6 +125,12 @@ class DynamixelBackend(HandOfOne):
         self.bus.open()
         try:
             self._set_up()
+        except BusTimeoutError as exc:
+            self.bus.close()
+            raise BusTimeoutError(  # the SDK's words alone ("There is no status packet!")
+                f"{exc}; is every servo of the hand on {self.bus.port_name} at "
+                f"{self.bus.baud} baud? `haptic bus scan --port {self.bus.port_name}` lists "
+                "those that answer: their ids belong in the hand file", exc.servo_ids) from None
         except BaseException:
             self.bus.close()
             raise

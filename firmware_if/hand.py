@@ -289,7 +289,11 @@ def _field(table: dict[str, Any], key: str, where: str) -> Any:
     return table[key]
 
 
-def _finger_from_dict(data: dict[str, Any], name: str, model: str) -> Finger:
+def _finger_from_dict(data: dict[str, Any], name: str, model: str, *, based: bool = False
+                      ) -> Finger:
+    """One finger; `based`: it must say where its base is (one of several fingers: a
+    default base would put two of them on the same spot without a word)."""
+    name = str(data.get("name", name))
     where = f"finger '{name}'"
     joints = []
     for i, entry in enumerate(_list(data.get("joints", []), f"{where}: joints")):
@@ -311,12 +315,13 @@ def _finger_from_dict(data: dict[str, Any], name: str, model: str) -> Finger:
         zero_ticks=_whole(roll.get("zero_ticks", POSITION_CENTRE),
                           f"{where}: tip_roll: zero_ticks"),
         direction=_whole(roll.get("direction", 1), f"{where}: tip_roll: direction"))
-    return Finger(name=str(data.get("name", name)), joints=tuple(joints),
+    base = _field(data, "base", where) if based else data.get("base", (0.0, 0.0, 0.0))
+    return Finger(name=name, joints=tuple(joints),
                   tip=_field(data, "tip", where),
                   radius=_number(_field(data, "radius", where), f"{where}: radius"),
                   home=tuple(_number(q, f"{where}: home")
                              for q in _list(_field(data, "home", where), f"{where}: home")),
-                  tip_roll=tip_roll, base=tuple(data.get("base", (0.0, 0.0, 0.0))))
+                  tip_roll=tip_roll, base=tuple(base))
 
 
 def hand_from_dict(data: dict[str, Any], name: str = "hand") -> Hand:
@@ -334,10 +339,11 @@ def hand_from_dict(data: dict[str, Any], name: str = "hand") -> Hand:
                 raise HandConfigError(f"hand '{hand_name}': give [[fingers]] or top-level "
                                       "[[joints]], not both")
             _known(data, HAND_KEYS, where)
+            listed = _list(data["fingers"], f"{where}: fingers")
             fingers = tuple(_finger_from_dict(
                 _known(_table(f, f"{where}: fingers[{i}]"), FINGER_KEYS,
-                       f"{where}: fingers[{i}]"), f"finger{i}", model)
-                for i, f in enumerate(_list(data["fingers"], f"{where}: fingers")))
+                       f"{where}: fingers[{i}]"), f"finger{i}", model, based=len(listed) > 1)
+                for i, f in enumerate(listed))
         else:  # one finger, its fields at the top level
             _known(data, tuple(dict.fromkeys(HAND_KEYS + FINGER_KEYS)), where)
             if "tip" not in data and "joints" not in data:

@@ -104,7 +104,8 @@ def test_a_hardware_error_reboot_restores_every_ram_register(rig) -> None:
     backend.set_torque(True)
     bus.inject_hardware_error(2, 0x04)  # overheating: torque off, alert bit set
     state = backend.read_state()
-    assert state.fault and "servo 2" in state.fault
+    assert state.fault and "servo 2" in state.fault and "find out why before you reset" in \
+        state.fault
     # reboots servo 2: its RAM returns to defaults, then is rewritten
     assert backend.clear_fault() == ["servo 2 reported overheating error: rebooted it (find "
                                      "out why before you activate)"]
@@ -112,6 +113,20 @@ def test_a_hardware_error_reboot_restores_every_ram_register(rig) -> None:
     assert ram(bus) == opened
     backend.set_torque(True)  # touches down again
     assert not execute_step(backend, StepCommand(0.01, 0.0)).blocked
+
+
+def test_a_servo_id_the_bus_does_not_have_says_what_to_do(tmp_path: Path) -> None:
+    """A fault campaign's finding: a wrong id gave only the SDK's "There is no status
+    packet!"."""
+    link = tmp_path / "ttyDXL"
+    bus = emulator(load_hand("planar"), link=link)  # servos 1 and 2; the spatial hand has 1-4
+    try:
+        backend = DynamixelBackend(HAND, str(link), SETTINGS)
+        with pytest.raises(FirmwareError, match=r"servo 3.*haptic bus scan --port .*ids belong "
+                           "in the hand file"):
+            backend.open()
+    finally:
+        bus.stop()
 
 
 def test_a_hardware_error_behind_another_fault_is_named_by_the_reset(rig) -> None:

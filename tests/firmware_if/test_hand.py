@@ -94,7 +94,9 @@ def two_finger_dict() -> dict:
     (lambda d: d["fingers"][0]["joints"][0].update(axis=[0, 0, 1]),
      "every joint axis must be \\[0, 1, 0\\]"),
     (lambda d: d["fingers"][0].update(base=[0, 0]), "base must be \\[x, z, angle\\]"),
-    (lambda d: d["fingers"][1].pop("radius"), "missing field 'radius'"),
+    (lambda d: d["fingers"][1].pop("radius"), "finger 'right': missing field 'radius'"),
+    # a fault campaign's finding: without it the finger sat at the hand's origin, silently
+    (lambda d: d["fingers"][1].pop("base"), "finger 'right': missing field 'base'"),
     (lambda d: d["fingers"][1].update(goal_current_a=0.1), "fingers\\[1\\]: unknown field "
      "'goal_current_a'"),  # a hand's setting, not a finger's
     (lambda d: d.update(grasp_centre=[0, "a"]), "grasp_centre"),
