@@ -102,10 +102,13 @@ class CommandHandlers:
         self.link.send("commit")
         new = rc.new
         episode = 1 if self.explorer is None else self.explorer.episode + 1
-        if self.explorer is not None:
-            self._episode_cut(self.explorer.stop("reconfigured"))
+        previous = self.explorer
+        if previous is not None:
+            self._episode_cut(previous.stop("reconfigured"))
         self.explorer = Explorer(self.link, new.run_settings(), first_episode=episode,
                                  truth_at=self.truth_at, hidden=self.hidden)
+        if previous is not None:
+            self.explorer.keep_estimate(previous)
         self.episode_truth = None
         self.config = new
         self.map_warnings = rc.warnings

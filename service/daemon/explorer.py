@@ -146,10 +146,17 @@ class Explorer:
     def cloud(self) -> Cloud | None:
         return self._cloud
 
+    def keep_estimate(self, previous: Explorer) -> None:
+        """Show `previous`'s last estimate (under its episode id) until an episode begins
+        here: a configure, a recovery onto a new port say, loses nothing it already had."""
+        if previous.estimate is not None and previous.episode == self.episode:
+            self.estimate, self._topic = previous.estimate, dict(previous._topic)
+
     def _begin(self, state: HandState, truth: list[float] | None) -> None:
         self.episode += 1
         self.steps = 0
         self.truth = truth
+        self.estimate = None  # the last episode's is not this one's
         self._topic = {}
         self._cloud = None
         self._next = None

@@ -91,11 +91,14 @@ def test_reset_with_no_bus_keeps_the_fault_and_configure_moves_to_a_new_port(rig
     with pytest.raises(Exception) as err:
         ctl.call("reset")  # nothing at the port: refused, still faulted
     assert err.value.code == "hardware" and "cannot open" in str(err.value)
-    assert ctl.status()["state"] == "fault"
+    faulted = ctl.status()
+    assert faulted["state"] == "fault" and faulted["estimate"] is not None
     buses.append(emulator())  # somewhere else: /dev/pts/N
     result = ctl.call("configure", changes={"backend": {"options": options(buses[-1].port)}})
     assert result["state"] == "inactive"
     assert ctl.call("get_config")["backend"]["options"]["port"] == buses[-1].port
+    # a fault campaign's finding: the recovery had dropped the estimate
+    assert ctl.status()["estimate"] == faulted["estimate"]
     explore_until_moving(sub, ctl)
 
 
