@@ -30,6 +30,8 @@ def thin(weights: np.ndarray, count: int, rng: np.random.Generator) -> np.ndarra
     n = len(weights)
     if count >= n:
         return np.arange(n)
+    if count <= 0:  # the solve below has no j < count: it would keep nearly every member
+        return np.empty(0, dtype=np.int64)
     w = np.maximum(weights, 0.0) + 1e-300
     # c solves sum(min(1, c w)) = count: the j heaviest are kept surely, the rest share
     # count - j in proportion to weight; the right j is the first where that is consistent.
