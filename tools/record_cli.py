@@ -261,7 +261,7 @@ def _outcome(ep: dict[str, Any], done: dict[str, Any]) -> dict[str, Any]:
 CSV_COLUMNS = ("episode", "index", "move", "command_x_m", "command_y_m", "dx_m", "dy_m",
                "dz_m", "blocked", "candidates", "estimate_x_m", "estimate_y_m",
                "estimate_heading_rad", "position_sd_m", "heading_sd_rad", "mode_mass",
-               "compute_ms", "policy_ms", "background_ms")
+               "compute_ms", "policy_ms", "background_ms", "settle_ms")
 
 
 def write_csv(f: Any, episodes: dict[int, dict[str, Any]]) -> None:
@@ -273,4 +273,4 @@ def write_csv(f: Any, episodes: dict[int, dict[str, Any]]) -> None:
             out.writerow([eid, s["index"], s["move"], *s["command"], *s["measurement"],
                           s["blocked"], s["candidates"], *est, s.get("position_sd"),
                           s.get("heading_sd"), s.get("mode_mass"), s["compute_ms"],
-                          s["policy_ms"], s.get("background_ms")])
+                          s["policy_ms"], s.get("background_ms"), s.get("settle_ms")])

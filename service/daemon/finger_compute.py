@@ -146,6 +146,8 @@ class FingerEpisode:
         self.background_ms = 0.0
         """The localizer's background work while the previous move was under way (reported
         with the step that move ends in)."""
+        self.settle_ms = 0.0
+        """The background finished after the last reading, before the next move (`settle`)."""
 
     def start(self, body: dict[str, Any]) -> dict[str, Any]:
         """The first contact: the belief, and the first move."""
@@ -156,7 +158,7 @@ class FingerEpisode:
         t0 = time.monotonic_ns()
         self.localizer.start(Measurement(step=0, displacement=np.zeros(3),
                                          t_ns=int(reading["t_ns"])))
-        return self._belief(0, t0)
+        return self._belief(0, (time.monotonic_ns() - t0) / 1e6)
 
     def update(self, body: dict[str, Any], interrupted: Callable[[], bool]
                ) -> dict[str, Any] | None:
@@ -184,7 +186,14 @@ class FingerEpisode:
         while not self.localizer.work(Budget.seconds(SLICE_S)):
             if interrupted():
                 return None
-        return self._belief(step, t0)
+        update_ms = (time.monotonic_ns() - t0) / 1e6
+        self.settle_ms = 0.0
+        if self.localizer.estimate().pending:  # as `settle`: before the move it would cost
+            t1 = time.monotonic_ns()
+            if not self._finish_background(interrupted, count=False):
+                return None
+            self.settle_ms = (time.monotonic_ns() - t1) / 1e6
+        return self._belief(step, update_ms)
 
     def between_steps(self, interrupted: Callable[[], bool]) -> None:
         """While the move just chosen is under way: the localizer's background share
@@ -192,8 +201,9 @@ class FingerEpisode:
         finishes it first, so the outcome is `run_episode`'s however long the move takes."""
         self._finish_background(interrupted)
 
-    def _finish_background(self, interrupted: Callable[[], bool]) -> bool:
-        """Run the background share to its end; False if a request cut it short."""
+    def _finish_background(self, interrupted: Callable[[], bool], count: bool = True) -> bool:
+        """Run the background share to its end; False if a request cut it short. `count`:
+        its time is the move's `background_ms` (not a settle's)."""
         from service.localization.localizers.base import Budget
 
         t0 = time.monotonic_ns()
@@ -203,16 +213,16 @@ class FingerEpisode:
                     return False
             return True
         finally:
-            self.background_ms += (time.monotonic_ns() - t0) / 1e6
+            if count:
+                self.background_ms += (time.monotonic_ns() - t0) / 1e6
 
-    def _belief(self, step: int, t0: int) -> dict[str, Any]:
+    def _belief(self, step: int, update_ms: float) -> dict[str, Any]:
         """The estimate, a cloud of the same moment, what happened (the step, the end) and,
         if the episode goes on, the policy's next move."""
         from service.localization.policies.base import MOVES, PolicyInput
 
         sc = self.sc
         est = self.localizer.estimate()
-        update_ms = (time.monotonic_ns() - t0) / 1e6
         hyp = self.localizer.hypotheses(limit=self.cloud_points)
         fields = estimate_fields(est)
         events: list[tuple[str, dict[str, Any]]] = []
@@ -224,7 +234,8 @@ class FingerEpisode:
                 "measurement": [float(v) for v in self.displacement],
                 "blocked": self.blocked, "candidates": fields["candidates"],
                 "compute_ms": update_ms, "policy_ms": self.policy_ms,
-                "background_ms": self.background_ms, "estimate": fields["pose"],
+                "background_ms": self.background_ms, "settle_ms": self.settle_ms,
+                "estimate": fields["pose"],
                 **{k: fields[k] for k in ("position_sd", "heading_sd", "mode_mass")}}))
             self.background_ms = 0.0
         reason = ("converged" if est.converged else "eliminated" if est.candidates == 0

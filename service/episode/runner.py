@@ -15,6 +15,7 @@ from service.localization.localizers.base import (
     Localizer,
     Measurement,
     background,
+    settle,
     update,
 )
 from service.localization.policies.base import MOVES, Policy, PolicyInput
@@ -36,6 +37,9 @@ class StepRecord:
     background_ms: float = 0.0
     """The localizer's work between updates (`Localizer.background`) while this step's move
     was under way: it delays neither the move nor the update."""
+    settle_ms: float = 0.0
+    """The background finished after this step's reading, before the next move, because
+    the declaration waited only on it (`settle`): it delays that move, never the update."""
     position_sd: float = float("nan")
     """Spread of the hypotheses after this step (m, rad) and the leading mode's probability,
     as the localizer's Estimate gives them (NaN where it has none)."""
@@ -110,13 +114,17 @@ def run_episode(backend: Backend, localizer: Localizer, policy: Policy, *,
                                       blocked=state.blocked, t_ns=state.t_ns,
                                       command=(float(command[0]), float(command[1]))))
         compute_ms = (time.perf_counter() - t0) * 1e3
-        estimate = localizer.estimate()
+        estimate, settle_ms = localizer.estimate(), 0.0
+        if estimate.pending:  # the background a declaration waits on, before another move
+            t0 = time.perf_counter()
+            estimate = settle(localizer, estimate)
+            settle_ms = (time.perf_counter() - t0) * 1e3
         record = StepRecord(index=index, move=move,
                             command=(float(command[0]), float(command[1])),
                             measurement=tuple(float(v) for v in displacement),
                             blocked=state.blocked, candidates=estimate.candidates,
                             compute_ms=compute_ms, policy_ms=policy_ms, estimate=estimate.pose,
-                            background_ms=background_ms,
+                            background_ms=background_ms, settle_ms=settle_ms,
                             position_sd=estimate.position_sd, heading_sd=estimate.heading_sd,
                             mode_mass=estimate.mode_mass)
         result.steps.append(record)

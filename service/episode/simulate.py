@@ -69,7 +69,7 @@ def _step_json(s: StepRecord) -> dict[str, Any]:
     return {"index": s.index, "move": s.move, "command": list(s.command),
             "measurement": list(s.measurement), "blocked": s.blocked,
             "candidates": s.candidates, "compute_ms": s.compute_ms, "policy_ms": s.policy_ms,
-            "background_ms": s.background_ms,
+            "background_ms": s.background_ms, "settle_ms": s.settle_ms,
             "estimate": None if s.estimate is None else list(s.estimate),
             "position_sd": _num(s.position_sd), "heading_sd": _num(s.heading_sd),
             "mode_mass": _num(s.mode_mass)}

@@ -19,6 +19,7 @@ def strip_timings(episode: dict) -> dict:
         step.pop("compute_ms")
         step.pop("policy_ms")
         step.pop("background_ms")
+        step.pop("settle_ms")
     return episode
 
 

@@ -64,7 +64,7 @@ def test_every_cloud_is_one_moment_even_mid_update() -> None:
 
 
 def strip_timings(steps: list[dict]) -> list[dict]:
-    untimed = ("compute_ms", "policy_ms", "background_ms", "episode", "event")
+    untimed = ("compute_ms", "policy_ms", "background_ms", "settle_ms", "episode", "event")
     return [{k: v for k, v in s.items() if k not in untimed} for s in steps]
 
 

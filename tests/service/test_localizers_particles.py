@@ -224,3 +224,33 @@ def test_the_certificate_alone_holds_back_a_turn_the_turned_checks_exist_for(mon
     monkeypatch.setattr(checks, "_deep_step", skipped)
     report = simulate(RunSettings(map="plate:20:41", noise=True, seed=18, max_steps=60))
     assert not report.score.wrong_declaration
+
+
+def test_a_declaration_that_waits_only_on_the_background_costs_no_move(monkeypatch):
+    """The judge holds at the reading where a new leader takes the whole mass, before the
+    turned check of its heading has run (B1: 20 of 25 episodes waited a move for it). The
+    background, run then instead of during another move, declares it at that reading."""
+    from service.episode import runner
+
+    seen = []
+
+    def settle(localizer, estimate):
+        after = runner_settle(localizer, estimate)
+        seen.append((estimate.pending, estimate.converged, after.converged))
+        return after
+
+    runner_settle = runner.settle
+    monkeypatch.setattr(runner, "settle", settle)
+    declared_at_a_settle = 0
+    for seed in range(8):
+        seen.clear()
+        report = simulate(RunSettings(map="peaks", seed=seed, max_steps=30))
+        assert report.score.success
+        # a settle is asked for only while the update's verdict waits on the background
+        assert all(pending and not converged for pending, converged, _ in seen)
+        last = report.result.steps[-1]
+        if seen and seen[-1][2]:  # declared at a settle: at the last step, which says so
+            declared_at_a_settle += 1
+            assert last.settle_ms > 0 and len(seen) == sum(s.settle_ms > 0
+                                                           for s in report.result.steps)
+    assert declared_at_a_settle >= 4

@@ -7,7 +7,7 @@ import pytest
 from tools import executor
 from tools.cli import main
 
-TIMINGS = ("compute_ms", "policy_ms", "background_ms")
+TIMINGS = ("compute_ms", "policy_ms", "background_ms", "settle_ms")
 
 
 def without_timings(bench: dict) -> dict:

@@ -18,7 +18,7 @@ from service.wire import envelope as wire
 from tools.cli import main
 
 ROOT = Path(__file__).resolve().parents[2]
-TIMINGS = ("compute_ms", "policy_ms", "background_ms")
+TIMINGS = ("compute_ms", "policy_ms", "background_ms", "settle_ms")
 
 
 def without_timings(episode: dict) -> dict:

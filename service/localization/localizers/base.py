@@ -96,6 +96,9 @@ class Estimate:
     information: np.ndarray | None = field(default=None, repr=False, compare=False)
     """(3, 3) what the readings tell about (x0, y0, heading) at `pose`, where the
     localizer has fitted it (`refine.Fit.information`): which way the pose is still loose."""
+    pending: bool = False
+    """Only the background's checks stand between `pose` and a declaration: run
+    `background` before the next move, and the estimate may then be converged (`settle`)."""
 
 
 @dataclass(frozen=True)
@@ -135,7 +138,8 @@ class Localizer(Protocol):
 
     def background(self, budget: Budget) -> bool:
         """This step's share of the work between updates, within `budget`; True once it is
-        done (or there is none)."""
+        done (or there is none). Done while the estimate is `pending`, it judges the
+        declaration again."""
 
     def estimate(self) -> Estimate:
         """The current belief."""
@@ -155,6 +159,15 @@ def background(localizer: Localizer) -> None:
     """Run this step's background share to the end."""
     while not localizer.background(Budget.unlimited()):
         pass
+
+
+def settle(localizer: Localizer, estimate: Estimate) -> Estimate:
+    """The estimate once the background is done, if the declaration waited only on it
+    (`Estimate.pending`): checks that cost a move's worth of waiting cost no move."""
+    if not estimate.pending:
+        return estimate
+    background(localizer)
+    return localizer.estimate()
 
 
 def wrap_angle(a: np.ndarray | float) -> np.ndarray:

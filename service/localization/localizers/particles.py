@@ -139,6 +139,9 @@ class Particles:
         self.runner_up: tuple[float, float, float] | None = None
         self.runner_up_mass = 0.0
         self.converged = False
+        self.pending = False
+        """The judge would declare the fit, the sweep or the declaration's checks have yet
+        to allow it (`Estimate.pending`): the background judges it again when done."""
         self.tracks = ModeTracks()
         self.motions = symmetries(ctx.surface)
         self.sweep = Sweep(ctx.surface, step, self.sigma, self.margin, sweep or SweepSettings())
@@ -205,6 +208,10 @@ class Particles:
         yield from self._checks.between_steps(np.asarray(self.fit.pose), self.history,
                                               self._reading_weights, self.mode_mass,
                                               self.noisy, self._add)
+        if self.pending:  # the judge would declare: the checks just made may now allow it
+            self.pending = False
+            self.converged = self.sweep.checked and self._checks.clear(
+                np.asarray(self.fit.pose), self.history, self._add)
 
     def _update(self, job: AnytimeJob, m: Measurement) -> Iterator[int]:
         self.history = np.vstack([self.history, reading_row(m, self.ctx.walls)])
@@ -415,7 +422,7 @@ class Particles:
         mode's probability is its share among them.
         """
         previous = self.fit
-        self.fit, self.converged = None, False
+        self.fit, self.converged, self.pending = None, False, False
         self.mode_mass, self.runner_up, self.runner_up_mass = 0.0, None, 0.0
         if len(self.poses) == 0:
             return
@@ -455,6 +462,7 @@ class Particles:
             self._add(np.vstack([self.tracks.centres[:self.rivals], [v.fit.pose]]))
             self.converged = self.converged and self._checks.clear(
                 np.asarray(v.fit.pose), self.history, self._add)
+        self.pending = v.converged and not self.converged
 
     # -- helpers ---------------------------------------------------------------------------
     def _random(self, count: int) -> np.ndarray:
@@ -485,7 +493,8 @@ class Particles:
         return Estimate(pose=pose, candidates=len(self.poses), converged=self.converged,
                         position_sd=pos_sd, heading_sd=head_sd, mode_mass=self.mode_mass,
                         runner_up=self.runner_up, runner_up_mass=self.runner_up_mass,
-                        information=None if self.fit is None else self.fit.information)
+                        information=None if self.fit is None else self.fit.information,
+                        pending=self.pending)
 
     def retains(self, pose: tuple[float, float, float], position_tol: float,
                 heading_tol: float) -> bool | None:
