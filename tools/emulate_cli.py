@@ -12,8 +12,10 @@ from __future__ import annotations
 
 import argparse
 import os
+import sys
 import threading
 from collections.abc import Callable
+from typing import TextIO
 
 import numpy as np
 
@@ -22,6 +24,7 @@ from service.episode.scenario import RunSettings, Truth, draw_truth, episode_str
 from service.errors import ConfigError
 from service.localization.surface import HeightMap
 from sim_backend.emulator import ServoBus
+from sim_backend.emulator.drills import DrillError, drill
 from sim_backend.emulator.hand_plant import HandPlant
 from sim_backend.emulator.plant import FingerPlant, hand_bus_servos
 from tools.hand_cli import add_object_world_options, hand_settings
@@ -92,7 +95,7 @@ def _bus(args: argparse.Namespace, servos, plant) -> ServoBus:
 
 
 def run(args: argparse.Namespace, *, ready: Callable[[str], None] | None = None,
-        stop: threading.Event | None = None) -> int:
+        stop: threading.Event | None = None, drills: TextIO | None = None) -> int:
     bus, truth = start_emulator(args)
     stop = stop or threading.Event()
     try:
@@ -101,7 +104,9 @@ def run(args: argparse.Namespace, *, ready: Callable[[str], None] | None = None,
                  if getattr(args, "object", None) is not None else
                  f"at hidden start x={truth.x:.4f} m, y={truth.y:.4f} m")
         print(f"emulating hand '{args.hand}' (ids {sorted(bus.servos)}) {where}, "
-              f"heading={np.degrees(truth.heading):.1f} deg; Ctrl-C to stop", flush=True)
+              f"heading={np.degrees(truth.heading):.1f} deg; Ctrl-C to stop; fault drills on "
+              "standard input ('help' lists them)", flush=True)
+        threading.Thread(target=_drills, args=(bus, drills or sys.stdin), daemon=True).start()
         if ready:
             ready(bus.port)
         while not stop.wait(0.5) and not interrupted():
@@ -112,3 +117,17 @@ def run(args: argparse.Namespace, *, ready: Callable[[str], None] | None = None,
         bus.stop()
         print(f"served {bus.stats['rx_packets']} packets", flush=True)
     return 0
+
+
+def _drills(bus: ServoBus, lines: TextIO) -> None:
+    """Fault drills typed or piped in (`sim_backend.emulator.drills`), one answer a line,
+    until the input ends (a closed or absent standard input ends nothing else)."""
+    try:
+        for line in lines:
+            if line.strip():
+                try:
+                    print(drill(bus, line), flush=True)
+                except DrillError as exc:
+                    print(f"drill refused: {exc}", flush=True)
+    except (OSError, ValueError):  # no usable standard input: serve on without drills
+        return

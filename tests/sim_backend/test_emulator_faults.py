@@ -2,10 +2,13 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import pytest
 
 from firmware_if import packets as pk
 from sim_backend.emulator import EmulatedServo, ServoBus
+from sim_backend.emulator.drills import DrillError, drill
 from sim_backend.emulator.rawport import RawPort
 
 PING = pk.packet(1, pk.INST_PING)
@@ -66,3 +69,44 @@ def test_hardware_error_sets_the_alert_bit_and_drops_torque(rig):
     torque_on = pk.packet(1, pk.INST_WRITE, bytes([64, 0, 1]))
     assert pk.parse(port.exchange(torque_on, 11)).params == bytes([0x81])  # result fail
     assert not bus.servos[1].torque_on
+
+
+def _snapshot(bus: ServoBus) -> tuple:
+    faults = {sid: dataclasses.astuple(plan) for sid, plan in bus.faults.items()}
+    registers = {sid: (s.get("torque_enable"), s.get("hardware_error_status"))
+                 for sid, s in bus.servos.items()}
+    return faults, registers
+
+
+@pytest.mark.parametrize("line, message", [
+    ("unplug 1", "unknown drill 'unplug'"),
+    ("mute", "'mute' takes 1 value"),
+    ("mute 7", "no servo 7 on this bus"),
+    ("mute one", "whole number"),
+    ("drop 1 -2", "count of replies >= 0"),
+    ("late 1 soon", "seconds in 0..10"),
+    ("error 1 overload,fire", "unknown hardware error 'fire'"),
+])
+def test_a_bad_drill_says_why_and_changes_nothing(rig, line, message):
+    bus, _ = rig
+    before = _snapshot(bus)
+    with pytest.raises(DrillError, match=message):
+        drill(bus, line)
+    assert _snapshot(bus) == before
+
+
+def test_drills_make_the_faults_they_name(rig):
+    bus, port = rig
+    bus.servos[2].set("torque_enable", 1)
+    assert drill(bus, "mute 1") == "ok: mute 1"
+    assert port.exchange(PING, 14, timeout=0.05) == b""
+    drill(bus, "unmute 1")
+    assert pk.parse(port.exchange(PING, 14)).id == 1
+    drill(bus, "error 2 overload,overheating")
+    assert bus.servos[2].get("hardware_error_status") == (1 << 5) | (1 << 2)
+    assert bus.servos[2].get("torque_enable") == 0  # both are shutdown errors by default
+    drill(bus, "reboot 2")
+    assert bus.servos[2].get("hardware_error_status") == 0
+    drill(bus, "late 1 0.2")
+    drill(bus, "clear 1")
+    assert 1 not in bus.faults and "reboot ID" in drill(bus, "help")

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import threading
 
 import pytest
@@ -106,3 +107,45 @@ def test_bench_bus_measures_and_writes_json(tmp_path, capsys):
     assert bench_bus.run(parser.parse_args(["--cycles", "30", "--json", str(out)])) == 0
     data = json.loads(out.read_text())
     assert [r["read"] for r in data["results"]] == ["fast sync read", "sync read"]
+
+
+def test_a_drill_typed_into_emulate_faults_the_backend(capsys):
+    """`haptic emulate` reads fault drills on its standard input: a reboot typed there is a
+    brown-out the backend must notice (a fault campaign had to wrap the emulator for it)."""
+    from firmware_if.dynamixel_backend import DynamixelBackend, StepSettings
+    from firmware_if.hand import load_hand
+
+    args = cli.build_parser().parse_args(["emulate", "--hand", "spatial", "--seed", "3"])
+    read_end, write_end = os.pipe()
+    ready, stop = threading.Event(), threading.Event()
+    box: dict[str, str] = {}
+
+    def on_ready(port: str) -> None:
+        box["port"] = port
+        ready.set()
+
+    with os.fdopen(read_end) as drills, os.fdopen(write_end, "w") as typed:
+        thread = threading.Thread(target=emulate_cli.run, args=(args,), kwargs={
+            "ready": on_ready, "stop": stop, "drills": drills})
+        thread.start()
+        try:
+            assert ready.wait(10)
+            backend = DynamixelBackend(load_hand("spatial"), box["port"],
+                                       StepSettings(cycle_budget_s=0.1))
+            backend.open()
+            try:
+                backend.set_torque(True)
+                typed.write("reboot 9\nreboot 2\n")
+                typed.flush()
+                for _ in range(200):
+                    state = backend.read_state()
+                    if state.fault:
+                        break
+                assert state.fault and "servo 2 lost torque" in state.fault
+            finally:
+                backend.close()
+        finally:
+            stop.set()
+            thread.join(10)
+    out = capsys.readouterr().out
+    assert "drill refused: no servo 9 on this bus" in out and "ok: reboot 2" in out
