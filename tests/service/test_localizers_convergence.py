@@ -458,3 +458,15 @@ def _held_out_episode(request: pytest.FixtureRequest, surface: str, seed: int):
     path = request.getfixturevalue(surface)
     return simulate(RunSettings(map=str(path), spacing=0.001, noise=True, seed=seed,
                                 max_steps=60))
+
+
+@pytest.mark.xfail(strict=False, reason="the readings' own best fit is 3.7 mm off the truth "
+                   "(refined from the truth it goes there; the spread claimed 0.73 mm): the "
+                   "mismatch on a 12 mm knurl displaces the fit more than the spread allows; "
+                   "not strict, as another CPU's arithmetic takes another path")
+def test_no_near_miss_on_the_fine_knurl_seed_59(request):
+    """The tests' held-out knurl_12 (`haptic bench realistic --map F --spacing 0.001
+    --runs 100`), seed 59: declared 3.7 mm and 2.7 degrees off at step 25 once the pool
+    kept room beside its modes' leaders (on main it took another path, and was right at
+    step 37)."""
+    assert not _held_out_episode(request, "knurl12_map", 59).score.wrong_declaration
