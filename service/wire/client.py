@@ -208,8 +208,9 @@ class Client:
         if timeout_s is None and cmd in SLOW_COMMANDS:
             timeout = max(timeout, self.slow_timeout_s)
         for _attempt in range(self.retries + 1):
-            self._sock.send(payload)
             deadline = time.monotonic() + timeout
+            if not self._send(payload, timeout):
+                continue  # no connection took it in time: a refused handshake, no daemon
             while (left := deadline - time.monotonic()) > 0:
                 if not self._sock.poll(max(1, int(left * 1000))):
                     break
@@ -223,6 +224,17 @@ class Client:
         self._sock = self._connect()
         raise CommandTimeout(f"no reply to '{cmd}' from {self.endpoint} after "
                              f"{self.retries + 1} tries of {timeout:g} s")
+
+    def _send(self, payload: bytes, timeout: float) -> bool:
+        """Send within `timeout`. A DEALER with no connection blocks on send, for ever: a
+        CURVE handshake the daemon refused left `call` hanging past its own timeout."""
+        if not self._sock.poll(max(1, int(timeout * 1000)), zmq.POLLOUT):
+            return False
+        try:
+            self._sock.send(payload, zmq.NOBLOCK)
+        except zmq.Again:
+            return False
+        return True
 
     def call(self, cmd: str, timeout_s: float | None = None, **args: Any) -> dict[str, Any]:
         """The result of a command, or CommandFailed / CommandTimeout."""

@@ -68,3 +68,30 @@ def test_a_timeout_given_by_the_call_wins(slow_daemon: str) -> None:
     with (Client(slow_daemon, timeout_s=FAST_TIMEOUT_S, retries=0, slow_timeout_s=30) as c,
           pytest.raises(CommandTimeout, match="'configure'")):
         c.call("configure", timeout_s=FAST_TIMEOUT_S, changes={})
+
+
+def test_a_call_with_no_connection_to_send_on_times_out_instead_of_hanging() -> None:
+    """A DEALER with no connection blocks on send: `make test` once hung for ever in the
+    CURVE test, the daemon having refused the stranger's handshake before its first call.
+    Here nothing listens and ZMQ_IMMEDIATE keeps a pipe from existing until one does."""
+    ctx = zmq.Context()
+    probe = ctx.socket(zmq.ROUTER)
+    port = probe.bind_to_random_port("tcp://127.0.0.1")
+    probe.close(linger=0)  # a port nothing listens on now
+    client = Client(f"tcp://127.0.0.1:{port}", ctx=ctx, timeout_s=FAST_TIMEOUT_S, retries=1,
+                    socket_options={zmq.IMMEDIATE: 1})
+    outcome: list[BaseException] = []
+
+    def call() -> None:
+        try:
+            client.call("ping")
+        except BaseException as exc:  # noqa: BLE001 - the outcome is what is asserted
+            outcome.append(exc)
+
+    caller = threading.Thread(target=call, daemon=True)
+    caller.start()
+    caller.join(20 * FAST_TIMEOUT_S)
+    assert not caller.is_alive(), "the call hung past its timeout"  # (its socket stays open)
+    assert len(outcome) == 1 and isinstance(outcome[0], CommandTimeout)
+    client.close()
+    ctx.term()
