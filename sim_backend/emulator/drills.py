@@ -76,23 +76,21 @@ def _servo(bus: ServoBus, text: str) -> int:
 
 
 def _count(text: str, verb: str) -> int:
-    try:
-        count = int(text)
-    except ValueError:
-        count = -1
-    if count < 0:
-        raise DrillError(f"'{verb}' needs a count of replies >= 0, got '{text}'")
-    return count
+    return int(_number(text, verb, int, 0, 1_000_000, "a count of replies >= 0"))
 
 
 def _seconds(text: str, verb: str) -> float:
+    return _number(text, verb, float, 0.0, 10.0, "seconds in 0..10")
+
+
+def _number(text: str, verb: str, kind: type, lo: float, hi: float, what: str) -> float:
     try:
-        seconds = float(text)
+        value = kind(text)
     except ValueError:
-        seconds = -1.0
-    if not 0.0 <= seconds <= 10.0:
-        raise DrillError(f"'late' needs seconds in 0..10, got '{text}'")
-    return seconds
+        value = None
+    if value is None or not lo <= value <= hi:
+        raise DrillError(f"'{verb}' needs {what}, got '{text}'")
+    return value
 
 
 def _error_bits(text: str, verb: str) -> int:
