@@ -470,3 +470,15 @@ def test_no_near_miss_on_the_fine_knurl_seed_59(request):
     kept room beside its modes' leaders (on main it took another path, and was right at
     step 37)."""
     assert not _held_out_episode(request, "knurl12_map", 59).score.wrong_declaration
+
+
+@pytest.mark.xfail(strict=False, reason="the readings' own best fit is 3.3 mm off the truth "
+                   "(refined from the truth it goes there; the refined spread 0.53 mm): a "
+                   "smooth shell's mismatch displaces the fit more than the spread allows; not "
+                   "strict, as another CPU's arithmetic takes another path")
+def test_no_near_miss_on_shell_42_seed_14():
+    """`haptic bench objects --map-seeds 40,41,42,43`: shell:20:42 seed 14 was declared
+    3.3 mm and 0.5 degrees off at step 27 once the pool kept room beside its modes' leaders
+    (on main it ended "not yet" at step 60, 0.1 mm from the truth)."""
+    report = simulate(RunSettings(map="shell:20:42", noise=True, seed=14, max_steps=60))
+    assert not report.score.wrong_declaration
