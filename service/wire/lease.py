@@ -105,8 +105,13 @@ class Lease:
         return None
 
     def remaining_s(self) -> float:
+        """Seconds before the lease runs out if its holder says nothing; the whole ttl while
+        a request of the holder is at work (a configure), which it cannot run out during
+        (a helper's client read 0 there and took the lease for lost)."""
         if self.holder is None:
             return 0.0
+        if self.busy and not self.gone:
+            return self.ttl_ns / 1e9
         return max(0.0, (self.expires_ns - self._clock()) / 1e9)
 
     def snapshot(self) -> tuple[Peer | None, int, bool]:

@@ -14,6 +14,7 @@ import zmq
 from service.daemon.config import SecurityConfig
 from service.daemon.harness import loopback_config, running_node
 from service.wire.client import Client, CommandFailed, CommandTimeout, Controller, Subscriber
+from service.wire.lease import Lease, Peer
 from service.wire.security import client_curve_options, generate_keys
 
 
@@ -22,6 +23,18 @@ def raw_request(sock: zmq.Socket, cmd: str, client: str, rid: int, **args: objec
                              "client": client, "args": args}))
     assert sock.poll(5000), "no reply"
     return msgpack.unpackb(sock.recv())
+
+
+def test_a_holder_waiting_on_a_slow_request_is_shown_its_whole_lease() -> None:
+    now = [0]
+    lease = Lease(2.0, clock=lambda: now[0])
+    peer = Peer(b"conn", fd=7)
+    lease.claim(peer)
+    lease.busy += 1  # a configure of the holder's at work
+    now[0] = int(5e9)  # past the ttl
+    assert lease.expire_due() is None and lease.remaining_s() == 2.0
+    lease.busy -= 1
+    assert lease.remaining_s() == 0.0 and lease.expire_due() is not None
 
 
 @pytest.fixture()
