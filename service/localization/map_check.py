@@ -196,13 +196,10 @@ def _slopes(z: np.ndarray, h: float) -> np.ndarray:
 def hidden_depths(surface: ContactSurface) -> np.ndarray:
     """How far below the lowest point the tip reaches each sample lies: the contact surface
     eroded by the same sphere (a morphological closing) minus the map."""
-    from service.localization.surface import sphere_structure
+    from service.localization.surface import sphere_filter
 
-    footprint, cap = sphere_structure(surface.radius, surface.map.spacing)
-    if surface.map.is_profile:
-        footprint, cap = footprint[footprint.shape[0] // 2:][:1], cap[cap.shape[0] // 2:][:1]
-    traced = ndimage.grey_erosion(surface.centre_heights, footprint=footprint, structure=cap,
-                                  mode="nearest")
+    traced = sphere_filter(surface.centre_heights, surface.radius, surface.map.spacing,
+                           profile=surface.map.is_profile, erode=True)
     return np.maximum(traced - surface.map.heights, 0.0)
 
 

@@ -134,6 +134,35 @@ def sphere_structure(radius: float, spacing: float) -> tuple[np.ndarray, np.ndar
     return footprint, np.where(footprint, cap, 0.0)
 
 
+def sphere_filter(grid: np.ndarray, radius: float, spacing: float, *, profile: bool,
+                  erode: bool = False) -> np.ndarray:
+    """The grey dilation (or erosion) of `grid` by a sphere of `radius` (edges: nearest).
+
+    Row by row of the sphere's footprint, as the most (least) over its rows of a 1-D
+    dilation of the grid shifted by that row: the same sums and the same result as one 2-D
+    `ndimage.grey_dilation`, whose border offsets take memory growing as the footprint's
+    side to the fourth power (a 150 mm tip on a 200 mm map at 1 mm needed over 15 GB and
+    was killed)."""
+    footprint, cap = sphere_structure(radius, spacing)
+    if profile:  # an extruded profile: the sphere's extreme over a row lies in its own plane
+        footprint, cap = footprint[footprint.shape[0] // 2:][:1], cap[cap.shape[0] // 2:][:1]
+    k = footprint.shape[0] // 2
+    rows = grid.shape[0]
+    padded = np.pad(grid, ((k, k), (0, 0)), mode="edge")  # nearest, across rows
+    one_d = ndimage.grey_erosion if erode else ndimage.grey_dilation
+    pick = np.minimum if erode else np.maximum
+    out: np.ndarray | None = None
+    for j in range(footprint.shape[0]):
+        if not footprint[j].any():
+            continue
+        # row j of the sphere (symmetric) over the grid j - k rows away
+        part = one_d(padded[j:j + rows], footprint=footprint[j][None, :],
+                     structure=cap[j][None, :], mode="nearest")
+        out = part if out is None else pick(out, part)
+    assert out is not None  # the centre row is always in the footprint
+    return out
+
+
 _CACHE: weakref.WeakKeyDictionary[HeightMap, dict[float, ContactSurface]] = (
     weakref.WeakKeyDictionary()
 )
@@ -176,13 +205,9 @@ def contact_surface(height_map: HeightMap, radius: float) -> ContactSurface:
     cached = per_map.get(radius)
     if cached is not None:
         return cached
-    footprint, cap = sphere_structure(radius, height_map.spacing)
-    grid = height_map.heights
-    if height_map.is_profile:
-        # An extruded profile: the sphere's highest point over a row lies in its own plane.
-        footprint, cap = footprint[footprint.shape[0] // 2 :][:1], cap[cap.shape[0] // 2 :][:1]
-    dilated = ndimage.grey_dilation(grid, footprint=footprint, structure=cap, mode="nearest")
-    dilated = np.ascontiguousarray(dilated)
+    dilated = np.ascontiguousarray(sphere_filter(height_map.heights, radius,
+                                                 height_map.spacing,
+                                                 profile=height_map.is_profile))
     dilated.setflags(write=False)
     surface = ContactSurface(map=height_map, radius=float(radius), centre_heights=dilated)
     per_map[radius] = surface
