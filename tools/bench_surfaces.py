@@ -149,7 +149,8 @@ def run_surfaces(args: argparse.Namespace, *, scenario: str, label: str,
                 print(f"warning: {spec}: {warning}")
     settings = [dataclasses.replace(base, map=spec, seed=args.first_seed + i)
                 for spec in specs for i in range(args.runs)]
-    print(f"{label}: {base.algorithm} + {base.policy}, B2's noise, {args.runs} runs on each "
+    runs = f"{args.runs} run{'s' if args.runs != 1 else ''}"
+    print(f"{label}: {base.algorithm} + {base.policy}, B2's noise, {runs} on each "
           f"of {len(specs)} surfaces, at most {base.max_steps} steps")
     with executor_for(args) as executor:
         outcomes = collect(executor, settings, maps, desc=label)

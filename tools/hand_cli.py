@@ -11,7 +11,7 @@ import math
 from pathlib import Path
 
 from service.errors import ConfigError
-from tools.words import NO_SAFE_MOVE, hand_step_text, pose_text
+from tools.words import NO_SAFE_MOVE, hand_step_text, pose_text, why_not_converged
 
 DEFAULT_HAND = "two-finger"
 
@@ -83,6 +83,30 @@ def hand_settings(args: argparse.Namespace, **overrides):
     return HandSettings(**fields)
 
 
+FINGER_ONLY = {"map": "--map", "spacing": "--spacing", "radius": "--radius",
+               "step": "--step", "policy": "--policy", "headings": "--headings",
+               "sweep": "--sweep", "localizer_option": "--localizer-option"}
+"""`haptic run`'s options for a finger on a map (attribute: flag), which a hand ignores."""
+
+
+def _refuse_finger_options(args: argparse.Namespace) -> None:
+    """A finger's option given with --object would be ignored without a word: refused,
+    naming the hand's own where there is one."""
+    from service.episode.scenario import RunSettings
+
+    defaults = RunSettings()
+    given = [flag for name, flag in FINGER_ONLY.items() if hasattr(args, name)
+             and getattr(args, name) not in (None, [], getattr(defaults, name, None))]
+    if given:
+        instead = {"--step": "a hand's roll per step is --roll",
+                   "--radius": "a hand's fingertip radii are in its hand file",
+                   "--policy": "a hand always explores with the grasp-gated policy"}
+        notes = [instead[flag] for flag in given if flag in instead]
+        raise ConfigError(f"{', '.join(given)} appl{'ies' if len(given) == 1 else 'y'} to a "
+                          "finger on a map, not to a hand holding --object"
+                          + (f" ({'; '.join(notes)})" if notes else ""))
+
+
 def run_hand(args: argparse.Namespace) -> int:
     """The body of `haptic run --object ...`."""
     from service.episode.hand_episode import simulate_hand
@@ -91,6 +115,7 @@ def run_hand(args: argparse.Namespace) -> int:
     if args.start is not None:
         raise ConfigError("--start places a finger on a map; an object's start is drawn "
                           "from --seed")
+    _refuse_finger_options(args)
     settings = hand_settings(args)
     parts = load_parts(settings)
     backend_factory = None
@@ -175,7 +200,13 @@ def _print_summary(report, on_servos: bool = False) -> None:
     elif report.result.stuck:
         print(f"result    not localized after {steps} steps: {NO_SAFE_MOVE}")
     else:
-        print(f"result    not localized after {steps} steps")
+        why = why_not_converged(
+            candidates=0 if est is None else est.candidates, steps=steps,
+            max_steps=report.settings.max_steps, pose=None if est is None else est.pose,
+            mode_mass=None if est is None else est.mode_mass,
+            runner_up=None if est is None else est.runner_up,
+            runner_up_mass=None if est is None else est.runner_up_mass, second="z")
+        print(f"result    not localized after {steps} steps: {why}")
     if math.isfinite(report.min_quality):
-        print(f"grasp     least quality {report.min_quality:.2f} N (drops below "
+        print(f"grasp     least quality {report.min_quality:.2f} N (the object slips below "
               f"{report.settings.margin_n:g} N)")

@@ -184,10 +184,16 @@ def cmd_export(args: argparse.Namespace) -> int:
                              f"{', '.join(map(str, episodes))}")
         episodes = {args.episode: episodes[args.episode]}
     hands = [eid for eid, ep in episodes.items() if (ep["settings"] or {}).get("object")]
-    if hands:
-        raise InputError(f"episode {hands[0]} in '{args.file}' is a hand's: `haptic export` "
-                         "writes a finger's episodes; a hand's steps are the recording's "
-                         "`step` events (`haptic replay FILE` prints them)")
+    why = ("`haptic export` writes a finger's episodes; a hand's steps are the recording's "
+           "`step` events (`haptic replay FILE` prints them)")
+    if hands and len(hands) == len(episodes):
+        which = (f"episode {hands[0]} in '{args.file}' is a hand's" if len(hands) == 1
+                 else f"every episode in '{args.file}' is a hand's")
+        raise InputError(f"{which}: {why}")
+    if hands:  # a daemon that ran a finger and a hand: the finger's are exported
+        print(f"# skipped episode(s) {', '.join(map(str, hands))}: a hand's; {why}",
+              file=sys.stderr)
+        episodes = {eid: ep for eid, ep in episodes.items() if eid not in hands}
     for eid, ep in episodes.items():
         if not ep.get("complete"):
             print(f"# episode {eid} was still running when the recording ended: exported "

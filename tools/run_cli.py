@@ -10,7 +10,7 @@ from pathlib import Path
 
 from firmware_if.backend import Backend
 from service.episode.runner import StepRecord
-from service.episode.scenario import RunSettings, Truth, for_backend
+from service.episode.scenario import RunSettings, Truth, check_start, for_backend
 from service.episode.simulate import EpisodeReport, simulate
 from service.errors import ConfigError
 from service.localization.map_check import check_map
@@ -51,9 +51,14 @@ def register(p: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     if args.object is not None:
         return run_hand(args)
+    if args.hand is not None and args.backend == "sim":
+        raise ConfigError(f"--hand {args.hand} without --object: a simulated finger on a map "
+                          "needs no hand; give --object NAME for a hand holding an object, or "
+                          "--backend dynamixel --port PORT for a finger on servos")
     settings = settings_from_args(args)
     _check_outputs(args)
     height_map = load_map(settings.map, settings.spacing)
+    check_start(settings, height_map)  # refused before any line of the run is printed
     for warning in check_map(height_map, settings.radius, settings.step).warnings:
         print(f"warning: {warning}")
     backend_factory: Callable[[Truth], Backend] | None = None
@@ -67,8 +72,11 @@ def run(args: argparse.Namespace) -> int:
             """A hardware hand; the truth is not its to know (the emulator draws its own)."""
             return cls.from_cli(port=args.port, hand=args.hand, radius=settings.radius,
                                 step=settings.step)
-    print(f"map {height_map.name}: {height_map.shape[1]} x {height_map.shape[0]} samples, "
-          f"{height_map.extent[0] * 1e3:.0f} x {height_map.extent[1] * 1e3:.0f} mm; "
+    size = (f"profile of {height_map.shape[1]} samples, {height_map.extent[0] * 1e3:.0f} mm "
+            "long" if height_map.is_profile else
+            f"{height_map.shape[1]} x {height_map.shape[0]} samples, "
+            f"{height_map.extent[0] * 1e3:.0f} x {height_map.extent[1] * 1e3:.0f} mm")
+    print(f"map {height_map.name}: {size}; "
           f"finger radius {settings.radius * 1e3:g} mm, step {settings.step * 1e3:g} mm; "
           f"{settings.algorithm} + {settings.policy}{' with noise' if settings.noise else ''}")
     report = simulate(settings, height_map, on_step=None if args.quiet else StepPrinter(),

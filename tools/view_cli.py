@@ -80,6 +80,9 @@ def cmd_view(args: argparse.Namespace) -> int:
         height_map = _map_for_view(args, config)
         for r in records:
             view.update(r.message)
+        if view.hand_episodes:
+            print(f"# skipped episode(s) {', '.join(map(str, sorted(view.hand_episodes)))}: "
+                  "a hand's; `haptic view` draws a finger's belief on its map", file=sys.stderr)
         save_png(args.png, height_map, view)
         print(f"# wrote {args.png}", file=sys.stderr)
         return 0

@@ -9,6 +9,7 @@ so a new id always starts a new path.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -37,6 +38,11 @@ class ViewModel:
     path: dict[int, tuple[float, float]] = field(default_factory=dict)
     """The finger's displacement (finger frame) after each reading seen, by step."""
     state: str = "?"
+    hand_episodes: set[int] = field(default_factory=set)
+    """Episodes of a hand (an object's pose, no map): not drawn here, their messages
+    skipped (a recording may hold both)."""
+    _before: ViewModel | None = None
+    """The picture before the current episode began, shown again if it turns out a hand's."""
 
     @property
     def complete(self) -> bool:
@@ -44,6 +50,13 @@ class ViewModel:
         return self.converged and self.cloud_step == self.step
 
     def update(self, msg: Message) -> None:
+        if msg.topic in ("cloud", "estimate") and msg["episode"] in self.hand_episodes:
+            return
+        if msg.topic == "estimate" and msg.get("kind") == "hand":
+            self.hand_episodes.add(msg["episode"])
+            if msg["episode"] == self.episode and self._before is not None:
+                self._restore(self._before)  # its cloud came first: drawn by mistake
+            return
         if msg.topic == "cloud":
             if msg["episode"] != self.episode:
                 self._new_episode(msg["episode"])
@@ -65,12 +78,18 @@ class ViewModel:
             self.state = str(msg["state"])
 
     def _new_episode(self, episode: int) -> None:
+        self._before = dataclasses.replace(self, _before=None)
         self.episode = episode
         self.path = {}
         self.cloud_step = -1
         self.pose = None
         self.converged = False
         self.cloud, self.weights = np.empty((0, 3)), np.empty(0)
+
+    def _restore(self, other: ViewModel) -> None:
+        for f in dataclasses.fields(self):
+            if f.name != "hand_episodes":
+                setattr(self, f.name, getattr(other, f.name))
 
     def path_on_map(self) -> tuple[np.ndarray, np.ndarray]:
         """The finger's positions in the map frame under the current estimate (metres), and

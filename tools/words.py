@@ -61,8 +61,9 @@ def belief_text(position_sd: float | None, heading_sd: float | None,
 def why_not_converged(*, candidates: int, steps: int, max_steps: int,
                       pose: Sequence[float] | None, mode_mass: float | None,
                       runner_up: Sequence[float] | None,
-                      runner_up_mass: float | None) -> str:
-    """One sentence on why an episode ended without declaring a pose."""
+                      runner_up_mass: float | None, second: str = "y") -> str:
+    """One sentence on why an episode ended without declaring a pose (`second`: the name
+    of a pose's second coordinate, `z` for an object in a hand's plane)."""
     if candidates == 0 or pose is None:
         return "every hypothesis was eliminated: the readings fit no pose on this map"
     parts = []
@@ -70,11 +71,12 @@ def why_not_converged(*, candidates: int, steps: int, max_steps: int,
         parts.append(f"out of steps ({steps} of at most {max_steps})")
     lead = "" if mode_mass is None else f" ({100 * mode_mass:.0f} %)"
     if runner_up is not None:
-        second = "" if runner_up_mass is None else f" ({100 * runner_up_mass:.0f} %)"
-        parts.append(f"still ambiguous between {pose_text(pose)}{lead} and "
-                     f"{pose_text(runner_up)}{second}")
+        share = "" if runner_up_mass is None else f" ({100 * runner_up_mass:.0f} %)"
+        parts.append(f"still ambiguous between {pose_text(pose, second=second)}{lead} and "
+                     f"{pose_text(runner_up, second=second)}{share}")
     else:
-        parts.append(f"the leading pose {pose_text(pose)}{lead} is not yet clear of the rest")
+        parts.append(f"the leading pose {pose_text(pose, second=second)}{lead} is not yet "
+                     "clear of the rest")
     return "; ".join(parts)
 
 

@@ -66,17 +66,18 @@ def setup(fields: dict[str, Any], backend: str, files: list[Path]
         prepare_localizers,
         surface_for,
     )
-    from service.localization.maps import check_map_spec
+    from service.localization.maps import check_map_spec, load_map
 
     settings = for_backend(RunSettings(**fields), backend)
     check_map_spec(settings.map, settings.spacing)  # the client's own mistake: told in full
     try:
-        surface = surface_for(settings)
+        height_map = load_map(settings.map, settings.spacing)
     except MapError as exc:
         if not is_map_file(settings.map):
             raise  # a preset: its error says nothing about files
         raise quiet_file_error("map", settings.map, exc, "a grid of heights in metres",
                                MapError) from None
+    surface = surface_for(settings, height_map)  # a radius it cannot take: told in full
     truth_rng, world_rng, loc_rng, policy_rng = episode_streams(settings.seed)
     prepare_localizers()
     scenario = FingerScenario(settings, surface, loc_rng, policy_rng)

@@ -97,17 +97,30 @@ def episode_streams(seed: int) -> list[np.random.Generator]:
     return np.random.default_rng(seed).spawn(4)
 
 
+def check_start(settings: RunSettings, height_map: HeightMap) -> None:
+    """Refuse a start the map cannot give (`draw_truth`), before any work is shown."""
+    x_max, y_max = height_map.extent
+    if settings.start is not None:
+        x, y, _ = settings.start
+        if not height_map.inside(np.array(x), np.array(y)):
+            raise ConfigError(f"start ({x:.4g}, {y:.4g}) m (`--start`, `scenario.start`) lies "
+                              f"outside the map (0..{x_max:.4g}, 0..{y_max:.4g} m)")
+        return
+    margin = 2 * settings.step
+    if settings.noise and (x_max <= 2 * margin
+                           or (not height_map.is_profile and y_max <= 2 * margin)):
+        raise ConfigError("the map is too small for starts two steps inside its edge; "
+                          "use a smaller --step")
+
+
 def draw_truth(settings: RunSettings, height_map: HeightMap, rng: np.random.Generator) -> Truth:
     """The hidden start pose: a pose-table entry (noise-free, B1) or continuous (noise, B2).
 
     Continuous starts lie at least two step lengths inside the map's edge.
     """
+    check_start(settings, height_map)
     if settings.start is not None:
         x, y, heading = settings.start
-        if not height_map.inside(np.array(x), np.array(y)):
-            x_max, y_max = height_map.extent
-            raise ConfigError(f"start ({x:.4g}, {y:.4g}) m (`--start`, `scenario.start`) lies "
-                              f"outside the map (0..{x_max:.4g}, 0..{y_max:.4g} m)")
         return Truth(float(x), 0.0 if height_map.is_profile else float(y), float(heading))
     if not settings.noise:
         xs, ys = grid_positions(height_map, settings.step)
@@ -116,9 +129,6 @@ def draw_truth(settings: RunSettings, height_map: HeightMap, rng: np.random.Gene
         return Truth(float(rng.choice(xs)), float(rng.choice(ys)), float(rng.choice(headings)))
     x_max, y_max = height_map.extent
     margin = 2 * settings.step
-    if x_max <= 2 * margin or (not height_map.is_profile and y_max <= 2 * margin):
-        raise ConfigError("the map is too small for starts two steps inside its edge; "
-                          "use a smaller --step")
     x = rng.uniform(margin, x_max - margin)
     y = 0.0 if height_map.is_profile else rng.uniform(margin, y_max - margin)
     heading = float(rng.choice([0.0, np.pi])) if height_map.is_profile else rng.uniform(

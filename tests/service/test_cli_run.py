@@ -91,9 +91,13 @@ def test_plot_is_written(tmp_path):
                                           "options: initial, capacity, work"),
 ])
 def test_bad_input_is_one_line_and_status_2(args, message, capsys):
+    """One line on standard error, and nothing before it (a start off the map came after
+    the map's warning and the run's header)."""
     assert run_cli(*args) == 2
-    err = capsys.readouterr().err.strip()
+    captured = capsys.readouterr()
+    err = captured.err.strip()
     assert message in err and len(err.splitlines()) == 1
+    assert captured.out == ""
 
 
 @pytest.mark.parametrize("content, message", [

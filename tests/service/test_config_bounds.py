@@ -280,3 +280,18 @@ def test_a_map_files_own_mistakes_are_told_in_full(tmp_path: Path) -> None:
             assert err.value.code == "bad_config" and words in str(err.value)
             assert "cannot be used" not in str(err.value) and "exist" not in str(err.value)
         assert ctl.call("get_config") == before
+
+
+def test_a_radius_a_map_file_cannot_take_is_told_in_full(tmp_path: Path) -> None:
+    """The map file loads, the fingertip does not fit on it: the client is told about the
+    radius, as on a preset (it was told the file "cannot be used", the cause only logged)."""
+    path = tmp_path / "small.npy"
+    np.save(path, np.zeros((50, 50)))
+    with running_node(loopback_config()) as node, Client(node.endpoints["cmd"]) as ctl:
+        ctl.call("configure", changes={"scenario": {"map": str(path), "spacing": 0.001}})
+        before = ctl.call("get_config")
+        with pytest.raises(CommandFailed) as err:
+            ctl.call("configure", changes={"scenario": {"radius": 0.3}})
+        assert err.value.code == "bad_config" and "does not fit on map" in str(err.value)
+        assert "cannot be used" not in str(err.value)
+        assert ctl.call("get_config") == before

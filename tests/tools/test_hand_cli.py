@@ -59,6 +59,12 @@ def test_a_mesh_cross_section_is_an_object(tmp_path, capsys):
     (["--object", "blob", "--start-quality", "0.5"],
      "start grasp quality (0.5 N) must be at least the threshold (1.0 N)"),
     (["--object", "blob", "--plane", "z=0"], "`scenario.plane`) applies to mesh files"),
+    # a finger's options were ignored without a word beside --object, --hand beside none
+    (["--object", "blob", "--map", "bumps"], "--map applies to a finger on a map"),
+    (["--object", "blob", "--radius", "0.02", "--policy", "random"],
+     "--radius, --policy apply to a finger on a map"),
+    (["--object", "blob", "--step", "0.005"], "a hand's roll per step is --roll"),
+    (["--hand", "three-finger"], "--hand three-finger without --object"),
 ])
 def test_user_errors_are_one_line(argv, message, capsys):
     assert main(["run", *argv]) == 2
@@ -76,3 +82,13 @@ def test_a_hand_with_no_safe_move_says_why_and_draws_it(tmp_path, capsys):
     text = capsys.readouterr().out
     assert "not localized after 0 steps: no safe move left (under a pose the readings" in text
     assert fig.stat().st_size > 10_000
+
+
+def test_a_hand_run_out_of_steps_says_why(capsys):
+    """A hand run that ended without a pose said only "not localized"; a finger's names the
+    reason. The ellipse, symmetric under a half turn, is still ambiguous after two steps."""
+    assert main(["run", "--object", "ellipse", "--hand", "two-finger", "--max-steps", "2",
+                 "--quiet"]) == 0
+    out = capsys.readouterr().out
+    assert "not localized after 2 steps: out of steps (2 of at most 2)" in out
+    assert "still ambiguous between" in out or "not yet clear of the rest" in out

@@ -75,19 +75,25 @@ def test_record_export_round_trip_equals_haptic_run(tmp_path: Path, capsys) -> N
     assert "CONVERGED" in capsys.readouterr().out
 
 
-def test_replay_and_export_still_read_an_old_hrec(tmp_path: Path, capsys) -> None:
-    old = tmp_path / "old.hrec"
-    events = [("episode_started", {"episode": 3, "candidates": 20000, "settings": None,
-                                   "truth": None}),
-              ("step", {"episode": 3, "index": 1, "move": 0, "command": [0.01, 0.0],
-                        "measurement": [0.01, 0.0, 0.002], "blocked": False,
-                        "candidates": 900, "compute_ms": 1.0, "policy_ms": 1.0,
-                        "estimate": [0.1, 0.1, 0.0]})]
-    with old.open("wb") as f:
+FINGER_EPISODE_3 = [
+    ("episode_started", {"episode": 3, "candidates": 20000, "settings": None, "truth": None}),
+    ("step", {"episode": 3, "index": 1, "move": 0, "command": [0.01, 0.0],
+              "measurement": [0.01, 0.0, 0.002], "blocked": False, "candidates": 900,
+              "compute_ms": 1.0, "policy_ms": 1.0, "estimate": [0.1, 0.1, 0.0]})]
+
+
+def write_hrec(path: Path, events: list[tuple[str, dict]]) -> None:
+    """An old-format recording (`.hrec`) of these events."""
+    with path.open("wb") as f:
         f.write(msgpack.packb({"format": "haptic-record", "v": 1, "config": None}))
         for seq, (name, fields) in enumerate(events, 1):
             payload = wire.encode("event", seq, {"event": name, **fields})
             f.write(msgpack.packb({"topic": "event", "t_ns": seq, "payload": payload}))
+
+
+def test_replay_and_export_still_read_an_old_hrec(tmp_path: Path, capsys) -> None:
+    old = tmp_path / "old.hrec"
+    write_hrec(old, FINGER_EPISODE_3)
     assert main(["replay", str(old)]) == 0
     assert "episode_started" in capsys.readouterr().out
     assert main(["export", str(old), "--json", "-"]) == 0
@@ -95,6 +101,24 @@ def test_replay_and_export_still_read_an_old_hrec(tmp_path: Path, capsys) -> Non
     (episode,) = json.loads(captured.out)
     assert episode["initial_candidates"] == 20000 and len(episode["steps"]) == 1
     assert episode["converged"] is False and "still running" in captured.err
+
+
+def test_export_writes_the_finger_episodes_of_a_recording_that_also_holds_a_hand(
+        tmp_path: Path, capsys) -> None:
+    """A daemon that ran a finger and then a hand: the whole export was refused for the
+    hand's episode. The finger's are written, the hand's skipped with a note; asked for
+    the hand's alone, it says why not."""
+    rec = tmp_path / "both.hrec"
+    write_hrec(rec, [*FINGER_EPISODE_3, ("episode_started", {
+        "episode": 4, "candidates": 300, "settings": {"object": "keyed", "hand": "two-finger"},
+        "truth": None})])
+    assert main(["export", str(rec), "--json", "-"]) == 0
+    captured = capsys.readouterr()
+    (episode,) = json.loads(captured.out)
+    assert episode["initial_candidates"] == 20000
+    assert "skipped episode(s) 4: a hand's" in captured.err
+    assert main(["export", str(rec), "--json", "-", "--episode", "4"]) == 2
+    assert "episode 4 in" in capsys.readouterr().err
 
 
 def test_export_refuses_what_it_cannot_read(tmp_path: Path, capsys) -> None:

@@ -1,0 +1,40 @@
+"""The viewer's model of the stream: what `haptic view` draws."""
+
+import numpy as np
+
+from service.wire.envelope import Message
+from tools.viewer import ViewModel
+
+
+def _msg(topic: str, **body) -> Message:
+    return Message(type=topic, seq=0, t_mono_ns=0, t_wall_ns=0, body=body, topic=topic)
+
+
+def _finger_estimate(episode: int, step: int) -> Message:
+    return _msg("estimate", episode=episode, step=step, kind="finger", pose=[0.1, 0.1, 0.0],
+                converged=True, displacement=[0.01 * step, 0.0, 0.0], position_sd=1e-4,
+                heading_sd=1e-3, mode_mass=1.0)
+
+
+def _cloud(episode: int, step: int, n: int) -> Message:
+    return _msg("cloud", episode=episode, step=step, poses=np.zeros((n, 3)),
+                weights=np.full(n, 1.0 / n), total=n)
+
+
+def test_a_hand_episode_in_a_recording_leaves_the_last_finger_episode_drawn():
+    """A recording of a daemon that ran a finger, then a hand: the hand's estimate has no
+    displacement (nil, as the protocol says), and `haptic view --from` failed on it with a
+    TypeError. The hand's messages are skipped, its cloud too when it came first."""
+    view = ViewModel()
+    for step in (1, 2):
+        view.update(_finger_estimate(1, step))
+    view.update(_cloud(1, 2, 5))
+    view.update(_cloud(2, 0, 7))  # the hand's cloud, before its first estimate
+    view.update(_msg("estimate", episode=2, step=0, kind="hand", pose=None, converged=False,
+                     displacement=None))
+    view.update(_cloud(2, 1, 7))
+    assert view.hand_episodes == {2}
+    assert (view.episode, view.step, len(view.cloud), view.converged) == (1, 2, 5, True)
+    assert sorted(view.path) == [1, 2]
+    view.update(_finger_estimate(3, 1))  # a finger again: drawn anew
+    assert (view.episode, view.step, len(view.cloud)) == (3, 1, 0)
