@@ -371,13 +371,14 @@ def _valley_within(surface: ContactSurface, history: np.ndarray, fit: Fit, sds: 
     """Whether every pose the readings still allow lies within the tolerance of `fit`.
 
     The misfit is scanned along each principal direction of the fit's uncertainty (in units
-    of the tolerance) out to twice the tolerance; a pose at or beyond the tolerance (in
-    place or in heading, as a success is judged) whose misfit is within 9 (three sigmas),
-    times the fit's reduced chi-square when it is worse than the noise, of the fit's own is
-    one the readings do not rule out (a reading off the map, beyond the localizer's
-    `margin`, rules a pose out). On gently
-    curved profiles the curvature at the fit claimed 0.46 mm where the readings allowed
-    a valley 5 mm wide, and poses 3 mm off were declared (profile:shell:20:1, seed 2).
+    of the tolerance) out to twice the tolerance, and just past where the direction leaves
+    the tolerance; a pose at or beyond the tolerance (in place or in heading, as a success
+    is judged: a scaled step of one along a diagonal is within both) whose misfit is within
+    9 (three sigmas), times the fit's reduced chi-square when it is worse than the noise,
+    of the fit's own is one the readings do not rule out (a reading off the map, beyond the
+    localizer's `margin`, rules a pose out). On gently curved profiles the curvature at the
+    fit claimed 0.46 mm where the readings allowed a valley 5 mm wide, and poses 3 mm off
+    were declared (profile:shell:20:1, seed 2).
 
     The misfit is scanned along the line to each pose of `toward` (local fits nearby) too:
     the valley runs where they lie, not only along the axes. On fine terrain a second
@@ -403,18 +404,23 @@ def _valley_within(surface: ContactSurface, history: np.ndarray, fit: Fit, sds: 
         off = off[:, free] / scale[free]
         norm = np.linalg.norm(off, axis=1)
         directions = np.vstack([directions, off[norm > 1e-9] / norm[norm > 1e-9, None]])
-    steps = np.zeros((len(directions), 3))
-    steps[:, free] = directions * scale[free]
+    unit = np.zeros((len(directions), 3))
+    unit[:, free] = directions
+    steps = unit * scale
     t = np.linspace(0.25, 2.0, 8)
-    poses = np.vstack([pose, (pose + t[None, :, None] * steps[:, None, :]).reshape(-1, 3)])
+    # and just past where each direction leaves the tolerance: along a mix of place and
+    # heading that lies between the samples (a scaled step of one is still within both)
+    leaves = (1.0 + 1e-6) / np.maximum(np.maximum(np.hypot(unit[:, 0], unit[:, 1]),
+                                                  np.abs(unit[:, 2])), 1e-12)
+    poses = np.vstack([pose, (pose + t[None, :, None] * steps[:, None, :]).reshape(-1, 3),
+                       pose + leaves[:, None] * steps])
     if shared is None:
         r, ok = offset_residuals(surface, poses, history, margin)
         chi2 = np.sum(np.where(ok, (r / sds) ** 2, 1e6), axis=1)
     else:
         chi2 = shared_error_chi2(surface, history, poses, sds, *shared, margin)
     allowed = chi2 <= chi2[0] + 9.0 * max(1.0, fit.rms**2)
-    # at or beyond the tolerance in place or in heading, as a success is judged: a scaled
-    # step of one along a diagonal is still within both
+    # at or beyond the tolerance in place or in heading, as a success is judged
     edge = 1.0 - 1e-9
     beyond = ~within(poses[1:], pose, edge * position_tol, edge * heading_tol)
     return not np.any(allowed[1:] & beyond)
