@@ -90,8 +90,9 @@ FINGER_ONLY = {"map": "--map", "spacing": "--spacing", "radius": "--radius",
 
 
 def _refuse_finger_options(args: argparse.Namespace) -> None:
-    """A finger's option given with --object would be ignored without a word: refused,
-    naming the hand's own where there is one."""
+    """A finger's option given with --object (at other than its default: argparse keeps no
+    record of what was typed) would be ignored without a word: refused, naming the hand's
+    own where there is one."""
     from service.episode.scenario import RunSettings
 
     defaults = RunSettings()
@@ -205,8 +206,9 @@ def _print_summary(report, on_servos: bool = False) -> None:
             max_steps=report.settings.max_steps, pose=None if est is None else est.pose,
             mode_mass=None if est is None else est.mode_mass,
             runner_up=None if est is None else est.runner_up,
-            runner_up_mass=None if est is None else est.runner_up_mass, second="z")
+            runner_up_mass=None if est is None else est.runner_up_mass, second="z",
+            where="of the object in the hand")
         print(f"result    not localized after {steps} steps: {why}")
     if math.isfinite(report.min_quality):
-        print(f"grasp     least quality {report.min_quality:.2f} N (the object slips below "
-              f"{report.settings.margin_n:g} N)")
+        print(f"grasp     least quality {report.min_quality:.2f} N (below "
+              f"{report.settings.margin_n:g} N the object drops)")

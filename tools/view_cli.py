@@ -43,7 +43,8 @@ def _map_for_view(args: argparse.Namespace, config: dict[str, Any] | None):
     if args.map:
         return load_map(args.map)
     if scenario.get("object"):
-        raise InputError(f"the daemon runs a hand holding object '{scenario['object']}': "
+        raise InputError(f"{'the recording holds only' if args.source else 'the daemon runs'} "
+                         f"a hand holding object '{scenario['object']}': "
                          "`haptic view` draws a finger's belief on its map; follow a hand "
                          "with `haptic watch` or `haptic explore`, or draw one with `haptic "
                          "run --object NAME --plot FILE.png`")
@@ -72,11 +73,12 @@ def cmd_view(args: argparse.Namespace) -> int:
         if not args.png:
             raise InputError("--from needs --png FILE (a recording has no live view)")
         config, records = read_recording(args.source)
-        if config is None:  # recorded without the daemon's config: the episodes name it
-            started = [r.message for r in records if r.message.get("event") ==
-                       "episode_started" and r.message.get("settings")]
-            if started:
-                config = {"scenario": started[-1]["settings"]}
+        # the map of the last finger episode (a hand's are skipped), else the config's
+        started = [r.message["settings"] for r in records
+                   if r.message.get("event") == "episode_started" and r.message.get("settings")
+                   and not r.message["settings"].get("object")]
+        if started:
+            config = {"scenario": started[-1]}
         height_map = _map_for_view(args, config)
         for r in records:
             view.update(r.message)

@@ -88,7 +88,7 @@ class ViewModel:
 
     def _restore(self, other: ViewModel) -> None:
         for f in dataclasses.fields(self):
-            if f.name != "hand_episodes":
+            if f.name not in ("hand_episodes", "state"):  # the daemon's, not an episode's
                 setattr(self, f.name, getattr(other, f.name))
 
     def path_on_map(self) -> tuple[np.ndarray, np.ndarray]:

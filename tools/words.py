@@ -61,11 +61,13 @@ def belief_text(position_sd: float | None, heading_sd: float | None,
 def why_not_converged(*, candidates: int, steps: int, max_steps: int,
                       pose: Sequence[float] | None, mode_mass: float | None,
                       runner_up: Sequence[float] | None,
-                      runner_up_mass: float | None, second: str = "y") -> str:
+                      runner_up_mass: float | None, second: str = "y",
+                      where: str = "on this map") -> str:
     """One sentence on why an episode ended without declaring a pose (`second`: the name
-    of a pose's second coordinate, `z` for an object in a hand's plane)."""
+    of a pose's second coordinate, `z` for an object in a hand's plane; `where` the poses
+    lie)."""
     if candidates == 0 or pose is None:
-        return "every hypothesis was eliminated: the readings fit no pose on this map"
+        return f"every hypothesis was eliminated: the readings fit no pose {where}"
     parts = []
     if steps >= max_steps:
         parts.append(f"out of steps ({steps} of at most {max_steps})")

@@ -89,7 +89,7 @@ def test_csv_outline_round_trip_and_errors(tmp_path):
     cases = {
         "open.csv": (square[:-1], "the contour is open"),
         "bowtie.csv": ([(0, 0), (0.04, 0.04), (0.04, 0), (0, 0.04), (0, 0)], "crosses itself"),
-        "mm.csv": ([(x * 1000, z * 1000) for x, z in square], "a file in millimetres"),
+        "mm.csv": ([(x * 1000, z * 1000) for x, z in square], "millimetres give --object-units mm"),
         "tiny.csv": ([(x / 100, z / 100) for x, z in square], "at least 2 mm wide"),
     }
     for name, (points, message) in cases.items():

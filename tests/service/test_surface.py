@@ -41,7 +41,6 @@ def test_dilation_matches_brute_force(seed, radius_samples):
             brute_force_contact(heights, spacing, radius, row, col), abs=1e-12)
 
 
-
 @settings(max_examples=30, deadline=None)
 @given(seed=st.integers(0, 10_000), rows=st.integers(1, 12), cols=st.integers(2, 15),
        radius_samples=st.floats(0.5, 14.0), erode=st.booleans())
@@ -86,6 +85,7 @@ def test_a_tip_as_wide_as_the_map_builds_in_bounded_memory(tmp_path):
                           timeout=120)
     assert done.returncode == 0, done.stderr[-2000:]
     assert done.stdout.strip() == "True"
+
 
 def test_centre_never_below_surface_plus_radius():
     rng = np.random.default_rng(1)

@@ -83,12 +83,15 @@ FINGER_EPISODE_3 = [
 
 
 def write_hrec(path: Path, events: list[tuple[str, dict]]) -> None:
-    """An old-format recording (`.hrec`) of these events."""
+    """An old-format recording (`.hrec`) of these events (a name of another topic, e.g.
+    `estimate`, is a message of that topic)."""
     with path.open("wb") as f:
         f.write(msgpack.packb({"format": "haptic-record", "v": 1, "config": None}))
         for seq, (name, fields) in enumerate(events, 1):
-            payload = wire.encode("event", seq, {"event": name, **fields})
-            f.write(msgpack.packb({"topic": "event", "t_ns": seq, "payload": payload}))
+            topic = name if name in ("state", "estimate", "cloud") else "event"
+            payload = wire.encode(topic, seq, fields if topic != "event"
+                                  else {"event": name, **fields})
+            f.write(msgpack.packb({"topic": topic, "t_ns": seq, "payload": payload}))
 
 
 def test_replay_and_export_still_read_an_old_hrec(tmp_path: Path, capsys) -> None:
@@ -119,6 +122,27 @@ def test_export_writes_the_finger_episodes_of_a_recording_that_also_holds_a_hand
     assert "skipped episode(s) 4: a hand's" in captured.err
     assert main(["export", str(rec), "--json", "-", "--episode", "4"]) == 2
     assert "episode 4 in" in capsys.readouterr().err
+
+
+def test_view_draws_the_last_finger_episode_of_a_recording_that_ends_with_a_hand(
+        tmp_path: Path, capsys) -> None:
+    """Recorded without the daemon's config, a finger's episode on peaks then a hand's: the
+    map was taken from the hand's settings, and `haptic view --from` said the daemon runs a
+    hand. The finger's map is drawn and the hand's episode skipped, with a note."""
+    rec = tmp_path / "both.hrec"
+    finger = {"map": "peaks", "spacing": None}
+    estimate = {"episode": 3, "step": 1, "kind": "finger", "pose": [0.1, 0.1, 0.0],
+                "converged": False, "displacement": [0.01, 0.0, 0.0]}
+    write_hrec(rec, [("episode_started", {**FINGER_EPISODE_3[0][1], "settings": finger}),
+                     FINGER_EPISODE_3[1], ("estimate", estimate),
+                     ("episode_started", {"episode": 4, "candidates": 300, "truth": None,
+                                          "settings": {"object": "keyed"}}),
+                     ("estimate", {**estimate, "episode": 4, "kind": "hand",
+                                   "displacement": None})])
+    png = tmp_path / "view.png"
+    assert main(["view", "--from", str(rec), "--png", str(png)]) == 0
+    assert png.read_bytes()[:4] == b"\x89PNG"
+    assert "skipped episode(s) 4: a hand's" in capsys.readouterr().err
 
 
 def test_export_refuses_what_it_cannot_read(tmp_path: Path, capsys) -> None:

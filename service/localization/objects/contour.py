@@ -118,7 +118,8 @@ def make_contour(points: np.ndarray, name: str = "object", *, closed: bool = Fal
     span = float(np.hypot(*(pts.max(axis=0) - pts.min(axis=0))))
     if span > LARGEST_EXTENT:
         raise ObjectError(f"object '{name}' spans {span:.3g} m across: coordinates are metres "
-                          "(a file in millimetres needs scaling by 0.001)")
+                          "(for a file in millimetres give --object-units mm, or "
+                          "`scenario.object_units = \"mm\"` to hapticd)")
     if span < SMALLEST_EXTENT:
         raise ObjectError(f"object '{name}' spans only {span * 1e3:.3g} mm across: coordinates "
                           "are metres, and a fingertip needs an object at least 2 mm wide")
