@@ -154,8 +154,9 @@ def describe_symmetries(motions: np.ndarray, strengths: np.ndarray,
             motion = f"{turn} then shift ({dx * 1e3:+.0f}, {dy * 1e3:+.0f}) mm"
         shown.append(motion + how)
     more = f"; and {len(motions) - 3} more" if len(motions) > 3 else ""
-    return (f"{len(motions)} motion{'s' if len(motions) > 1 else ''} nearly map the contact "
-            f"surface onto itself: {'; '.join(shown)}{more}")
+    several = len(motions) > 1
+    return (f"{len(motions)} motion{'s' if several else ''} nearly map{'' if several else 's'} "
+            f"the contact surface onto itself: {'; '.join(shown)}{more}")
 
 
 def check_map(height_map: HeightMap, radius: float, step: float = 0.01) -> MapReport:
