@@ -83,10 +83,9 @@ def hand_settings(args: argparse.Namespace, **overrides):
     return HandSettings(**fields)
 
 
-FINGER_ONLY = {"map": "--map", "spacing": "--spacing", "radius": "--radius",
-               "step": "--step", "policy": "--policy", "headings": "--headings",
-               "sweep": "--sweep", "localizer_option": "--localizer-option"}
-"""`haptic run`'s options for a finger on a map (attribute: flag), which a hand ignores."""
+FINGER_ONLY = ("map", "spacing", "radius", "step", "policy", "headings", "sweep",
+               "localizer_option")
+"""`haptic run`'s options for a finger on a map (as attributes), which a hand ignores."""
 
 
 def _refuse_finger_options(args: argparse.Namespace) -> None:
@@ -96,7 +95,7 @@ def _refuse_finger_options(args: argparse.Namespace) -> None:
     from service.episode.scenario import RunSettings
 
     defaults = RunSettings()
-    given = [flag for name, flag in FINGER_ONLY.items() if hasattr(args, name)
+    given = ["--" + name.replace("_", "-") for name in FINGER_ONLY if hasattr(args, name)
              and getattr(args, name) not in (None, [], getattr(defaults, name, None))]
     if given:
         instead = {"--step": "a hand's roll per step is --roll",

@@ -200,7 +200,7 @@ def hidden_depths(surface: ContactSurface) -> np.ndarray:
     from service.localization.surface import sphere_filter
 
     traced = sphere_filter(surface.centre_heights, surface.radius, surface.map.spacing,
-                           profile=surface.map.is_profile, erode=True)
+                           erode=True)
     return np.maximum(traced - surface.map.heights, 0.0)
 
 

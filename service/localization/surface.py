@@ -134,9 +134,10 @@ def sphere_structure(radius: float, spacing: float) -> tuple[np.ndarray, np.ndar
     return footprint, np.where(footprint, cap, 0.0)
 
 
-def sphere_filter(grid: np.ndarray, radius: float, spacing: float, *, profile: bool,
+def sphere_filter(grid: np.ndarray, radius: float, spacing: float, *,
                   erode: bool = False) -> np.ndarray:
-    """The grey dilation (or erosion) of `grid` by a sphere of `radius` (edges: nearest).
+    """The grey dilation (or erosion) of `grid` by a sphere of `radius` (edges: nearest); a
+    single row is an extruded profile.
 
     Row by row of the sphere's footprint, as the most (least) over its rows of a 1-D
     dilation of the grid shifted by that row: the same sums and the same result as one 2-D
@@ -144,7 +145,7 @@ def sphere_filter(grid: np.ndarray, radius: float, spacing: float, *, profile: b
     side to the fourth power (a 150 mm tip on a 200 mm map at 1 mm needed over 15 GB and
     was killed)."""
     footprint, cap = sphere_structure(radius, spacing)
-    if profile:  # an extruded profile: the sphere's extreme over a row lies in its own plane
+    if grid.shape[0] == 1:  # a profile: the sphere's extreme over a row lies in its plane
         footprint, cap = footprint[footprint.shape[0] // 2:][:1], cap[cap.shape[0] // 2:][:1]
     k = footprint.shape[0] // 2
     rows = grid.shape[0]
@@ -206,8 +207,7 @@ def contact_surface(height_map: HeightMap, radius: float) -> ContactSurface:
     if cached is not None:
         return cached
     dilated = np.ascontiguousarray(sphere_filter(height_map.heights, radius,
-                                                 height_map.spacing,
-                                                 profile=height_map.is_profile))
+                                                 height_map.spacing))
     dilated.setflags(write=False)
     surface = ContactSurface(map=height_map, radius=float(radius), centre_heights=dilated)
     per_map[radius] = surface
