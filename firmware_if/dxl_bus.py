@@ -16,6 +16,7 @@ FirmwareError, and `reopen()` gives the bus a fresh port (the same path, or a ne
 from __future__ import annotations
 
 import contextlib
+import os
 import termios
 import time
 from collections.abc import Callable, Iterable, Sequence
@@ -58,6 +59,21 @@ servo that restarts (a brown-out) answers as before, with its torque off and its
 defaults, and only this read tells (a fifth of a second at 100 Hz)."""
 PORT_ERRORS = (OSError, termios.error)
 """What a failing serial port raises (pyserial's SerialException is an OSError)."""
+
+
+def _cannot_open(port_name: str, why: object) -> str:
+    return (f"cannot open {port_name}: {why}; is the adapter plugged in (or the emulator "
+            "running)?")
+
+
+def check_port_exists(port_name: str) -> None:
+    """Refuse a device path that does not exist (`PortLost`), so a command can say so before
+    it prints anything; opening the port is still what decides (a URL or a COM name is left
+    to `DxlBus.open`)."""
+    if port_name.startswith("/") and not os.path.exists(port_name):
+        raise PortLost(_cannot_open(port_name, "no such device"))
+
+
 T = TypeVar("T")
 
 
@@ -111,8 +127,7 @@ class DxlBus:
         except PortBusy as exc:
             raise PortLost(f"cannot open {self.port_name}: {exc}") from None
         except (*PORT_ERRORS, ValueError) as exc:
-            raise PortLost(f"cannot open {self.port_name}: {exc}; is the adapter plugged in "
-                           f"(or the emulator running)?") from None
+            raise PortLost(_cannot_open(self.port_name, exc)) from None
         self._port = port
         self.stats = BusStats()
         self.fault = None

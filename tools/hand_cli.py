@@ -147,6 +147,7 @@ def run_hand(args: argparse.Namespace) -> int:
 
 def _servo_hand(args: argparse.Namespace, settings):
     """A factory of the hand on servos `--port` names (no I/O until the episode opens it)."""
+    from firmware_if.dxl_bus import check_port_exists
     from firmware_if.dynamixel_hand import DynamixelHand
 
     if args.backend != "dynamixel":
@@ -156,6 +157,7 @@ def _servo_hand(args: argparse.Namespace, settings):
                           "`haptic emulate --hand HAND --object NAME` prints)")
     if settings.single_finger:
         raise ConfigError("--single-finger runs on the simulated hand only")
+    check_port_exists(args.port)
     return lambda: DynamixelHand.from_cli(port=args.port, hand=settings.hand)
 
 

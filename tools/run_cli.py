@@ -9,6 +9,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 from firmware_if.backend import Backend
+from firmware_if.dxl_bus import check_port_exists
 from service.episode.runner import StepRecord
 from service.episode.scenario import RunSettings, Truth, check_start, for_backend
 from service.episode.simulate import EpisodeReport, simulate
@@ -57,14 +58,16 @@ def run(args: argparse.Namespace) -> int:
                           "--backend dynamixel --port PORT for a finger on servos")
     settings = settings_from_args(args)
     _check_outputs(args)
+    if args.backend != "sim":  # refused before any line of the run is printed
+        if not args.port or not args.hand:
+            raise ConfigError(f"--backend {args.backend} needs --port and --hand")
+        check_port_exists(args.port)
     height_map = load_map(settings.map, settings.spacing)
-    check_start(settings, height_map)  # refused before any line of the run is printed
+    check_start(settings, height_map)
     for warning in check_map(height_map, settings.radius, settings.step).warnings:
         print(f"warning: {warning}")
     backend_factory: Callable[[Truth], Backend] | None = None
     if args.backend != "sim":
-        if not args.port or not args.hand:
-            raise ConfigError(f"--backend {args.backend} needs --port and --hand")
         settings = for_backend(settings, args.backend)
         cls = BACKENDS.load(args.backend)
 

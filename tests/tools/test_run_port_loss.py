@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import threading
 
+import pytest
+
 from firmware_if.hand import load_hand
 from service.localization.maps import load_map
 from sim_backend.emulator import ServoBus
@@ -29,3 +31,16 @@ def test_a_lost_port_mid_run_is_one_line_and_status_2(capsys) -> None:
     assert status == [2]
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "serial port" in err and "Traceback" not in err, err
+
+
+@pytest.mark.parametrize("argv", [
+    ["run", "--backend", "dynamixel", "--hand", "planar", "--map", "profile:smooth:20"],
+    ["run", "--backend", "dynamixel", "--hand", "three-finger", "--object", "keyed"],
+])
+def test_a_missing_port_is_refused_before_the_run_prints(argv, tmp_path, capsys) -> None:
+    """A port that does not exist is told before the run's header, in one line."""
+    assert main([*argv, "--port", str(tmp_path / "ttyUSB9")]) == 2
+    captured = capsys.readouterr()
+    assert captured.out == ""
+    assert captured.err.count("\n") == 1 and "ttyUSB9" in captured.err
+    assert "adapter plugged in" in captured.err
