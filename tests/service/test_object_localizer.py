@@ -181,6 +181,52 @@ def _no_offset(ctx, poses, points, radii, sd, temper):
                                                     ctx.outlier_range)
 
 
+def _unchecked(*args):
+    """The whole-object check switched off: no pose beyond the leader's tolerance."""
+    return 1.0, None, np.empty((0, 3))
+
+
+@pytest.mark.parametrize("checked", [True, False])
+def test_a_pose_the_pool_lost_is_weighed_before_a_declaration(monkeypatch, checked):
+    """blob:12, seed 12, one finger on the clamped object: the pool kept a pose 177
+    degrees off and lost the truth, which fitted the readings 2.7 nats better; the pose
+    was declared at 0.9997 at step 12. The whole-object check finds the truth through the
+    first reading, refuses, and hands it to the tracks and the pool: the finger localizes
+    it. Without the check, the wrong pose."""
+    if not checked:
+        monkeypatch.setattr(object_judge, "_whole_object", _unchecked)
+    report = simulate_hand(HandSettings(object="blob:12", hand="two-finger", seed=12,
+                                        noise=True, max_steps=20, single_finger=True))
+    assert report.score.wrong_declaration != checked
+    assert report.score.success == checked
+
+
+def test_the_whole_object_check_finds_every_pose_that_fits():
+    """Readings taken at a known pose: the best pose beyond the tolerance of a wrong
+    leader is the truth, found anywhere on the object (a leader a half turn away)."""
+    from service.localization.localizers.object_certificate import rivals_beyond
+
+    parts = load_parts(THREE)
+    truth = np.array([0.001, -0.002, 0.7])
+    outline, normals = parts.contour.resampled(0.004)
+    local = (outline + 0.008 * normals)[::7][:9]  # tip centres on the outline, object frame
+    c, s = np.cos(truth[2]), np.sin(truth[2])
+    points = np.column_stack([c * local[:, 0] - s * local[:, 1] + truth[0],
+                              s * local[:, 0] + c * local[:, 1] + truth[1]])
+    leader = truth + np.array([0.0, 0.0, np.pi])
+    found = rivals_beyond(parts.field, points, np.full(len(points), 0.008), leader, sd=2e-4,
+                          outlier_probability=0.02, outlier_range=0.05,
+                          position_tol=0.0025, heading_tol=np.deg2rad(5.0))
+    assert len(found)
+    position, heading = pose_error(found[0], truth)
+    assert position < 2e-4 and heading < np.deg2rad(0.5)
+    none = rivals_beyond(parts.field, points, np.full(len(points), 0.008), truth, sd=2e-4,
+                         outlier_probability=0.02, outlier_range=0.05,
+                         position_tol=0.0025, heading_tol=np.deg2rad(5.0))
+    assert all(pose_error(p, truth)[0] > 0.0025 or pose_error(p, truth)[1] > np.deg2rad(5)
+               for p in none)  # what it finds beside the truth lies beyond the tolerance
+
+
 @pytest.mark.parametrize("offset", [True, False])
 def test_readings_off_the_truth_alike_are_not_read_as_another_pose(monkeypatch, offset):
     """rounded:8, seed 8, three fingers from a 2 N start: the world's outline lies outside
@@ -191,9 +237,10 @@ def test_readings_off_the_truth_alike_are_not_read_as_another_pose(monkeypatch, 
     drew on the model's outline then (`FOUND_START`), the gate without its allowance for
     the world's slope (`grasp_gated.TILT`)."""
     monkeypatch.setattr(grasp_gated, "TILT", 0.0)
-    if not offset:  # neither in the comparison nor in the fit
+    if not offset:  # neither in the comparison nor in the fit (nor the whole-object check)
         monkeypatch.setattr(object_judge, "_offset_log_likelihood", _no_offset)
         monkeypatch.setattr(object_judge, "_offset_refit", lambda *args: args[4])
+        monkeypatch.setattr(object_judge, "_whole_object", _unchecked)
     report = simulate_hand(HandSettings(object="rounded:8", hand="three-finger", seed=8,
                                         noise=True, max_steps=23, start_n=2.0,
                                         start=FOUND_START))

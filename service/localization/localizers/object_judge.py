@@ -17,7 +17,7 @@ and it agrees with the previous update's.
 from __future__ import annotations
 
 import dataclasses
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -33,10 +33,15 @@ from service.localization.localizers.contour_fit import (
 from service.localization.localizers.convergence import ConvergenceRule, distinct
 from service.localization.localizers.fitting import log_likelihood
 from service.localization.localizers.object_base import ObjectContext, carry_poses
+from service.localization.localizers.object_certificate import rivals_beyond
 from service.localization.localizers.refine import Fit
 from service.localization.objects.symmetry import images
 
 REFINED_RIVALS = 2
+ADOPT = 1e-3
+"""Least weight, relative to the leader's, at which a pose the whole-object check found
+(`object_certificate`) joins the tracks: the localizer had lost it, and the next updates
+must weigh it."""
 CARRIED_SD = 1e-4
 """Metres: the least sd a carry adds to the readings it moves. They move with the track's
 pose, fitted then on the few readings it had, not with the truth's; without noise the
@@ -128,6 +133,25 @@ class ObjectTracks:
         self.centres = moved
         self.carries = self.carries + 1
 
+    def adopt(self, ctx: ObjectContext, poses: np.ndarray, points: np.ndarray,
+              radii: np.ndarray, *, sd: float, position_tol: float, heading_tol: float
+              ) -> None:
+        """Track `poses` the localizer never kept (found by the whole-object check), far
+        from every track, with the best track's prior: what a track carried cannot be
+        asked of them, so they are not held to it."""
+        if len(poses) == 0:
+            return
+        fresh = poses[~np.any(near(poses, self.centres, 2 * position_tol, 2 * heading_tol),
+                              axis=1)][:max(self.limit - len(self.centres), 0)]
+        if len(fresh) == 0:
+            return
+        self.centres = np.vstack([self.centres, fresh])
+        self.prior = np.concatenate([self.prior, np.full(len(fresh), self.prior.max())])
+        self.ll = np.concatenate([self.ll, fit_log_likelihood(
+            ctx.field, fresh, points, radii, sd, ctx.outlier_probability, ctx.outlier_range)])
+        self.felt += [np.empty((0, 4)) for _ in fresh]
+        self.carries = np.concatenate([self.carries, np.zeros(len(fresh), dtype=np.int64)])
+
     def history(self, i: int, points: np.ndarray, radii: np.ndarray, sigma: float
                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Track i's readings: what it felt before (where its motions put them), then the
@@ -162,6 +186,9 @@ class ObjectVerdict:
     runner_up: tuple[float, float, float] | None
     runner_up_mass: float
     converged: bool
+    found: np.ndarray = field(default_factory=lambda: np.empty((0, 3)))
+    """Poses the whole-object check found that the tracks did not hold (`_whole_object`):
+    a localizer that lost them should weigh them again."""
 
 
 def judge(ctx: ObjectContext, points: np.ndarray, radii: np.ndarray, tracks: ObjectTracks, *,
@@ -235,7 +262,40 @@ def judge(ctx: ObjectContext, points: np.ndarray, radii: np.ndarray, tracks: Obj
         converged &= not noisy or previous is not None and bool(near(
             np.asarray([fit.pose]), np.asarray([previous]), rule.max_position_sd * scale,
             rule.max_heading_sd)[0, 0])
-    return ObjectVerdict(fit, mass, runner, runner_mass, bool(converged))
+    found = np.empty((0, 3))
+    if converged:  # last, as it costs most: every pose the readings allow
+        share, heaviest, found = _whole_object(ctx, points, radii, fit, temper)
+        if share < rule.mode_mass:
+            converged = False
+            mass = min(mass, share)
+            if heaviest is not None and 1.0 - share > runner_mass:
+                runner, runner_mass = heaviest, 1.0 - share
+        sd_tracks = max(sigma, 0.002 * scale)
+        tracks.adopt(ctx, found, points, radii, sd=sd_tracks, position_tol=tol_pos,
+                     heading_tol=tol_head)
+    return ObjectVerdict(fit, mass, runner, runner_mass, bool(converged), found)
+
+
+def _whole_object(ctx: ObjectContext, points: np.ndarray, radii: np.ndarray, fit: Fit,
+                  temper: float
+                  ) -> tuple[float, tuple[float, float, float] | None, np.ndarray]:
+    """The leader's share against the poses beyond its tolerance that explain the
+    readings best anywhere on the object (`object_certificate.rivals_beyond`), weighed as
+    the final comparison weighs its rivals; the heaviest of them; and those that keep at
+    least `ADOPT` of the leader's weight, heaviest first."""
+    sd = max(ctx.sigma, 0.002 * ctx.scale)
+    found = rivals_beyond(ctx.field, points, radii, np.asarray(fit.pose), sd=sd,
+                          outlier_probability=ctx.outlier_probability,
+                          outlier_range=ctx.outlier_range, position_tol=0.25 * ctx.scale,
+                          heading_tol=float(np.deg2rad(5.0)))
+    if len(found) == 0:
+        return 1.0, None, found
+    ll = _offset_log_likelihood(ctx, np.vstack([np.asarray(fit.pose), found]), points, radii,
+                                sd, temper)
+    w = np.exp(ll[1:] - ll[0])
+    order = np.argsort(-w, kind="stable")
+    heaviest = tuple(float(v) for v in found[order[0]])
+    return float(1.0 / (1.0 + w.sum())), heaviest, found[order[w[order] >= ADOPT]]
 
 
 def _rivals_beside(ctx: ObjectContext, tracks: ObjectTracks, leader: int, fit: Fit,

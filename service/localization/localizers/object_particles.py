@@ -324,7 +324,8 @@ class ObjectParticles(TrackJudged):
         if v.fit is not None and len(self.points):
             best = int(np.argmax(self.tracks.total)) if len(self.tracks.centres) else None
             prior = 0.0 if best is None else self.tracks.prior[best]
-            self._add(np.asarray([v.fit.pose]), np.array([prior]))
+            found = np.vstack([np.asarray([v.fit.pose]), v.found])  # and what the pool lost
+            self._add(found, np.full(len(found), prior))
 
     # -- helpers ---------------------------------------------------------------------------
     def _consistent(self, point: np.ndarray, radius: np.ndarray, count: int) -> np.ndarray:

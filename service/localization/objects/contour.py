@@ -8,6 +8,7 @@ not cross itself), of plausible size in metres.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -67,8 +68,10 @@ class Contour:
         proj = hull @ normals.T
         return float(np.min(proj.max(axis=0) - proj.min(axis=0)))
 
+    @functools.lru_cache(maxsize=64)  # noqa: B019 - a few contours per process, kept alive anyway
     def resampled(self, spacing: float) -> tuple[np.ndarray, np.ndarray]:
-        """Points (M, 2) every `spacing` metres of arc, and their outward unit normals."""
+        """Points (M, 2) every `spacing` metres of arc, and their outward unit normals.
+        Cached (read-only arrays): the whole-object check asks for them every declaration."""
         ring = self.polygon.exterior
         count = max(8, int(np.ceil(ring.length / spacing)))
         distances = np.linspace(0.0, ring.length, count, endpoint=False)
@@ -79,7 +82,10 @@ class Contour:
             shapely.line_interpolate_point(ring, (distances - 0.25 * spacing) % ring.length))
         tangent = ahead - behind
         tangent /= np.maximum(np.hypot(tangent[:, 0], tangent[:, 1]), 1e-300)[:, None]
-        return pts, np.column_stack([tangent[:, 1], -tangent[:, 0]])  # CCW: outward is right
+        normals = np.column_stack([tangent[:, 1], -tangent[:, 0]])  # CCW: outward is right
+        pts.setflags(write=False)
+        normals.setflags(write=False)
+        return pts, normals
 
 
 def make_contour(points: np.ndarray, name: str = "object", *, closed: bool = False
