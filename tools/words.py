@@ -92,8 +92,8 @@ def hand_step_text(step: dict) -> str:
         what += " (blocked)"
     predicted, quality = step.get("predicted_quality"), step.get("quality")
     return (f"step {step['index']:3d}  {what:<26}  candidates {step['candidates']:5d}  "
-            f"predicted {_newtons(predicted)}"
-            f"{'' if quality is None else f'  quality {_newtons(quality)}'}  "
+            f"{'' if predicted is None else f'predicted {_newtons(predicted)}  '}"
+            f"{'' if quality is None else f'quality {_newtons(quality)}  '}"
             f"{step['compute_ms']:6.2f} ms")
 
 

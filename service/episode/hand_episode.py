@@ -212,6 +212,7 @@ def simulate_hand(settings: HandSettings, parts: HandParts | None = None, *,
         if on_step:
             on_step(step)
 
+    unknown_quality = settings.single_finger or world is None  # clamped: no grasp to judge
     hand.open()
     try:
         hand.set_torque(True)
@@ -219,14 +220,13 @@ def simulate_hand(settings: HandSettings, parts: HandParts | None = None, *,
         result = run_hand_episode(hand, localizer, build_policy(settings), parts, settings,
                                   on_step=record,
                                   truth=None if world is None else lambda: world.pose,
-                                  quality=None if world is None else lambda: world.quality)
+                                  quality=None if unknown_quality else lambda: world.quality)
         if 0 in snapshot_steps:
             snapshots.setdefault(0, localizer.hypotheses(limit=SNAPSHOT_LIMIT))
     finally:
         hand.close()
     truth = world.pose if world is not None else start
     known = world is not None or not any(s.kind == "manipulate" for s in result.steps)
-    unknown_quality = settings.single_finger or world is None
     return HandEpisodeReport(settings=settings, start=start, truth=truth, result=result,
                              score=score(result.estimate, truth, result.dropped) if known
                              else HandScore(None, None, False, False),

@@ -92,3 +92,14 @@ def test_a_hand_run_out_of_steps_says_why(capsys):
     out = capsys.readouterr().out
     assert "not localized after 2 steps: out of steps (2 of at most 2)" in out
     assert "still ambiguous between" in out or "not yet clear of the rest" in out
+
+
+def test_a_clamped_object_shows_no_grasp_quality(tmp_path, capsys):
+    """One finger on a clamped object holds no grasp: its steps printed the quality of a
+    one-finger grasp (-0.31 N on blob:12), which means nothing there."""
+    out = tmp_path / "run.json"
+    assert main(["run", "--object", "blob:12", "--hand", "two-finger", "--single-finger",
+                 "--noise", "--seed", "12", "--max-steps", "3", "--json", str(out)]) == 0
+    steps = [line for line in capsys.readouterr().out.splitlines() if line.startswith("step")]
+    assert steps and not any("quality" in line for line in steps)
+    assert all(s["quality"] is None for s in json.loads(out.read_text())["steps"])
