@@ -89,7 +89,8 @@ def episode(settings) -> dict[str, Any]:
             "heading_error_deg": (None if report.score.heading_error is None
                                   else math.degrees(report.score.heading_error)),
             "compute_ms_after_first": [s.compute_ms for s in steps[1:] if s.compute_ms > 0],
-            "policy_ms": [s.policy_ms for s in steps]}
+            "policy_ms": [s.policy_ms for s in steps],
+            "settle_ms": [s.settle_ms for s in steps if s.settle_ms > 0]}
 
 
 def _summary(outcomes: Sequence[dict[str, Any]]) -> dict[str, Any]:
@@ -107,6 +108,8 @@ def _summary(outcomes: Sequence[dict[str, Any]]) -> dict[str, Any]:
         "compute_ms_after_first_median": percentile(later, 50),
         "compute_ms_after_first_p99": percentile(later, 99),
         "policy_ms_p99": percentile([ms for o in outcomes for ms in o["policy_ms"]], 99),
+        "settles": int(sum(len(o["settle_ms"]) for o in outcomes)),
+        "settle_ms_p99": percentile([ms for o in outcomes for ms in o["settle_ms"]], 99),
     }
 
 
@@ -209,7 +212,9 @@ def _print(table: dict, summary: dict, hands, families, kinds) -> None:
                   + (f"  | no gate: drops {ablation['drops']}" if ablation else ""))
     print(f"all gated runs: {summary['runs']} runs, {summary['successes']} successes, "
           f"{summary['wrong_declarations']} wrong, {summary['drops']} drops; compute after "
-          f"the first step p99 {fmt(summary['compute_ms_after_first_p99'])} ms"
+          f"the first step p99 {fmt(summary['compute_ms_after_first_p99'])} ms; the check "
+          f"of the whole object before a declaration, between update and move, "
+          f"{summary['settles']} times, p99 {fmt(summary['settle_ms_p99'])} ms"
           + (f"; without the gate {summary['ablation_drops']} drops"
              if "ablation_drops" in summary else ""))
 

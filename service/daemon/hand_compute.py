@@ -64,7 +64,8 @@ def setup(fields: dict[str, Any], backend: str) -> tuple[HandScenario, dict[str,
             raise  # a preset: its error says nothing about files
         raise quiet_file_error("object", settings.object, exc, "an outline this hand can "
                                "hold (x,z rows in metres, closed, or a mesh the plane cuts)",
-                               ObjectError) from None
+                               ObjectError, hint="; a file in millimetres needs "
+                               "scenario.object_units = \"mm\"") from None
     loc_rng = streams(settings.seed)[2]
     truth = seeded_world(settings, parts)[0] if backend == "sim" else None
     return HandScenario(settings, parts, loc_rng), {
@@ -118,8 +119,15 @@ class HandEpisode:
                     return None
             stepper.updated()
         compute_ms = (time.monotonic_ns() - t0) / 1e6
+        settle_ms = 0.0
+        if measurement is not None and stepper.estimate.pending:
+            settled = time.monotonic_ns()
+            if not stepper.settle(interrupted):
+                return None  # a newer request cut the check short
+            settle_ms = (time.monotonic_ns() - settled) / 1e6
         quality = reading.get("quality")
         record = stepper.record(step, self.decision, state, compute_ms=compute_ms,
+                                settle_ms=settle_ms,
                                 quality=float("nan") if quality is None else float(quality),
                                 truth=reading.get("truth"))
         events = [("step", step_json(record))]

@@ -91,7 +91,7 @@ def run_hand_episode(hand: Any, localizer: Any, policy: GraspGatedPolicy, parts:
         state = execute(hand, decision.command)
         result.dropped = result.dropped or state.dropped
         measurement = stepper.observe(index, decision, state)
-        compute_ms = 0.0
+        compute_ms = settle_ms = 0.0
         if measurement is not None:
             t0 = time.perf_counter()
             localizer.begin_update(measurement)
@@ -99,7 +99,11 @@ def run_hand_episode(hand: Any, localizer: Any, policy: GraspGatedPolicy, parts:
                 pass
             compute_ms = (time.perf_counter() - t0) * 1e3
             stepper.updated()
+            t0 = time.perf_counter()
+            if stepper.settle():  # the check a declaration waits on, before another move
+                settle_ms = (time.perf_counter() - t0) * 1e3
         record = stepper.record(index, decision, state, compute_ms=compute_ms,
+                                settle_ms=settle_ms,
                                 quality=float("nan") if quality is None else quality(),
                                 truth=None if truth is None else truth())
         result.steps.append(record)

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -18,12 +19,14 @@ import numpy as np
 
 from firmware_if.backend import HandState
 from service.episode.hand_scenario import HandParts, HandSettings
-from service.localization.localizers.base import Estimate
+from service.localization.localizers.base import Budget, Estimate
 from service.localization.localizers.object_base import HandMeasurement
 from service.localization.policies.grasp_gated import GraspGatedPolicy, HandDecision, HandView
 
 POLICY_HYPOTHESES = 500
 """Heaviest hypotheses the policy is shown."""
+SETTLE_SLICE_S = 0.002
+"""Seconds of the settle's work between checks whether a newer request cut it short."""
 
 
 @dataclass(frozen=True)
@@ -43,6 +46,9 @@ class HandStepRecord:
     candidates: int
     compute_ms: float
     policy_ms: float
+    settle_ms: float
+    """The whole-object check a declaration waited on, run after the update and before the
+    next move (`HandStepper.settle`); 0 when none waited."""
     estimate: tuple[float, float, float] | None
     truth: tuple[float, float, float] | None
 
@@ -126,8 +132,20 @@ class HandStepper:
         """The localizer finished taking in a measurement."""
         self.estimate = self.localizer.estimate()
 
+    def settle(self, interrupted: Callable[[], bool] = lambda: False) -> bool:
+        """Run the check a declaration waits on (`Estimate.pending`), if any, before the
+        next move: True if one ran (and the estimate is judged again), False if none waited
+        or `interrupted` cut it short."""
+        if not self.estimate.pending:
+            return False
+        while not self.localizer.background(Budget.seconds(SETTLE_SLICE_S)):
+            if interrupted():
+                return False
+        self.estimate = self.localizer.estimate()
+        return True
+
     def record(self, index: int, decision: HandDecision, state: HandState, *,
-               compute_ms: float, quality: float = float("nan"),
+               compute_ms: float, settle_ms: float = 0.0, quality: float = float("nan"),
                truth: tuple[float, float, float] | None = None) -> HandStepRecord:
         return HandStepRecord(
             index=index, kind=decision.kind, finger=decision.finger,
@@ -137,7 +155,8 @@ class HandStepper:
             blocked=self.was_blocked(decision, state),
             predicted_quality=decision.predicted_quality, quality=quality,
             candidates=self.estimate.candidates, compute_ms=compute_ms,
-            policy_ms=self.policy_ms, estimate=self.estimate.pose, truth=truth)
+            policy_ms=self.policy_ms, settle_ms=settle_ms, estimate=self.estimate.pose,
+            truth=truth)
 
 
 def json_number(v: float | None) -> float | None:
@@ -153,5 +172,6 @@ def step_json(s: HandStepRecord) -> dict[str, Any]:
             "predicted_quality": json_number(s.predicted_quality),
             "quality": json_number(s.quality),
             "candidates": s.candidates, "compute_ms": s.compute_ms, "policy_ms": s.policy_ms,
+            "settle_ms": s.settle_ms,
             "estimate": None if s.estimate is None else list(s.estimate),
             "truth": None if s.truth is None else list(s.truth)}

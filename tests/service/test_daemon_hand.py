@@ -25,7 +25,7 @@ from service.wire.client import CommandFailed, Controller, Subscriber
 
 HAND = {"object": "blob", "hand": "three-finger", "noise": True, "seed": 0, "max_steps": 12}
 """Seed 0 converges in 7 steps (`haptic run --object blob --hand three-finger --noise`)."""
-TIMINGS = ("compute_ms", "policy_ms")
+TIMINGS = ("compute_ms", "policy_ms", "settle_ms")
 
 
 @pytest.fixture(scope="module")

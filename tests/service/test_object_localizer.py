@@ -201,6 +201,24 @@ def test_a_pose_the_pool_lost_is_weighed_before_a_declaration(monkeypatch, check
     assert report.score.success == checked
 
 
+def test_the_whole_object_check_waits_between_the_update_and_the_next_move(monkeypatch):
+    """The check costs a few milliseconds: it runs as the finger's certificate does, after
+    the update and before the next move (`HandStepper.settle`), so the update stays
+    bounded; a declaration it allows costs no move."""
+    calls = []
+    check = object_judge._whole_object
+
+    def counted(*args):
+        calls.append(len(args[1]))
+        return check(*args)
+
+    monkeypatch.setattr(object_judge, "_whole_object", counted)
+    report = simulate_hand(THREE)
+    assert report.result.converged and report.score.success and calls
+    settled = [s for s in report.result.steps if s.settle_ms > 0]
+    assert len(settled) == len(calls) and settled[-1] is report.result.steps[-1]
+
+
 def test_the_whole_object_check_finds_every_pose_that_fits():
     """Readings taken at a known pose: the best pose beyond the tolerance of a wrong
     leader is the truth, found anywhere on the object (a leader a half turn away)."""

@@ -23,31 +23,33 @@ from service.localization.localizers.convergence import distinct
 from service.localization.localizers.fitting import log_likelihood
 from service.localization.objects.field import ContactField
 
-HEADING_STEP = float(np.deg2rad(4.0))
-ARC_STEP = 0.0015
+HEADING_STEP = float(np.deg2rad(5.0))
+ARC_STEP = 0.002
 """Metres of outline between the grid's contact points."""
-SCREEN = 12
+SCREEN = 6
 """Most readings the grid is screened on (spread over the episode, the first included)."""
 SCREENED = 256
 """Best screened poses the distinct candidates are drawn from."""
-TOP = 24
+TOP = 16
 """Distinct candidates polished onto every reading."""
-POLISH = 10
+POLISH = 8
 """Gauss-Newton steps a candidate takes."""
 
 
 def rivals_beyond(field: ContactField, points: np.ndarray, radii: np.ndarray,
-                  pose: np.ndarray, *, sd: float, outlier_probability: float,
+                  pose: np.ndarray, *, sd: float | np.ndarray, outlier_probability: float,
                   outlier_range: float, position_tol: float, heading_tol: float
                   ) -> np.ndarray:
-    """The poses (k, 3), polished onto every reading, that explain `points` best among
-    those further than the tolerance from `pose` (in place or in heading), best first."""
+    """The poses (k, 3), polished onto every reading, that explain `points` (each of sd
+    `sd`) best among those further than the tolerance from `pose` (in place or in
+    heading), best first."""
     if len(points) == 0:
         return np.empty((0, 3))
+    sd = np.broadcast_to(np.asarray(sd, dtype=np.float64), (len(points),))
     poses = poses_through(field, points[0], float(radii[0]), HEADING_STEP, ARC_STEP)
     use = np.unique(np.linspace(0, len(points) - 1, min(SCREEN, len(points))).astype(int))
     lever = np.hypot(*(points[use] - points[0]).T)
-    wide = np.sqrt(sd**2 + (lever * HEADING_STEP / 2) ** 2 + (ARC_STEP / 2) ** 2)
+    wide = np.sqrt(sd[use] ** 2 + (lever * HEADING_STEP / 2) ** 2 + (ARC_STEP / 2) ** 2)
     r = residuals(field, poses, points[use], radii[use])
     score = log_likelihood(r, np.ones(r.shape, dtype=bool), wide, outlier_probability,
                            outlier_range)
@@ -59,8 +61,8 @@ def rivals_beyond(field: ContactField, points: np.ndarray, radii: np.ndarray,
         return np.empty((0, 3))
     best = best[np.argsort(-score[best], kind="stable")]
     keep = best[distinct(poses[best], score[best], position_tol, heading_tol)][:TOP]
-    polished = gauss_newton(field, poses[keep], points, radii, iterations=POLISH,
-                            max_move=position_tol)
+    polished = gauss_newton(field, poses[keep], points, radii, 1.0 / sd**2,
+                            iterations=POLISH, max_move=position_tol)
     return polished[_beyond(polished, pose, position_tol, heading_tol)]
 
 

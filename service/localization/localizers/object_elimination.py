@@ -75,7 +75,7 @@ class ObjectElimination(TrackJudged):
         self.fit: Fit | None = None
         self.converged = False
         self.mode_mass, self.runner_up, self.runner_up_mass = 0.0, None, 0.0
-        self._pending: HandMeasurement | None = None
+        self._queued: HandMeasurement | None = None
 
     def start(self, first: HandMeasurement) -> None:
         centres = np.asarray(first.centres, dtype=np.float64)
@@ -89,12 +89,13 @@ class ObjectElimination(TrackJudged):
         self.work(Budget.unlimited())
 
     def begin_update(self, measurement: HandMeasurement) -> None:
-        self._pending = measurement
+        self._awaiting = None  # a check of the last verdict: new readings make a new one
+        self._queued = measurement
 
     def work(self, budget: Budget) -> bool:
         """One update per call: the table shrinks fast, so a slice is short."""
-        if self._pending is not None:
-            m, self._pending = self._pending, None
+        if self._queued is not None:
+            m, self._queued = self._queued, None
             self._update(m)
         return True
 
@@ -140,7 +141,8 @@ class ObjectElimination(TrackJudged):
             return Estimate(pose=self.fit.pose, candidates=len(self.poses),
                             converged=self.converged, position_sd=self.fit.position_sd,
                             heading_sd=self.fit.heading_sd, mode_mass=self.mode_mass,
-                            runner_up=self.runner_up, runner_up_mass=self.runner_up_mass)
+                            runner_up=self.runner_up, runner_up_mass=self.runner_up_mass,
+                            pending=self.pending)
         if len(self.poses) == 0:
             return Estimate(pose=None, candidates=0, converged=False)
         pos_sd, head_sd = pose_spread(self.poses)

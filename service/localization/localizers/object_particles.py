@@ -121,6 +121,7 @@ class ObjectParticles(TrackJudged):
         self.work(Budget.unlimited())
 
     def begin_update(self, measurement: HandMeasurement) -> None:
+        self._awaiting = None  # a check of the last verdict: new readings make a new one
         self._job = AnytimeJob(lambda job: self._update(job, measurement))
 
     def work(self, budget: Budget) -> bool:
@@ -324,8 +325,13 @@ class ObjectParticles(TrackJudged):
         if v.fit is not None and len(self.points):
             best = int(np.argmax(self.tracks.total)) if len(self.tracks.centres) else None
             prior = 0.0 if best is None else self.tracks.prior[best]
-            found = np.vstack([np.asarray([v.fit.pose]), v.found])  # and what the pool lost
-            self._add(found, np.full(len(found), prior))
+            self._add(np.asarray([v.fit.pose]), np.array([prior]))
+
+    def _found(self, poses: np.ndarray) -> None:
+        """Poses the whole-object check found join the pool, with the best track's prior."""
+        best = int(np.argmax(self.tracks.total)) if len(self.tracks.centres) else None
+        prior = 0.0 if best is None else self.tracks.prior[best]
+        self._add(poses, np.full(len(poses), prior))
 
     # -- helpers ---------------------------------------------------------------------------
     def _consistent(self, point: np.ndarray, radius: np.ndarray, count: int) -> np.ndarray:
@@ -354,7 +360,8 @@ class ObjectParticles(TrackJudged):
             pos_sd, head_sd = pose_spread(self.poses, w)
         return Estimate(pose=pose, candidates=len(self.poses), converged=self.converged,
                         position_sd=pos_sd, heading_sd=head_sd, mode_mass=self.mode_mass,
-                        runner_up=self.runner_up, runner_up_mass=self.runner_up_mass)
+                        runner_up=self.runner_up, runner_up_mass=self.runner_up_mass,
+                        pending=self.pending)
 
     def hypotheses(self, limit: int | None = None) -> Hypotheses:
         """Members weighted at the sensor's own sd (not the range-widened one the pool
