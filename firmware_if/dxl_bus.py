@@ -426,8 +426,10 @@ class DxlBus:
             return ("; no servo answers a ping: check the bus power and the adapter, and that "
                     "replies are not late (a USB adapter's latency timer, 16 ms by default "
                     "on FTDI, should be 1 ms: `haptic bus check` tells)")
-        return (f"; servo {', '.join(map(str, silent))} does not answer a ping: check its "
-                f"cable and power")
+        if len(silent) == 1:
+            return f"; servo {silent[0]} does not answer a ping: check its cable and power"
+        return (f"; servos {', '.join(map(str, silent))} do not answer a ping: check their "
+                "cables and power")
 
     def _latch(self, reason: str) -> None:
         self.fault = reason

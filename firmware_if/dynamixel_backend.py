@@ -142,6 +142,13 @@ class DynamixelBackend(HandOfOne):
         self.bus.detect_fast_read()
         self._state = self._tolerant_read()
 
+    def _settings_hold(self) -> None:
+        """Every servo's settings read back, and written again where one differs, before
+        torque goes on: a servo that restarted while torque was off (a brown-out) answers as
+        before with its RAM at defaults (goal current, profile), and the torque check
+        (`TORQUE_CHECK_CYCLES`) cannot tell while torque is meant to be off."""
+        self.bus.configure(self.servo_settings(), verify=True)
+
     def _tolerant_read(self) -> FingerState:
         """A reading outside the control cycle (the first, the one torque on starts from),
         allowing the bus's usual tolerance of missed cycles."""
@@ -177,6 +184,7 @@ class DynamixelBackend(HandOfOne):
             return
         if self._fault:
             raise HardwareFault(f"cannot enable torque while faulted: {self._fault}; reset first")
+        self._settings_hold()
         state = self._tolerant_read()  # one missed reply (a loaded host) fails nothing else
         self.bus.write_goals(self._goal_ticks(np.asarray(state.joints)))
         self.bus.torque(True)

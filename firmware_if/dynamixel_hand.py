@@ -90,6 +90,7 @@ class DynamixelHand(PlanarHand, DynamixelBackend):  # type: ignore[misc]
             return
         if self._fault:
             raise HardwareFault(f"cannot enable torque while faulted: {self._fault}; reset first")
+        self._settings_hold()
         state = self._tolerant_read()
         goals: dict[int, int] = {}
         for i, (finger, f) in enumerate(zip(self.fingers, state.fingers, strict=True)):

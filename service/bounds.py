@@ -44,7 +44,9 @@ class Bound:
     def describe(self) -> str:
         unit = UNITS.get(self.unit, self.unit)
         what = {"int": "an integer", "float": "a number", "bool": "true or false",
-                "str": "a string", "vec3": "three numbers", "options": "a table"}[self.kind]
+                "str": "a string", "vec3": "three numbers",
+                "options": "a table of names to numbers, true/false or strings (at most 64)"
+                }[self.kind]
         if self.kind in ("int", "float", "vec3") and self.lo is not None:
             number = "{:d}" if self.kind == "int" else "{:g}"
             what += f" in [{number.format(self.lo)}, {number.format(self.hi)}]"
@@ -67,8 +69,17 @@ class Bound:
             choices = self._choices()
             ok = not choices or normal in choices
         if not ok:
-            raise ConfigError(f"{name} must be {self.describe()}, got {_show(value)}")
+            raise ConfigError(f"{name} must be {self.describe()}, got {_show(value)}"
+                              f"{self._millimetres_hint(value)}")
         return normal
+
+    def _millimetres_hint(self, value: Any) -> str:
+        """A length given in millimetres by mistake: what it is in metres, when that fits."""
+        if self.unit != "m" or self.kind != "float" or not _is_number(value) or value < 1:
+            return ""
+        metres = float(value) / 1000
+        return (f"; lengths are metres: for {value:g} mm give {metres:g}"
+                if _in_range(self, metres) else "")
 
 
 def _in_range(bound: Bound, x: float) -> bool:

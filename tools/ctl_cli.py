@@ -328,7 +328,8 @@ class Follower:
             return self._outcome(est)
         if name in ("fault", "stopped", "shutdown"):
             why = ev.get("reason") or ev.get("state")
-            print(f"haptic explore: the daemon {name}: {why}", file=sys.stderr)
+            said = {"fault": "faulted", "stopped": "stopped", "shutdown": "shut down"}[name]
+            print(f"haptic explore: the daemon {said}: {why}", file=sys.stderr)
             return 1
         return None
 

@@ -85,7 +85,8 @@ class CommandHandlers:
                      and port == self.config.backend.options.get("port"))
         self.reconf = Reconfiguration(new, settings, self.link, deferred,
                                       rebuild_backend=rebuild, fault_count=self.faults,
-                                      release=self.backend if rebuild and same_port else None)
+                                      release=self.backend if rebuild and same_port else None,
+                                      recover=self.lifecycle.state is State.FAULT)
         return deferred
 
     def _commit(self: Node, rc: Reconfiguration) -> None:
@@ -121,7 +122,10 @@ class CommandHandlers:
         self._apply_priority()  # commit runs in the loop's thread
         self._transition("configure")
         self._read()  # a first reading now, so the finger may be activated at once
-        rc.deferred.resolve({"state": self.lifecycle.state.value, "warnings": rc.warnings})
+        for line in rc.rebooted:
+            logging.getLogger("hapticd").warning("configure: %s", line)
+        rc.deferred.resolve({"state": self.lifecycle.state.value, "warnings": rc.warnings,
+                             "rebooted": rc.rebooted})
 
     def activate(self: Node) -> dict[str, Any]:
         if self.lifecycle.state is State.UNCONFIGURED and self.configure_error:

@@ -63,7 +63,10 @@ class Lifecycle:
         old = self.state
         self.state = new
         if event == "fault":
-            self.fault = reason or self.fault or "fault"
+            if old is State.FAULT and self.fault and reason and reason not in self.fault:
+                self.fault = f"{self.fault}; then {reason}"  # the first cause is kept
+            else:
+                self.fault = reason or self.fault or "fault"
         elif event in ("reset", "shutdown", "configure"):
             self.fault = None
         if event in ("configure", "reset", "shutdown"):

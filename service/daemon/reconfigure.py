@@ -24,7 +24,7 @@ from typing import Any
 import numpy as np
 
 from firmware_if.backend import Backend
-from firmware_if.errors import HandConfigError
+from firmware_if.errors import HandConfigError, HardwareFault
 from service.bounds import keyword_params
 from service.daemon.config import BACKEND_BUILDER_ARGS, DaemonConfig
 from service.daemon.quiet_files import quiet_hand_error
@@ -49,8 +49,12 @@ class Stage(StrEnum):
 class Reconfiguration:
     def __init__(self, new: DaemonConfig, settings: RunSettings, link: WorkerLink,
                  deferred: Deferred, *, rebuild_backend: bool, fault_count: int,
-                 release: Backend | None = None) -> None:
+                 release: Backend | None = None, recover: bool = False) -> None:
         self.new = new
+        self.recover = recover
+        """Configured in fault: a servo's hardware error is cleared as `reset` does (the
+        servo rebooted, named in `rebooted`), not a reason to fail."""
+        self.rebooted: list[str] = []
         self.release = release
         """The old backend, when the new one opens its port: a serial port opens once, so
         the old one lets it go first, and opens it again if the new one fails."""
@@ -108,7 +112,12 @@ class Reconfiguration:
         try:
             backend = make_backend(self.new, self.settings, self.truth, self._world)
             try:
-                backend.open()
+                try:
+                    backend.open()
+                except HardwareFault:
+                    if not self.recover:
+                        raise
+                    self.rebooted = backend.clear_fault()  # as reset does
             except BaseException:
                 with contextlib.suppress(Exception):
                     backend.close()

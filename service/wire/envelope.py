@@ -227,7 +227,8 @@ def check_envelope(obj: dict[str, Any], *, need_seq: bool = True,
     `versions`)."""
     v = obj.get("v")
     if type(v) is not int or v not in versions:  # `true` and `2.0` are not version 2
-        raise WireError("bad_version", f"schema version {v!r} is not supported: this "
+        said = "carries no schema version" if v is None else f"has schema version {v!r}"
+        raise WireError("bad_version", f"the message {said}, which is not supported: this "
                         f"service speaks protocol version {VERSION} only (v={VERSION}); "
                         f"update the client to version {VERSION} (docs/protocol.md: `state` "
                         "carries per-finger `fingers` instead of `centre`) and send "

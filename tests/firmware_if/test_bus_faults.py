@@ -164,6 +164,20 @@ def test_a_servo_that_restarts_by_itself_faults_the_bus(rig) -> None:
     assert not execute_step(backend, StepCommand(0.01, 0.0)).blocked
 
 
+def test_a_servo_that_restarts_while_torque_is_off_is_set_up_before_torque_on(rig) -> None:
+    """A fault campaign's finding: `reboot 2` while the daemon was inactive went unseen (the
+    torque check runs while torque should be on), and activating put torque on a servo
+    whose goal current and profile were back at their defaults."""
+    backend, bus, _ = rig
+    opened = ram(bus)
+    bus.servos[2].reboot()
+    assert ram(bus) != opened  # RAM at defaults
+    backend.set_torque(True)
+    on = {key: 1 if key[1] == "torque_enable" else value for key, value in opened.items()}
+    assert ram(bus) == on
+    assert not execute_step(backend, StepCommand(0.01, 0.0)).blocked
+
+
 @pytest.mark.parametrize("inject", ["mute", "corrupt", "late"])
 def test_a_misbehaving_servo_faults_the_bus_and_reset_recovers(rig, inject: str) -> None:
     backend, bus, _ = rig

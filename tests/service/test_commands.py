@@ -146,6 +146,18 @@ def test_lease_is_exclusive_and_estop_is_for_everyone(node: Node) -> None:
             assert b.call("activate")["state"] == "active"
 
 
+def test_an_estop_in_fault_keeps_the_first_cause(node: Node) -> None:
+    """A fault campaign's finding: an estop while a servo's overheating was latched
+    replaced the fault's text, and the servo's diagnosis was gone."""
+    with Client(node.endpoints["cmd"]) as a, Client(node.endpoints["cmd"]) as b:
+        a.call("estop", reason="servo 2 overheated")
+        b.call("estop", reason="operator pressed stop")
+        assert b.status()["fault"] == ("estop: servo 2 overheated; then estop: operator "
+                                       "pressed stop")
+        b.call("estop", reason="operator pressed stop")  # the same again is not news
+        assert b.status()["fault"].count("operator pressed stop") == 1
+
+
 def test_retry_with_same_id_does_not_run_twice(node: Node, raw: zmq.Socket) -> None:
     payload = msgpack.packb({"v": 2, "type": "request", "id": "once", "cmd": "activate",
                              "client": "retrier"})

@@ -295,3 +295,32 @@ def test_a_radius_a_map_file_cannot_take_is_told_in_full(tmp_path: Path) -> None
         assert err.value.code == "bad_config" and "does not fit on map" in str(err.value)
         assert "cannot be used" not in str(err.value)
         assert ctl.call("get_config") == before
+
+
+def test_a_message_without_a_version_is_told_so() -> None:
+    """A fault campaign's finding: a request with no `v` was answered "schema version
+    None is not supported"."""
+    with pytest.raises(wire.WireError, match="carries no schema version"):
+        wire.check_envelope({"type": "request"}, need_seq=False)
+
+
+def test_a_bad_option_table_says_what_a_table_holds() -> None:
+    """A fault campaign's finding: {"work": [1]} was refused as "must be a table", which
+    it is; the list inside is what no option takes."""
+    from service.bounds import Bound
+
+    with pytest.raises(ConfigError, match="must be a table of names to numbers, true/false "
+                       r"or strings \(at most 64\), got"):
+        Bound("options").check("scenario.localizer_options", {"work": [1]})
+
+
+def test_a_length_in_millimetres_is_told_in_metres() -> None:
+    """A researcher's finding: `--radius 8` said "for 8 mm give 0.008", `--spacing 1` only
+    its range."""
+    from service.bounds import Bound
+
+    with pytest.raises(ConfigError, match="for 1 mm give 0.001"):
+        Bound("float", 1e-6, 0.1, unit="m").check("--spacing", 1)
+    with pytest.raises(ConfigError) as err:
+        Bound("float", 1e-6, 0.1, unit="m").check("--spacing", 500)  # 0.5 m: still too big
+    assert "mm give" not in str(err.value)

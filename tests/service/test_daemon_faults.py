@@ -126,6 +126,23 @@ def test_a_hardware_error_fault_then_reset_restores_goal_current_and_touch_down(
     explore_until_moving(sub, ctl)  # activate touched down again: no "no surface found"
 
 
+def test_a_configure_in_fault_clears_a_hardware_error_as_reset_does(rig) -> None:
+    """A fault campaign's finding: protocol.md says a configure in fault clears the fault
+    as `reset` does, but with a servo's overload latched it answered `hardware` and the
+    daemon stayed in fault; only `reset` rebooted the servo."""
+    node, sub, ctl, buses, link = rig
+    explore_until_moving(sub, ctl)
+    buses[-1].inject_hardware_error(2, 0x20)  # overload
+    assert "servo 2" in wait_fault(sub)["reason"]
+    reply = ctl.call("configure", changes={})
+    assert reply["state"] == "inactive"
+    assert reply["rebooted"] == ["servo 2 reported overload error: rebooted it (find out why "
+                                 "before you activate)"]
+    assert buses[-1].servos[2].get("hardware_error_status") == 0
+    assert buses[-1].servos[2].get("goal_current") == 149
+    explore_until_moving(sub, ctl)
+
+
 def test_a_daemon_started_before_its_bus_says_why_and_configures_later(tmp_path: Path) -> None:
     """A held-out fault check started hapticd before the emulator: `status` said only
     `unconfigured` and `activate` only "cannot activate while unconfigured"; the reason was

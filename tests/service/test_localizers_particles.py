@@ -254,3 +254,26 @@ def test_a_declaration_that_waits_only_on_the_background_costs_no_move(monkeypat
             assert last.settle_ms > 0 and len(seen) == sum(s.settle_ms > 0
                                                            for s in report.result.steps)
     assert declared_at_a_settle >= 4
+
+
+@pytest.mark.parametrize("readings", [1, 2, 3, 6])
+def test_fresh_members_are_screened_on_the_readings_that_have_an_sd(readings):
+    """A finger whose readings fit no pose (servos on peaks, the daemon told terrain:60:2)
+    injected fresh members at its second reading and screened them on the first contact's
+    row too, with one sd fewer than readings: the compiled likelihood read past the sds'
+    end and `hapticd` faulted with ZeroDivisionError."""
+    surface = contact_surface(bumps(20, seed=1), 0.008)
+    motion, sensor = models_for(NoiseSpec())
+    ctx = LocalizerContext(surface=surface, motion=motion, sensor=sensor, step_length=0.01,
+                           rng=np.random.default_rng(4))
+    loc = Particles(ctx, initial=500)
+    loc.start(Measurement(step=0, displacement=np.zeros(3)))
+    for k in range(readings):  # heights no pose on the map explains
+        update(loc, Measurement(step=k + 1, displacement=np.array([0.01 * (k + 1), 0, 0.05])))
+    chosen = loc._screened(loc._random(loc.scanned))
+    assert len(chosen) == loc.fresh and np.all(np.isfinite(chosen))
+
+
+def test_a_likelihood_with_too_few_sds_is_refused():
+    with pytest.raises(ValueError, match="sds for 3 readings"):
+        log_likelihood(np.zeros((2, 3)), np.ones((2, 3), dtype=bool), np.ones(2), 0.0, 1.0)

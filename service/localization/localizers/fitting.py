@@ -102,6 +102,8 @@ def log_likelihood(residual: np.ndarray, on_map: np.ndarray, sigma: np.ndarray,
     likelihood at sd `sigma` (K,); an off-map reading fails (-1000)."""
     if np.ndim(sigma) == 0:
         sigma = np.full(residual.shape[-1], sigma, dtype=np.float64)
+    if np.shape(sigma) != (residual.shape[-1],):  # the kernel would read past its end
+        raise ValueError(f"{np.shape(sigma)} sds for {residual.shape[-1]} readings")
     return kernels.log_likelihood(_rows(residual), _rows(on_map, np.bool_), _rows(sigma),
                                   float(outlier_probability), float(outlier_range))
 

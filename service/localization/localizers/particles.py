@@ -367,7 +367,7 @@ class Particles:
         costs little more than a narrow one."""
         if len(self.history) <= 1 or len(candidates) <= self.fresh:
             return candidates[:self.fresh]
-        latest = self.history[-SCREEN_READINGS:]
+        latest = self.history[1:][-SCREEN_READINGS:]  # the readings `_sd` has an sd for
         r, ok = residuals(self.ctx.surface, candidates, latest, self.margin)
         ll = log_likelihood(r, ok, self._sd()[-len(latest):], self.outlier_p,
                             self.outlier_range)
