@@ -60,7 +60,8 @@ def run(args: argparse.Namespace) -> int:
     for name in algorithms:
         LOCALIZERS.load(name)
     if args.map != DEFAULTS.map:
-        print("note: B3 builds its own bumps maps; --map is ignored (see --sizes, --map-seed)")
+        raise ConfigError("B3 builds its own bumps maps: --map does not apply (see --sizes, "
+                          "--map-seed; `haptic bench realistic --map FILE` runs your map)")
     rows = []
     executor = executor_for(args)
     if executor.workers > 1:

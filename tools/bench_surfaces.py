@@ -138,8 +138,9 @@ def run_surfaces(args: argparse.Namespace, *, scenario: str, label: str,
     per surface and per family, write JSON and a figure; status 1 on a wrong declaration."""
     check_bench_args(args)
     if args.map != B2_DEFAULTS.map:
-        print(f"note: {scenario} builds its own surfaces; --map is ignored (see --families, "
-              "--map-seeds, --size)")
+        raise ConfigError(f"{scenario} builds its own surfaces: --map does not apply (see "
+                          "--families, --map-seeds, --size; `haptic bench realistic --map "
+                          "FILE` runs your map)")
     base = settings_from_args(args, noise=True)
     specs = [spec for family in surfaces.values() for spec in family]
     maps = {spec: load_map(spec) for spec in specs}

@@ -32,6 +32,7 @@ from typing import Any
 
 from service.episode.scenario import RunSettings
 from service.errors import ConfigError
+from service.localization.maps import MAP_FILE_SUFFIXES
 
 SETTINGS = [f.name for f in dataclasses.fields(RunSettings) if f.name not in ("seed", "start")]
 TOP_KEYS = ("name", "runs", "first_seed", "out", "fixed", "grid")
@@ -113,6 +114,8 @@ def load_campaign(path: Path, out: Path | None = None) -> Campaign:
                               f"[{json.dumps(fixed.get(key, 'A'))}, ...]")
         if key in fixed:
             raise _fail(path, f"'{key}' is in both [fixed] and [grid]")
+    fixed = _beside(path, fixed)
+    grid = {k: [_beside(path, {k: v})[k] for v in values] for k, values in grid.items()}
     scenarios = []
     for combo in itertools.product(*grid.values()):
         choices = dict(zip(grid, combo, strict=True))
@@ -131,6 +134,16 @@ def load_campaign(path: Path, out: Path | None = None) -> Campaign:
             raise _fail(path, f"out must be a folder name, got {given!r}")
         out = path.parent / given  # relative to the campaign file
     return Campaign(name, runs, first_seed, out, scenarios, source)
+
+
+def _beside(path: Path, table: dict[str, Any]) -> dict[str, Any]:
+    """`table` with a relative map file taken from the campaign file's folder, as `out`
+    is: the same file runs alike from any working folder."""
+    spec = table.get("map")
+    if not (isinstance(spec, str) and Path(spec).suffix.lower() in MAP_FILE_SUFFIXES
+            and not Path(spec).is_absolute()):
+        return table
+    return {**table, "map": str(path.parent / spec)}
 
 
 def _text(value: Any) -> str:

@@ -43,6 +43,13 @@ def run(args: argparse.Namespace) -> int:
     campaign = load_campaign(args.campaign, args.out)
     if campaign.out.exists() and not campaign.out.is_dir():
         raise ConfigError(f"--out {campaign.out} is a file, not a folder")
+    maps = {}  # loaded first: a map that fails leaves no results folder behind
+    for sc in campaign.scenarios:
+        key = sc.settings.map
+        if key not in maps:
+            maps[key] = load_map(key, sc.settings.spacing)
+            for warning in check_map(maps[key], sc.settings.radius, sc.settings.step).warnings:
+                print(f"warning: {key}: {warning}")
     campaign.out.mkdir(parents=True, exist_ok=True)
     (campaign.out / "campaign.toml").write_text(campaign.source)
     store = Store(campaign.out)
@@ -51,13 +58,6 @@ def run(args: argparse.Namespace) -> int:
     done = store.load()
     todo = [(sc, seed) for sc in campaign.scenarios for seed in campaign.seeds
             if (sc.key, seed) not in done]
-    maps = {}
-    for sc in campaign.scenarios:
-        key = sc.settings.map
-        if key not in maps:
-            maps[key] = load_map(key, sc.settings.spacing)
-            for warning in check_map(maps[key], sc.settings.radius, sc.settings.step).warnings:
-                print(f"warning: {key}: {warning}")
     executor = make_executor(args.workers, args.scheduler)
     print(f"campaign {campaign.name}: {len(campaign.scenarios)} scenarios x {campaign.runs} "
           f"runs = {campaign.episodes} episodes; {campaign.episodes - len(todo)} already "

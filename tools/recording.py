@@ -15,6 +15,8 @@ from __future__ import annotations
 
 import json
 import math
+import struct
+import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -28,6 +30,10 @@ from service.wire import envelope as wire
 MCAP_MAGIC = b"\x89MCAP0\r\n"
 HREC_FORMAT = "haptic-record"
 LIBRARY = "haptic-slam record"
+CHUNK_BYTES = 32 * 1024
+"""Messages a chunk holds before it is compressed and written: a recorder killed outright
+(SIGKILL, a crash) leaves every chunk before the last in the file, and `read_recording`
+reads them. At MCAP's default of 1 MB such a file was empty."""
 
 _NUM, _INT, _STR, _BOOL = ({"type": "number"}, {"type": "integer"}, {"type": "string"},
                            {"type": "boolean"})
@@ -112,7 +118,8 @@ class McapRecorder:
         from mcap.writer import CompressionType, Writer
 
         self._file: IO[bytes] = open(path, "wb")  # noqa: SIM115 (closed in close())
-        self._writer = Writer(self._file, compression=CompressionType.ZSTD)
+        self._writer = Writer(self._file, chunk_size=CHUNK_BYTES,
+                              compression=CompressionType.ZSTD)
         self._writer.start(profile="", library=LIBRARY)
         self._channels = {}
         for topic, schema in SCHEMAS.items():
@@ -125,12 +132,14 @@ class McapRecorder:
     def add_config(self, config: dict[str, Any]) -> None:
         """Store the daemon's config (`get_config`'s result) with the stream."""
         self._writer.add_metadata("hapticd", {"config": json.dumps(config)})
+        self._file.flush()
 
     def write(self, topic: str, msg: wire.Message, received_ns: int | None = None) -> None:
         data = json.dumps(message_json(msg), allow_nan=False, separators=(",", ":")).encode()
         self._writer.add_message(self._channels[topic],
                                  log_time=received_ns or time.time_ns(), data=data,
                                  publish_time=msg.t_wall_ns, sequence=msg.seq)
+        self._file.flush()  # a finished chunk reaches the file now, not at close
         self.count += 1
 
     def close(self) -> None:
@@ -162,28 +171,45 @@ def read_recording(path: str | Path) -> tuple[dict[str, Any] | None, list[Record
 
 
 def _read_mcap(path: str | Path) -> tuple[dict[str, Any] | None, list[Record]]:
+    """Every record in file order, so a recording whose recorder was killed (no summary,
+    the last chunk cut) gives what it holds, with a note on standard error."""
     from mcap.exceptions import McapError
-    from mcap.reader import make_reader
+    from mcap.records import Channel, Message, Metadata, Schema
+    from mcap.stream_reader import StreamReader
 
     config, records = None, []
+    schemas: dict[int, Schema] = {}
+    channels: dict[int, Channel] = {}
     try:
         with open(path, "rb") as f:
-            reader = make_reader(f)
-            for meta in reader.iter_metadata():
-                if meta.name == "hapticd" and "config" in meta.metadata:
-                    config = json.loads(meta.metadata["config"])
-            f.seek(0)
-            reader = make_reader(f)
-            for schema, channel, message in reader.iter_messages(log_time_order=True):
-                if channel.topic not in SCHEMAS:
-                    continue
-                spec = json.loads(schema.data) if schema is not None else SCHEMAS[channel.topic]
-                obj = json.loads(message.data)
-                records.append(Record(channel.topic, message.log_time,
-                                      message_from_json(obj, spec, channel.topic)))
-    except (McapError, ValueError, KeyError, TypeError, EOFError) as exc:
+            try:
+                for record in StreamReader(f).records:
+                    if isinstance(record, Schema):
+                        schemas[record.id] = record
+                    elif isinstance(record, Channel):
+                        channels[record.id] = record
+                    elif isinstance(record, Metadata):
+                        if record.name == "hapticd" and "config" in record.metadata:
+                            config = json.loads(record.metadata["config"])
+                    elif isinstance(record, Message) and record.channel_id in channels:
+                        channel = channels[record.channel_id]
+                        if channel.topic not in SCHEMAS:
+                            continue
+                        schema = schemas.get(channel.schema_id)
+                        spec = (json.loads(schema.data) if schema is not None
+                                else SCHEMAS[channel.topic])
+                        records.append(Record(channel.topic, record.log_time, message_from_json(
+                            json.loads(record.data), spec, channel.topic)))
+            except (McapError, EOFError, struct.error) as exc:
+                if not schemas:
+                    raise
+                print(f"note: '{path}' ends early, as a recorder stopped without finishing it "
+                      f"leaves it ({type(exc).__name__}); read the {len(records)} messages "
+                      "before that", file=sys.stderr)
+    except (McapError, ValueError, KeyError, TypeError, EOFError, struct.error) as exc:
         raise InputError(f"'{path}' is not a readable MCAP recording: "
                          f"{type(exc).__name__}: {exc}"[:300]) from None
+    records.sort(key=lambda r: r.t_ns)  # log time, as a player would
     return config, records
 
 
@@ -206,8 +232,8 @@ def _read_hrec(path: str | Path) -> tuple[dict[str, Any] | None, list[Record]]:
             unpacker = msgpack.Unpacker(f, raw=False, strict_map_key=True,
                                         max_buffer_size=64 * 1024 * 1024)
             items = list(unpacker)
-    except Exception as exc:
-        raise InputError(f"'{path}' is not a haptic recording: {type(exc).__name__}") from None
+    except Exception:
+        items = []  # not msgpack at all
     if not items or not isinstance(items[0], dict) or items[0].get("format") != HREC_FORMAT:
         raise InputError(f"'{path}' is not a haptic recording (neither MCAP nor .hrec)")
     records = []

@@ -72,7 +72,11 @@ def why_not_converged(*, candidates: int, steps: int, max_steps: int,
     if steps >= max_steps:
         parts.append(f"out of steps ({steps} of at most {max_steps})")
     lead = "" if mode_mass is None else f" ({100 * mode_mass:.0f} %)"
-    if runner_up is not None:
+    if runner_up is not None and runner_up_mass is not None and runner_up_mass < 0.005:
+        parts.append(f"the leading pose {pose_text(pose, second=second)}{lead} is not yet "
+                     "confirmed: its fit to every reading, its spread, or another pose "
+                     f"{where} that fits nearly as well holds it back")
+    elif runner_up is not None:
         share = "" if runner_up_mass is None else f" ({100 * runner_up_mass:.0f} %)"
         parts.append(f"still ambiguous between {pose_text(pose, second=second)}{lead} and "
                      f"{pose_text(runner_up, second=second)}{share}")

@@ -237,7 +237,8 @@ def _symmetries(surface: ContactSurface) -> dict[str, np.ndarray]:
         from service.localization.localizers.symmetry import symmetry_matches
 
         found = symmetry_matches(surface)
-    return {"symmetries": found[:, :3], "symmetry_strengths": found[:, 3:]}
+    strengths = np.minimum(found[:, 3:], 1.0)  # a correlation, not its rounding error past 1
+    return {"symmetries": found[:, :3], "symmetry_strengths": strengths}
 
 
 def profile_symmetries(row: np.ndarray, spacing: float, threshold: float = 0.97,

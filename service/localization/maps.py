@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import re
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -26,7 +28,7 @@ def check_map_spec(spec: str, spacing: float | None) -> None:
         if spacing is None:
             raise MapError(f"map file '{spec}' needs its sample spacing in metres (`--spacing` "
                            "on the command line, `scenario.spacing` in hapticd's "
-                           "configuration)")
+                           "configuration, `spacing` beside `map` in its set_map command)")
         return
     if "/" in spec or suffix[1:].isalpha():
         raise MapError(f"map file '{spec}': a map file is a grid of heights in metres, "
@@ -50,10 +52,21 @@ def load_map(spec: str, spacing: float | None = None) -> HeightMap:
             heights = np.load(path, allow_pickle=False)
         else:
             delimiter = "," if path.suffix.lower() == ".csv" else None
-            heights = np.loadtxt(path, delimiter=delimiter, ndmin=2)
+            heights = load_rows(path, delimiter)
     except (ValueError, OSError, EOFError) as exc:
         raise MapError(_unreadable(spec, path.suffix.lower(), exc)) from None
     return HeightMap(heights, spacing, name=path.stem)
+
+
+def load_rows(path: Path, delimiter: str | None) -> np.ndarray:
+    """Rows of numbers (at least 2-D) from a text file, `#` starting a comment. A file with
+    none is a ValueError that says so, not NumPy's warning and an empty array."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", UserWarning)
+        try:
+            return np.loadtxt(path, delimiter=delimiter, comments="#", ndmin=2)
+        except UserWarning:
+            raise ValueError("the file holds no numbers") from None
 
 
 def _unreadable(spec: str, suffix: str, exc: Exception) -> str:
@@ -63,10 +76,16 @@ def _unreadable(spec: str, suffix: str, exc: Exception) -> str:
         return (f"map file '{spec}' is not a NumPy array of numbers (it is not a .npy file, "
                 "or it holds objects, which are never unpickled): write one with "
                 "numpy.save(path, heights), heights a 2-D float array in metres")
-    sep = "commas" if suffix == ".csv" else "spaces"
-    return (f"map file '{spec}' is not a grid of numbers ({_first_clause(exc)}): every row "
+    sep = "commas (not semicolons or tabs)" if suffix == ".csv" else "spaces"
+    return (f"map file '{spec}' is not a grid of numbers ({numpy_reason(exc)}): every row "
             f"needs the same count of numbers, separated by {sep}, heights in metres")
 
 
-def _first_clause(exc: Exception) -> str:
-    return str(exc).splitlines()[0].split(";")[0].rstrip(". ")
+def numpy_reason(exc: Exception) -> str:
+    """NumPy's reason a text grid did not parse: its first clause (what follows is advice
+    such as `usecols`, which does not help), rows counted from 1 like its columns (NumPy
+    counts the data rows from 0 and the columns from 1)."""
+    text = str(exc).splitlines()[0].split("; ")[0].rstrip(". ")  # not its advice after it
+    text = re.sub(r"at row (\d+), column (\d+)",
+                  lambda m: f"in data row {int(m[1]) + 1}, column {m[2]}", text)
+    return text if len(text) <= 160 else text[:157] + "..."

@@ -1,5 +1,8 @@
 """Map presets and file loaders."""
 
+import re
+import warnings
+
 import numpy as np
 import pytest
 
@@ -80,3 +83,21 @@ def test_unreadable_and_pickled_files_are_rejected(tmp_path):
             load_map(str(path), 0.001)
         assert how in str(refused.value)
         assert "allow_pickle" not in str(refused.value) and "usecols" not in str(refused.value)
+
+
+def test_a_text_grid_that_does_not_parse_is_told_plainly(tmp_path):
+    """A researcher's findings: an empty CSV leaked NumPy's warning and was called a grid
+    of 0x1 samples; a semicolon-separated one was cut mid-value; a header row was "row 0,
+    column 1"."""
+    empty, semi, header = tmp_path / "e.csv", tmp_path / "s.csv", tmp_path / "h.csv"
+    empty.write_text("")
+    semi.write_text("0.1;0.2\n0.3;0.4\n")
+    header.write_text("x,y\n1,2\n")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        for path, words in [(empty, "the file holds no numbers"),
+                            (semi, "'0.1;0.2' to float64 in data row 1, column 1"),
+                            (header, "'x' to float64 in data row 1, column 1")]:
+            with pytest.raises(MapError, match=re.escape(words)) as refused:
+                load_map(str(path), 0.001)
+            assert "not semicolons" in str(refused.value)

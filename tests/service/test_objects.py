@@ -91,6 +91,8 @@ def test_csv_outline_round_trip_and_errors(tmp_path):
         "bowtie.csv": ([(0, 0), (0.04, 0.04), (0.04, 0), (0, 0.04), (0, 0)], "crosses itself"),
         "mm.csv": ([(x * 1000, z * 1000) for x, z in square], "millimetres give --object-units mm"),
         "tiny.csv": ([(x / 100, z / 100) for x, z in square], "at least 2 mm wide"),
+        # a researcher's finding: "open (its last point is 0 mm from its first)"
+        "two.csv": ([(0, 0), (0.05, 0), (0, 0)], "at least 3 distinct vertices"),
     }
     for name, (points, message) in cases.items():
         _write_csv(tmp_path / name, points)
@@ -99,7 +101,12 @@ def test_csv_outline_round_trip_and_errors(tmp_path):
     (tmp_path / "words.csv").write_text("a,b\nc,d\n")
     with pytest.raises(ObjectError, match="could not be read as x,z rows"):
         load_object(str(tmp_path / "words.csv"))
+    (tmp_path / "empty.csv").write_text("")
+    with pytest.raises(ObjectError, match="holds no numbers"):
+        load_object(str(tmp_path / "empty.csv"))
     assert load_object(str(tmp_path / "mm.csv"), units="mm").area == pytest.approx(0.04**2)
+    with pytest.raises(ObjectError, match="not presets: presets are in metres"):
+        load_object("keyed:3", units="mm")  # it was ignored
     with pytest.raises(ObjectError, match="does not exist"):
         load_object(str(tmp_path / "missing.csv"))
 

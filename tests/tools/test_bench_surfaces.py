@@ -69,3 +69,12 @@ def test_wrong_declarations_stand_out_and_fail_the_benchmark(tmp_path, monkeypat
 def test_bad_options_are_one_line_errors(args, capsys):
     assert main(["bench", "objects", *args]) == 2
     assert capsys.readouterr().err.count("\n") == 1
+
+
+@pytest.mark.parametrize("bench", ["objects", "profile", "scale"])
+def test_a_map_these_benches_do_not_take_is_refused(bench, capsys):
+    """A researcher's finding: `bench profile --map profile.csv` listed --map in its help,
+    printed that it ignored it and ran 30 preset episodes."""
+    assert main(["bench", bench, "--map", "bumps:20:1", "--runs", "1"]) == 2
+    err = capsys.readouterr()
+    assert err.out == "" and "--map does not apply" in err.err and "bench realistic" in err.err

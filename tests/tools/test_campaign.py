@@ -129,3 +129,26 @@ def test_bad_campaign_files_are_one_line_errors(tmp_path, capsys, text, message)
     assert main(["campaign", str(path)]) == 2
     err = capsys.readouterr().err
     assert message in err and err.count("\n") == 1
+
+
+def test_a_map_file_is_taken_from_the_campaign_files_folder(tmp_path, monkeypatch, capsys):
+    """A researcher's findings: `haptic campaign camp/tiny.toml` looked for
+    '../maps/bumps.npy' from the working folder, while its results went beside the file;
+    and a campaign whose map failed to load left an empty results folder behind."""
+    import numpy as np
+
+    (tmp_path / "maps").mkdir()
+    (tmp_path / "camp").mkdir()
+    np.save(tmp_path / "maps" / "flat.npy", np.zeros((40, 40)))
+    np.save(tmp_path / "maps" / "bad.npy", np.full((40, 40), np.nan))
+    for name, map_file in (("tiny", "flat.npy"), ("broken", "bad.npy")):
+        (tmp_path / "camp" / f"{name}.toml").write_text(
+            f'runs = 1\n[fixed]\nmap = "../maps/{map_file}"\nspacing = 0.005\nmax_steps = 1\n')
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    monkeypatch.chdir(elsewhere)
+    loaded = campaign_module.load_campaign(tmp_path / "camp" / "tiny.toml")
+    assert loaded.scenarios[0].settings.map == str(tmp_path / "camp" / "../maps/flat.npy")
+    assert main(["campaign", str(tmp_path / "camp" / "broken.toml"), "--workers", "1"]) == 2
+    assert "map 'bad'" in capsys.readouterr().err
+    assert not (tmp_path / "camp" / "broken-results").exists()

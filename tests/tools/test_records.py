@@ -221,3 +221,34 @@ def test_replay_republishes_the_messages_as_the_daemon_sent_them(tmp_path: Path)
     assert [(m.topic, m.seq, m.t_wall_ns) for m in got] == \
         [(m.topic, m.seq, m.t_wall_ns) for m in sent]
     assert np.array_equal(got[0]["poses"], poses) and got[0]["poses"].dtype == np.float32
+
+
+def test_a_recorder_killed_outright_leaves_what_it_wrote(tmp_path: Path, capsys) -> None:
+    """`kill -9` on `haptic record` left an empty file (MCAP's 1 MB chunks were still in
+    memory), and replay called it not a recording. Chunks now reach the file as they fill,
+    and a file with no summary is read up to where it stops."""
+    import shutil
+
+    from tools.recording import McapRecorder, read_recording
+
+    rec, cut = tmp_path / "live.mcap", tmp_path / "cut.mcap"
+    recorder = McapRecorder(rec)
+    sent = 0
+
+    def send() -> None:
+        nonlocal sent
+        recorder.write("event", wire.decode(wire.encode(
+            "event", sent, {"event": "note", "text": f"message {sent}" * 20}), topic="event"))
+        sent += 1
+
+    while rec.stat().st_size < 4 * 32 * 1024:  # a few chunks on disk
+        send()
+    for _ in range(5):  # and a chunk under way, in memory
+        send()
+    shutil.copyfile(rec, cut)  # the file as a killed recorder leaves it
+    _, records = read_recording(cut)
+    assert 0 < len(records) < sent
+    assert [r.message.seq for r in records] == list(range(len(records)))  # none skipped
+    assert "ends early" in capsys.readouterr().err
+    recorder.close()
+    assert len(read_recording(rec)[1]) == sent  # a finished file holds every message

@@ -14,3 +14,17 @@ def test_a_spread_no_reading_bounds_reads_in_words():
         "spread 0.5 mm / 0.4 deg, leading mode 100 %"
     assert belief_text(0.2505, math.radians(476.2), None) == "spread 250.5 mm / over 180 deg"
     assert belief_text(float("inf"), None, None) == "spread ?"
+
+
+def test_a_rival_of_no_weight_is_not_called_an_ambiguity():
+    """'still ambiguous between X (100 %) and Y (0 %)' named no ambiguity: the leader was
+    held back by its fit, its spread or a pose found on the whole map."""
+    from tools.words import why_not_converged
+
+    text = why_not_converged(candidates=10, steps=40, max_steps=40, pose=(0.1, 0.2, 0.3),
+                             mode_mass=0.9999, runner_up=(0.0, 0.0, 0.0),
+                             runner_up_mass=0.0001)
+    assert "ambiguous" not in text and "not yet confirmed" in text
+    text = why_not_converged(candidates=10, steps=40, max_steps=40, pose=(0.1, 0.2, 0.3),
+                             mode_mass=0.7, runner_up=(0.0, 0.0, 0.0), runner_up_mass=0.3)
+    assert "still ambiguous between" in text and "(30 %)" in text

@@ -108,7 +108,11 @@ def make_contour(points: np.ndarray, name: str = "object", *, closed: bool = Fal
                           "not finite numbers")
     if closed:
         gap = float(np.hypot(*(pts[-1] - pts[0]))) if len(pts) else 0.0
-        if len(pts) < 4 or gap > CLOSURE_TOLERANCE:
+        if len(pts) < 4 and gap <= CLOSURE_TOLERANCE:  # closed, but too few to enclose
+            raise ObjectError(f"object '{name}': a contour needs at least 3 distinct "
+                              f"vertices and the first repeated at the end, got {len(pts)} "
+                              "rows")
+        if gap > CLOSURE_TOLERANCE:
             raise ObjectError(f"object '{name}': the contour is open (its last point is "
                               f"{gap * 1e3:.3g} mm from its first); repeat the first point at "
                               "the end to close it")

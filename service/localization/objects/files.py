@@ -19,6 +19,7 @@ from shapely.geometry import Polygon
 from shapely.ops import unary_union
 
 from service.errors import ObjectError
+from service.localization.maps import load_rows, numpy_reason
 from service.localization.objects.contour import Contour, make_contour
 from service.localization.objects.presets import preset_object
 
@@ -38,6 +39,10 @@ def load_object(spec: str, *, plane: str | None = None, units: str = "m") -> Con
         if plane is not None:
             raise ObjectError("a plane (`--plane`, `scenario.plane`) applies to mesh files "
                               "(.stl, .obj, .ply), not presets")
+        if units != "m":
+            raise ObjectError("units (`--object-units`, `scenario.object_units`) apply to "
+                              "object files (.csv, .stl, .obj, .ply), not presets: presets "
+                              "are in metres")
         return preset_object(spec)
     if not path.is_file():
         raise ObjectError(f"object file '{spec}' does not exist")
@@ -51,11 +56,11 @@ def load_object(spec: str, *, plane: str | None = None, units: str = "m") -> Con
 
 def _csv(path: Path, scale: float) -> Contour:
     try:
-        points = np.loadtxt(path, delimiter=",", comments="#", ndmin=2)
+        points = load_rows(path, ",")
     except (ValueError, OSError) as exc:
         raise ObjectError(f"object file '{path}' could not be read as x,z rows "
-                          f"({str(exc).splitlines()[0].split(';')[0].rstrip('. ')}): each row "
-                          "needs two numbers separated by a comma") from None
+                          f"({numpy_reason(exc)}): each row needs two numbers separated by a "
+                          "comma") from None
     return make_contour(points * scale, path.stem, closed=True)
 
 
