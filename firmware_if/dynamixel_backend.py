@@ -138,7 +138,7 @@ class DynamixelBackend(HandOfOne):
     def _set_up(self) -> None:
         """Torque off, every servo configured and checked, fast reads detected, first read."""
         self.bus.torque(False)
-        self.bus.configure(self.servo_settings(), verify=True)
+        self._settings_hold()
         self.bus.detect_fast_read()
         self._state = self._tolerant_read()
 

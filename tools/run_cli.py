@@ -9,7 +9,6 @@ from collections.abc import Callable
 from pathlib import Path
 
 from firmware_if.backend import Backend
-from firmware_if.dxl_bus import check_port_exists
 from service.episode.runner import StepRecord
 from service.episode.scenario import RunSettings, Truth, check_start, for_backend
 from service.episode.simulate import EpisodeReport, simulate
@@ -59,6 +58,8 @@ def run(args: argparse.Namespace) -> int:
     settings = settings_from_args(args)
     _check_outputs(args)
     if args.backend != "sim":  # refused before any line of the run is printed
+        from firmware_if.dxl_bus import check_port_exists  # the SDK only for servos
+
         if not args.port or not args.hand:
             raise ConfigError(f"--backend {args.backend} needs --port and --hand")
         check_port_exists(args.port)

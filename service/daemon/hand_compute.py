@@ -120,11 +120,9 @@ class HandEpisode:
             stepper.updated()
         compute_ms = (time.monotonic_ns() - t0) / 1e6
         settle_ms = 0.0
-        if measurement is not None and stepper.estimate.pending:
-            settled = time.monotonic_ns()
-            if not stepper.settle(interrupted):
-                return None  # a newer request cut the check short
-            settle_ms = (time.monotonic_ns() - settled) / 1e6
+        t_check = time.monotonic_ns()
+        if measurement is not None and stepper.confirm():  # one piece, a few ms
+            settle_ms = (time.monotonic_ns() - t_check) / 1e6
         quality = reading.get("quality")
         record = stepper.record(step, self.decision, state, compute_ms=compute_ms,
                                 settle_ms=settle_ms,

@@ -63,10 +63,7 @@ class Lifecycle:
         old = self.state
         self.state = new
         if event == "fault":
-            if old is State.FAULT and self.fault and reason and reason not in self.fault:
-                self.fault = f"{self.fault}; then {reason}"  # the first cause is kept
-            else:
-                self.fault = reason or self.fault or "fault"
+            self.fault = _with_cause(self.fault if old is State.FAULT else None, reason)
         elif event in ("reset", "shutdown", "configure"):
             self.fault = None
         if event in ("configure", "reset", "shutdown"):
@@ -79,3 +76,21 @@ class Lifecycle:
     def require_valid_read(self) -> None:
         if not self.valid_read:
             raise StateError("no valid reading from the finger yet; wait for state to stream")
+
+
+CAUSES = 4
+"""Most causes a latched fault's text names: the first, then the latest."""
+
+
+def _with_cause(fault: str | None, reason: str | None) -> str:
+    """A fault's text with `reason` added: the first cause is kept (an estop in fault does
+    not erase a servo's diagnosis), a cause already named is not named again, and past
+    `CAUSES` the middle ones give way to the latest."""
+    if not fault:
+        return reason or "fault"
+    causes = fault.split("; then ")
+    if reason and reason not in causes:
+        causes.append(reason)
+    if len(causes) > CAUSES:
+        causes = [causes[0], "...", *causes[-(CAUSES - 2):]]
+    return "; then ".join(causes)

@@ -100,7 +100,7 @@ def run_hand_episode(hand: Any, localizer: Any, policy: GraspGatedPolicy, parts:
             compute_ms = (time.perf_counter() - t0) * 1e3
             stepper.updated()
             t0 = time.perf_counter()
-            if stepper.settle():  # the check a declaration waits on, before another move
+            if stepper.confirm():  # the check a declaration waits on, before another move
                 settle_ms = (time.perf_counter() - t0) * 1e3
         record = stepper.record(index, decision, state, compute_ms=compute_ms,
                                 settle_ms=settle_ms,

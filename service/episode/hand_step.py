@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -19,14 +18,12 @@ import numpy as np
 
 from firmware_if.backend import HandState
 from service.episode.hand_scenario import HandParts, HandSettings
-from service.localization.localizers.base import Budget, Estimate
+from service.localization.localizers.base import Estimate, settle
 from service.localization.localizers.object_base import HandMeasurement
 from service.localization.policies.grasp_gated import GraspGatedPolicy, HandDecision, HandView
 
 POLICY_HYPOTHESES = 500
 """Heaviest hypotheses the policy is shown."""
-SETTLE_SLICE_S = 0.002
-"""Seconds of the settle's work between checks whether a newer request cut it short."""
 
 
 @dataclass(frozen=True)
@@ -48,7 +45,7 @@ class HandStepRecord:
     policy_ms: float
     settle_ms: float
     """The whole-object check a declaration waited on, run after the update and before the
-    next move (`HandStepper.settle`); 0 when none waited."""
+    next move (`HandStepper.confirm`); 0 when none waited."""
     estimate: tuple[float, float, float] | None
     truth: tuple[float, float, float] | None
 
@@ -132,16 +129,12 @@ class HandStepper:
         """The localizer finished taking in a measurement."""
         self.estimate = self.localizer.estimate()
 
-    def settle(self, interrupted: Callable[[], bool] = lambda: False) -> bool:
+    def confirm(self) -> bool:
         """Run the check a declaration waits on (`Estimate.pending`), if any, before the
-        next move: True if one ran (and the estimate is judged again), False if none waited
-        or `interrupted` cut it short."""
+        next move (`base.settle`): True if one ran and the estimate was judged again."""
         if not self.estimate.pending:
             return False
-        while not self.localizer.background(Budget.seconds(SETTLE_SLICE_S)):
-            if interrupted():
-                return False
-        self.estimate = self.localizer.estimate()
+        self.estimate = settle(self.localizer, self.estimate)
         return True
 
     def record(self, index: int, decision: HandDecision, state: HandState, *,

@@ -394,3 +394,17 @@ def test_a_deferred_refusal_gives_back_the_lease_it_took() -> None:
         sock.close()
         server.close()
         ctx.term()
+
+
+def test_a_fault_names_its_first_cause_and_the_latest_few() -> None:
+    """A review's finding: a cause was dropped when an earlier one merely contained it,
+    and distinct estops made the text grow without end."""
+    from service.daemon.lifecycle import CAUSES, _with_cause
+
+    fault = _with_cause(None, "stop now")
+    fault = _with_cause(fault, "stop")
+    assert fault == "stop now; then stop"
+    for k in range(10):
+        fault = _with_cause(fault, f"estop {k}")
+    causes = fault.split("; then ")
+    assert len(causes) == CAUSES and causes[0] == "stop now" and causes[-1] == "estop 9"

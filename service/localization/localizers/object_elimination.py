@@ -136,6 +136,11 @@ class ObjectElimination(TrackJudged):
         leaders = niche(self.poses, score, 0.5 * self.ctx.scale, np.deg2rad(15.0), limit=32)
         self._judge_leaders(self.poses[leaders], np.zeros(len(leaders)), previous)
 
+    def _found(self, poses: np.ndarray) -> None:
+        """Poses the whole-object check found join the table: they explain the readings as
+        well as the leader does, and the policy must see them."""
+        self.poses = np.vstack([self.poses, poses])
+
     def estimate(self) -> Estimate:
         if self.fit is not None:
             return Estimate(pose=self.fit.pose, candidates=len(self.poses),

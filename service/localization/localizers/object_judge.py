@@ -42,8 +42,7 @@ ADOPT = 1e-5
 """Least weight, relative to the leader's, at which a pose the whole-object check found
 (`object_certificate`) joins the tracks: the localizer had lost it, and the next updates
 must weigh it. Low enough that rivals which hold a declaration back only together join
-too: at 1e-3 one finger on blob:4 (seed 4) ran the check at 30 of its 60 steps, each time
-refused by rivals of 2e-4 that never joined."""
+too: else the check refuses at every step while the tracks never learn why."""
 CARRIED_SD = 1e-4
 """Metres: the least sd a carry adds to the readings it moves. They move with the track's
 pose, fitted then on the few readings it had, not with the truth's; without noise the
@@ -79,6 +78,10 @@ class ObjectTracks:
     @property
     def total(self) -> np.ndarray:
         return self.prior + self.ll
+
+    def best_prior(self) -> float:
+        """The prior of the track that leads (0 with none)."""
+        return float(self.prior[int(np.argmax(self.total))]) if len(self.centres) else 0.0
 
     def update(self, ctx: ObjectContext, points: np.ndarray, radii: np.ndarray,
                candidates: np.ndarray, candidate_prior: np.ndarray, *, sd: float,
@@ -139,8 +142,9 @@ class ObjectTracks:
               radii: np.ndarray, *, sd: float, position_tol: float, heading_tol: float
               ) -> None:
         """Track `poses` the localizer never kept (found by the whole-object check), far
-        from every track, with the best track's prior: what a track carried cannot be
-        asked of them, so they are not held to it."""
+        from every track, with the best track's prior (`best_prior`): what a track carried
+        cannot be asked of them, so they are not held to it. None join a full set of
+        tracks: the check then refuses again at the next declaration."""
         if len(poses) == 0:
             return
         fresh = poses[~np.any(near(poses, self.centres, 2 * position_tol, 2 * heading_tol),
@@ -148,7 +152,7 @@ class ObjectTracks:
         if len(fresh) == 0:
             return
         self.centres = np.vstack([self.centres, fresh])
-        self.prior = np.concatenate([self.prior, np.full(len(fresh), self.prior.max())])
+        self.prior = np.concatenate([self.prior, np.full(len(fresh), self.best_prior())])
         self.ll = np.concatenate([self.ll, fit_log_likelihood(
             ctx.field, fresh, points, radii, sd, ctx.outlier_probability, ctx.outlier_range)])
         self.felt += [np.empty((0, 4)) for _ in fresh]
@@ -280,26 +284,29 @@ def confirm(ctx: ObjectContext, points: np.ndarray, radii: np.ndarray, tracks: O
     if verdict.awaiting is None or verdict.fit is None:
         return verdict
     lead_points, lead_radii, lead_sd = verdict.awaiting
-    share, heaviest, found = _whole_object(ctx, lead_points, lead_radii, lead_sd, verdict.fit)
-    mass, runner, runner_mass = verdict.mode_mass, verdict.runner_up, verdict.runner_up_mass
-    converged = share >= rule.mode_mass
-    if not converged:
-        mass = min(mass, share)
-        if heaviest is not None and 1.0 - share > runner_mass:
-            runner, runner_mass = heaviest, 1.0 - share
     scale = ctx.scale
+    tol_pos, tol_head = 0.25 * scale, float(np.deg2rad(5.0))
+    share, heaviest, found = _whole_object(ctx, lead_points, lead_radii, lead_sd, verdict.fit,
+                                           tracks.centres)
+    # the tracked rivals' weight is in the verdict's mass, the rest in `share`
+    mass, runner, runner_mass = verdict.mode_mass * share, verdict.runner_up, \
+        verdict.runner_up_mass
+    converged = mass >= rule.mode_mass
+    if heaviest is not None and 1.0 - share > runner_mass:
+        runner, runner_mass = heaviest, 1.0 - share
     tracks.adopt(ctx, found, points, radii, sd=max(ctx.sigma, 0.002 * scale),
-                 position_tol=0.25 * scale, heading_tol=float(np.deg2rad(5.0)))
+                 position_tol=tol_pos, heading_tol=tol_head)
     return ObjectVerdict(verdict.fit, mass, runner, runner_mass, converged, found)
 
 
 def _whole_object(ctx: ObjectContext, points: np.ndarray, radii: np.ndarray,
-                  sd: np.ndarray, fit: Fit
+                  sd: np.ndarray, fit: Fit, tracked: np.ndarray
                   ) -> tuple[float, tuple[float, float, float] | None, np.ndarray]:
-    """The leader's share against the poses beyond its tolerance that explain its readings
-    best anywhere on the object (`object_certificate.rivals_beyond`), weighed as the final
-    comparison weighs its rivals; the heaviest of them; and those that keep at least
-    `ADOPT` of the leader's weight, heaviest first.
+    """The leader's share against the poses beyond its tolerance, and beside no `tracked`
+    pose (the judge weighed those), that explain its readings best anywhere on the object
+    (`object_certificate.rivals_beyond`), weighed as the final comparison weighs its
+    rivals; the heaviest of them; and those that keep at least `ADOPT` of the leader's
+    weight, heaviest first.
 
     The readings are the leader's whole history (`ObjectTracks.history`: what its motions
     carried, with their noise, and the latest), as its images are judged: asked only of
@@ -307,10 +314,12 @@ def _whole_object(ctx: ObjectContext, points: np.ndarray, radii: np.ndarray,
     the leader, and three fingers on keyed and rounded, once they had turned the object,
     declared 16 and 14 fewer of members 0-99 (B6)."""
     sd = np.maximum(sd, 0.002 * ctx.scale)
+    tol_pos, tol_head = 0.25 * ctx.scale, float(np.deg2rad(5.0))
     found = rivals_beyond(ctx.field, points, radii, np.asarray(fit.pose), sd=sd,
                           outlier_probability=ctx.outlier_probability,
-                          outlier_range=ctx.outlier_range, position_tol=0.25 * ctx.scale,
-                          heading_tol=float(np.deg2rad(5.0)))
+                          outlier_range=ctx.outlier_range, position_tol=tol_pos,
+                          heading_tol=tol_head)
+    found = found[~np.any(near(found, tracked, tol_pos, tol_head), axis=1)]
     if len(found) == 0:
         return 1.0, None, found
     ll = _offset_log_likelihood(ctx, np.vstack([np.asarray(fit.pose), found]), points, radii,

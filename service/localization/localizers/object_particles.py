@@ -329,9 +329,7 @@ class ObjectParticles(TrackJudged):
 
     def _found(self, poses: np.ndarray) -> None:
         """Poses the whole-object check found join the pool, with the best track's prior."""
-        best = int(np.argmax(self.tracks.total)) if len(self.tracks.centres) else None
-        prior = 0.0 if best is None else self.tracks.prior[best]
-        self._add(poses, np.full(len(poses), prior))
+        self._add(poses, np.full(len(poses), self.tracks.best_prior()))
 
     # -- helpers ---------------------------------------------------------------------------
     def _consistent(self, point: np.ndarray, radius: np.ndarray, count: int) -> np.ndarray:
