@@ -119,10 +119,7 @@ class HandEpisode:
                     return None
             stepper.updated()
         compute_ms = (time.monotonic_ns() - t0) / 1e6
-        settle_ms = 0.0
-        t_check = time.monotonic_ns()
-        if measurement is not None and stepper.confirm():  # one piece, a few ms
-            settle_ms = (time.monotonic_ns() - t_check) / 1e6
+        settle_ms = stepper.confirm() if measurement is not None else 0.0
         quality = reading.get("quality")
         record = stepper.record(step, self.decision, state, compute_ms=compute_ms,
                                 settle_ms=settle_ms,

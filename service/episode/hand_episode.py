@@ -99,9 +99,7 @@ def run_hand_episode(hand: Any, localizer: Any, policy: GraspGatedPolicy, parts:
                 pass
             compute_ms = (time.perf_counter() - t0) * 1e3
             stepper.updated()
-            t0 = time.perf_counter()
-            if stepper.confirm():  # the check a declaration waits on, before another move
-                settle_ms = (time.perf_counter() - t0) * 1e3
+            settle_ms = stepper.confirm()  # what a declaration waits on, before another move
         record = stepper.record(index, decision, state, compute_ms=compute_ms,
                                 settle_ms=settle_ms,
                                 quality=float("nan") if quality is None else quality(),

@@ -129,13 +129,15 @@ class HandStepper:
         """The localizer finished taking in a measurement."""
         self.estimate = self.localizer.estimate()
 
-    def confirm(self) -> bool:
+    def confirm(self) -> float:
         """Run the check a declaration waits on (`Estimate.pending`), if any, before the
-        next move (`base.settle`): True if one ran and the estimate was judged again."""
+        next move (`base.settle`), and judge the estimate again: the milliseconds it took,
+        0 when none waited (the step's `settle_ms`)."""
         if not self.estimate.pending:
-            return False
+            return 0.0
+        t0 = time.perf_counter()
         self.estimate = settle(self.localizer, self.estimate)
-        return True
+        return (time.perf_counter() - t0) * 1e3
 
     def record(self, index: int, decision: HandDecision, state: HandState, *,
                compute_ms: float, settle_ms: float = 0.0, quality: float = float("nan"),

@@ -31,7 +31,7 @@ HEADING_STEP = float(np.deg2rad(5.0))
 ARC_STEP = 0.002
 """Metres of outline between the grid's contact points."""
 SCREEN = 6
-"""Most readings the grid is screened on (spread over the episode, the first included)."""
+"""Most readings the grid is screened on (spread over the history, the anchor added)."""
 SCREENED = 256
 """Best screened poses the distinct candidates are drawn from."""
 TOP = 16

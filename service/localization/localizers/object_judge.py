@@ -51,6 +51,12 @@ truth by up to 0.16 mm against a 5 um sd, and three fingers on keyed:0 (seed 0) 
 turning the object until their 100 steps ran out, undeclared."""
 
 
+def tolerance(ctx: ObjectContext) -> tuple[float, float]:
+    """Position (metres) and heading (radians) within which two poses are one, as a success
+    is judged (B2's: a quarter of the scale, 5 degrees)."""
+    return 0.25 * ctx.scale, float(np.deg2rad(5.0))
+
+
 def near(a: np.ndarray, b: np.ndarray, position_tol: float, heading_tol: float) -> np.ndarray:
     """(len(a), len(b)) mask of pose pairs within tolerance of each other."""
     d_pos = np.hypot(a[:, None, 0] - b[None, :, 0], a[:, None, 1] - b[None, :, 1])
@@ -217,7 +223,7 @@ def judge(ctx: ObjectContext, points: np.ndarray, radii: np.ndarray, tracks: Obj
     scale = ctx.scale
     sigma = ctx.sigma
     sd = max(sigma, 0.01 * scale)
-    tol_pos, tol_head = 0.25 * scale, float(np.deg2rad(5.0))
+    tol_pos, tol_head = tolerance(ctx)
     total = tracks.total
     lead = int(np.argmax(total))
     mirrored, image_prior = _images(ctx, tracks, lead, tracks.centres[lead], motions, points,
@@ -284,8 +290,7 @@ def confirm(ctx: ObjectContext, points: np.ndarray, radii: np.ndarray, tracks: O
     if verdict.awaiting is None or verdict.fit is None:
         return verdict
     lead_points, lead_radii, lead_sd = verdict.awaiting
-    scale = ctx.scale
-    tol_pos, tol_head = 0.25 * scale, float(np.deg2rad(5.0))
+    tol_pos, tol_head = tolerance(ctx)
     share, heaviest, found = _whole_object(ctx, lead_points, lead_radii, lead_sd, verdict.fit,
                                            tracks.centres)
     # the tracked rivals' weight is in the verdict's mass, the rest in `share`
@@ -294,7 +299,7 @@ def confirm(ctx: ObjectContext, points: np.ndarray, radii: np.ndarray, tracks: O
     converged = mass >= rule.mode_mass
     if heaviest is not None and 1.0 - share > runner_mass:
         runner, runner_mass = heaviest, 1.0 - share
-    tracks.adopt(ctx, found, points, radii, sd=max(ctx.sigma, 0.002 * scale),
+    tracks.adopt(ctx, found, points, radii, sd=max(ctx.sigma, 0.002 * ctx.scale),
                  position_tol=tol_pos, heading_tol=tol_head)
     return ObjectVerdict(verdict.fit, mass, runner, runner_mass, converged, found)
 
@@ -314,7 +319,7 @@ def _whole_object(ctx: ObjectContext, points: np.ndarray, radii: np.ndarray,
     the leader, and three fingers on keyed and rounded, once they had turned the object,
     declared 16 and 14 fewer of members 0-99 (B6)."""
     sd = np.maximum(sd, 0.002 * ctx.scale)
-    tol_pos, tol_head = 0.25 * ctx.scale, float(np.deg2rad(5.0))
+    tol_pos, tol_head = tolerance(ctx)
     found = rivals_beyond(ctx.field, points, radii, np.asarray(fit.pose), sd=sd,
                           outlier_probability=ctx.outlier_probability,
                           outlier_range=ctx.outlier_range, position_tol=tol_pos,
@@ -354,7 +359,7 @@ def _rivals_beside(ctx: ObjectContext, tracks: ObjectTracks, leader: int, fit: F
     if len(mirrored) == 0:
         return rivals_ll, np.empty(0)
     ll = temper * prior + _offset_log_likelihood(ctx, mirrored, points, radii, sd, temper)
-    beside = near(mirrored, rivals, 0.25 * ctx.scale, float(np.deg2rad(5.0)))
+    beside = near(mirrored, rivals, *tolerance(ctx))
     for i, row in enumerate(beside):
         if row.any():
             j = int(np.argmax(row))
@@ -484,10 +489,10 @@ class TrackJudged:
                        ) -> ObjectVerdict:
         """Track `poses` (with their `prior`), judge against the `previous` update's fit,
         and keep the verdict's fit and modes."""
-        scale = self.ctx.scale
+        tol_pos, tol_head = tolerance(self.ctx)
         self.tracks.update(self.ctx, self.points, self.radii, poses, prior,
-                           sd=max(self.sigma, 0.002 * scale), position_tol=0.25 * scale,
-                           heading_tol=np.deg2rad(5.0))
+                           sd=max(self.sigma, 0.002 * self.ctx.scale), position_tol=tol_pos,
+                           heading_tol=tol_head)
         v = judge(self.ctx, self.points, self.radii, self.tracks, rule=self.rule,
                   noisy=self.noisy, places_before=self.places_before, epoch=self.epoch,
                   previous=None if previous is None else previous.pose, motions=self.motions)
