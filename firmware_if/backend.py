@@ -125,8 +125,9 @@ class Backend(Protocol):
 
 def check_can_step(*, fault: str | None, torque_on: bool, busy: bool) -> None:
     """The contract's preconditions for `command_step`, raised the same way by every backend."""
-    if fault:
-        raise HardwareFault(f"finger is faulted: {fault}; reset first")
+    if fault:  # a bus's fault already says how to recover: not twice
+        raise HardwareFault(f"finger is faulted: {fault}"
+                            + ("" if "to recover" in fault else "; reset first"))
     if not torque_on:
         raise NotReadyError("torque is off: activate the finger before stepping")
     if busy:

@@ -318,7 +318,7 @@ class DxlBus:
             self.stats.consecutive_failures += 1
             if self.stats.consecutive_failures >= self.failure_tolerance:
                 self._latch(f"{self.stats.consecutive_failures} consecutive failed cycles "
-                            f"(last: {exc}){self._silent_servos()}")
+                            f"(last: {exc})", explain=self._silent_servos)
             raise
         port.budget_ms = SETUP_TIMEOUT_MS
         self.stats.consecutive_failures = 0
@@ -409,33 +409,38 @@ class DxlBus:
                         "restarted: a brown-out? check its power supply and cable)")
 
     def _silent_servos(self) -> str:
-        """Which servos do not answer a ping, as words for a fault (one silent servo spoils
-        a sync read of all: the read alone cannot say which). It runs in the tick that
-        latches the fault, so each ping waits a cycle's budget at most, not the setup's."""
+        """Which servos do not answer a ping, or answer it late, as words for a fault (one
+        silent servo spoils a sync read of all: the read alone cannot say which). A servo
+        silent within a cycle's budget is asked once more with the setup's timeout: a reply
+        then says the bus is slow (an adapter's latency timer), not dead. It runs once, in
+        the tick that latches the fault, after torque off has gone out."""
         port = self._require()
-        port.budget_ms = self.cycle_budget_s * 1e3
         try:
+            port.budget_ms = self.cycle_budget_s * 1e3
             silent = [sid for sid in self.ids if self.ping(sid) is None]
+            port.budget_ms = SETUP_TIMEOUT_MS
+            late = {}
+            for sid in silent:
+                t0 = time.monotonic_ns()
+                if self.ping(sid) is not None:
+                    late[sid] = (time.monotonic_ns() - t0) / 1e6
         except (FirmwareError, *PORT_ERRORS, ValueError):
             return ""  # the port itself: its own error says so
         finally:
             port.budget_ms = SETUP_TIMEOUT_MS
-        if not silent:
-            return ""
-        if len(silent) == len(self.ids):
-            return ("; no servo answers a ping: check the bus power and the adapter, and that "
-                    "replies are not late (a USB adapter's latency timer, 16 ms by default "
-                    "on FTDI, should be 1 ms: `haptic bus check` tells)")
-        if len(silent) == 1:
-            return f"; servo {silent[0]} does not answer a ping: check its cable and power"
-        return (f"; servos {', '.join(map(str, silent))} do not answer a ping: check their "
-                "cables and power")
+        silent = [sid for sid in silent if sid not in late]
+        return (_late_words(late, self.cycle_budget_s)
+                + _silent_words(silent, len(self.ids), self.baud))
 
-    def _latch(self, reason: str) -> None:
+    def _latch(self, reason: str, explain: Callable[[], str] | None = None) -> None:
+        """Latch `reason` as the fault and send torque off, then add what `explain` (which
+        may take a few timeouts) finds to the fault's words."""
         self.fault = reason
         self.torque(False, best_effort=True)
+        if explain is not None:
+            self.fault = reason + explain()
         # torque off goes out by sync write, which no servo acknowledges: say it was sent
-        raise HardwareFault(f"bus on {self.port_name}: {reason}; torque off sent to every "
+        raise HardwareFault(f"bus on {self.port_name}: {self.fault}; torque off sent to every "
                             "servo, reset to recover")
 
     def reset(self) -> list[str]:
@@ -455,6 +460,31 @@ class DxlBus:
         self.fault = None
         self.stats.consecutive_failures = 0
         return rebooted
+
+
+def _late_words(late: dict[int, float], cycle_budget_s: float) -> str:
+    """A fault's words for servos that answer a ping, but later than a cycle allows."""
+    if not late:
+        return ""
+    who = (f"servo {next(iter(late))} answers" if len(late) == 1
+           else f"servos {', '.join(map(str, late))} answer")
+    return (f"; {who} a ping only after {max(late.values()):.0f} ms (a cycle allows "
+            f"{cycle_budget_s * 1e3:.0f} ms): a slow adapter or a loaded host (a USB "
+            "adapter's latency timer, 16 ms by default on FTDI, should be 1 ms: `haptic bus "
+            "check` tells)")
+
+
+def _silent_words(silent: list[int], servos: int, baud: int) -> str:
+    """A fault's words for servos that answer no ping at all."""
+    if not silent:
+        return ""
+    if len(silent) == servos:
+        return (f"; no servo answers a ping: check the bus power, the adapter, and that the "
+                f"servos use {baud} baud")
+    if len(silent) == 1:
+        return f"; servo {silent[0]} does not answer a ping: check its cable and power"
+    return (f"; servos {', '.join(map(str, silent))} do not answer a ping: check their "
+            "cables and power")
 
 
 def _reading(data: bytes, error: int) -> ServoReading:

@@ -333,7 +333,23 @@ class DynamixelBackend(HandOfOne):
             raise HardwareFault(self._fault)
         if no_surface:
             raise HardwareFault(f"no surface found within {self.settings.max_press} m below "
-                                "the fingertip; move the hand closer and retry")
+                                "the fingertip; move the hand closer and retry"
+                                + self._strangers())
+
+    def _strangers(self) -> str:
+        """Words for servos that answer on this bus but are not the hand's: a hand file
+        that is not this bus's (`--hand planar` on a spatial finger) moves joints whose
+        tip never reaches the surface, and said only "no surface found"."""
+        try:
+            others = sorted(set(self.bus.scan(range(32))) - set(self.hand.ids))
+        except FirmwareError:
+            return ""
+        if not others:
+            return ""
+        return (f"; servo{'s' if len(others) > 1 else ''} {', '.join(map(str, others))} "
+                f"also answer{'' if len(others) > 1 else 's'} on this bus, which hand "
+                f"'{self.hand.name}' does not use (ids {', '.join(map(str, self.hand.ids))}): "
+                "is it the right hand?")
 
     def _goal_ticks(self, q: np.ndarray) -> dict[int, int]:
         return joint_ticks(self.hand.joints, q)

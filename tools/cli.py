@@ -21,6 +21,7 @@ import signal
 import sys
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
+from typing import NoReturn
 
 from firmware_if.errors import FirmwareError
 from service.errors import InputError, ServiceError
@@ -68,9 +69,14 @@ class HelpFormatter(argparse.HelpFormatter):
 
 
 class IntermixedParser(argparse.ArgumentParser):
-    """Options and positionals in any order (`ctl configure --client me changes=...`)."""
+    """Options and positionals in any order (`ctl configure --client me changes=...`); a bad
+    option's error in one line, as every other refusal, without the usage block."""
 
     _mixing = False
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(2, f"{self.prog}: error: {message} (`{self.prog} --help` lists the "
+                     "options)\n")
 
     def parse_known_args(self, args=None, namespace=None):  # type: ignore[override]
         if self._mixing or self._subparsers is not None:

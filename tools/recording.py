@@ -227,15 +227,24 @@ def message_from_json(obj: dict[str, Any], schema: dict[str, Any], topic: str
 
 
 def _read_hrec(path: str | Path) -> tuple[dict[str, Any] | None, list[Record]]:
-    try:
-        with open(path, "rb") as f:
-            unpacker = msgpack.Unpacker(f, raw=False, strict_map_key=True,
-                                        max_buffer_size=64 * 1024 * 1024)
-            items = list(unpacker)
-    except Exception:
-        items = []  # not msgpack at all
+    """Every record of an `.hrec` file; one damaged or cut part way (as MCAP, `_read_mcap`)
+    gives what comes before the damage, with a note on standard error."""
+    items: list[Any] = []
+    damage = None
+    with open(path, "rb") as f:
+        unpacker = msgpack.Unpacker(f, raw=False, strict_map_key=True,
+                                    max_buffer_size=64 * 1024 * 1024)
+        try:
+            for item in unpacker:
+                items.append(item)
+        except Exception as exc:  # msgpack's own errors, and ValueError for bad data
+            damage = exc
     if not items or not isinstance(items[0], dict) or items[0].get("format") != HREC_FORMAT:
         raise InputError(f"'{path}' is not a haptic recording (neither MCAP nor .hrec)")
+    if damage is not None or unpacker.tell() < Path(path).stat().st_size:
+        why = "cut mid-record" if damage is None else type(damage).__name__
+        print(f"note: '{path}' is damaged part way ({why}); read the {len(items) - 1} "
+              "records before that", file=sys.stderr)
     records = []
     for r in items[1:]:
         if not (isinstance(r, dict) and isinstance(r.get("payload"), bytes)

@@ -232,6 +232,10 @@ class DaemonConfig:
                 and "hand" in self.backend.options):
             raise ConfigError("backend.options.hand names a single finger's chain; the hand "
                               "holding scenario.object is scenario.hand")
+        if self.scenario.start is not None and self.backend.name != "sim":
+            raise ConfigError(f"scenario.start hides the simulator's start pose; on backend "
+                              f"'{self.backend.name}' the finger starts where it stands: "
+                              "remove scenario.start")
 
     def run_settings(self) -> RunSettings | HandSettings:
         """The scenario's settings; on hardware the localizer assumes encoder-level noise."""

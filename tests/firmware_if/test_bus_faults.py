@@ -70,8 +70,10 @@ def test_a_lost_port_latches_a_fault_and_nothing_escapes(rig) -> None:
     assert not state.moving  # the step under way ended (blocked)
     assert backend.read_state().fault == state.fault  # the first cause stays
     backend.set_torque(False)  # best effort on a dead port: no exception
-    with pytest.raises(HardwareFault):
+    with pytest.raises(HardwareFault) as refused:
         backend.command_step(StepCommand(0.01, 0.0))
+    # the fault says how to recover once ("reset ... to recover; reset first" before)
+    assert str(refused.value).count("reset") == 1, str(refused.value)
 
 
 def test_reset_reopens_the_port_on_a_new_emulator_and_reconfigures_it(rig) -> None:
@@ -222,3 +224,17 @@ def test_configure_on_a_new_port_is_a_new_bus(rig) -> None:
         moved.close()
     finally:
         other.stop()
+
+
+def test_a_hand_file_that_is_not_the_bus_s_is_named(tmp_path: Path) -> None:
+    """`--hand planar` on a spatial finger's bus said only "no surface found"."""
+    bus = emulator(link=tmp_path / "ttyDXL")
+    backend = DynamixelBackend(load_hand("planar"), str(tmp_path / "ttyDXL"), SETTINGS)
+    try:
+        backend.open()
+        with pytest.raises(HardwareFault, match=r"no surface found.*servos 3, 4 also answer "
+                           r"on this bus, which hand 'planar' does not use \(ids 1, 2\)"):
+            backend.set_torque(True)
+    finally:
+        backend.close()
+        bus.stop()

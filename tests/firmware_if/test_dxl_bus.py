@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 import time
 
 import pytest
@@ -90,6 +91,34 @@ def test_failures_are_tolerated_then_latch_a_fault_with_torque_off(emulator, bus
     bus.reset()
     assert set(bus.cycle()) == set(IDS)
     assert bus.stats.failures == 3 and bus.stats.consecutive_failures == 0
+
+
+def test_a_late_servo_is_named_late_not_silent(emulator, bus):
+    # `haptic emulate`'s `late 2 0.02` drill was diagnosed "no servo answers a ping": the
+    # late replies landed in the next servo's ping and spoiled it
+    bus.torque(True)
+    emulator.fault(3).late_s = 0.02  # within the setup's timeout, past a cycle's
+    for _ in range(2):
+        with pytest.raises(CommunicationError):
+            bus.cycle()
+    with pytest.raises(HardwareFault, match="3 consecutive failed cycles") as fault:
+        bus.cycle()
+    words = str(fault.value)
+    assert re.search(r"servos? ([0-9, ]*, )?3(, [0-9, ]*)? answers? a ping only after \d+ ms "
+                     r"\(a cycle allows 10 ms\)", words), words
+    assert "no servo answers" not in words and "latency timer" in words
+    assert emulator.wait_until(lambda: not any(s.torque_on for s in emulator.servos.values()))
+
+
+def test_a_bus_where_no_servo_answers_names_the_baud(emulator, bus):
+    for sid in IDS:
+        emulator.fault(sid).mute = True
+    for _ in range(2):
+        with pytest.raises(CommunicationError):
+            bus.cycle()
+    with pytest.raises(HardwareFault, match="no servo answers a ping: check the bus power, "
+                       "the adapter, and that the servos use 1000000 baud"):
+        bus.cycle()
 
 
 def test_a_corrupt_reply_is_counted_and_forgiven(emulator, bus):

@@ -29,6 +29,9 @@ def test_sample_config_is_valid_and_equals_the_defaults() -> None:
     ({"scenario": {"localizer": "magic"}}, "localizer"),
     ({"scenario": {"step": -1}}, "step"),
     ({"scenario": {"start": [1, 2]}}, "start"),
+    ({"backend": {"name": "dynamixel", "options": {"port": "/dev/ttyUSB0", "hand": "planar"}},
+      "scenario": {"start": [0.1, 0.1, 0.0]}},  # was accepted, and unused
+     "scenario.start hides the simulator's start pose.*remove scenario.start"),
     ({"endpoints": {"pub": "localhost"}}, "endpoint"),
     ({"security": {"curve": True}}, "server_secret_key"),
     ({"lease": {"ttl_s": 0}}, "ttl_s"),

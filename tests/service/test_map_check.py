@@ -115,6 +115,21 @@ def test_a_symmetry_is_reported_with_how_well_and_where_it_holds(plate_map):
     assert found[0][0] == 2 and found[0][3] > 0.99 and found[0][4] == 1.0
 
 
+@pytest.mark.parametrize("roughness", [0.0, 2e-6])
+def test_a_plate_with_one_hole_turns_about_the_hole_and_a_flat_map_about_nothing(roughness):
+    """Two plains correlate perfectly: turned copies of a plate that missed its one hole
+    named an axis of revolution at (156, 86) mm, and a flat map "every turn about" an
+    arbitrary point."""
+    x = np.arange(201) * 0.001
+    xx, yy = np.meshgrid(x, x)
+    rough = np.random.default_rng(4).normal(0.0, roughness, xx.shape)
+    hole = np.where(np.hypot(xx - 0.06, yy - 0.13) < 0.012, -0.005, 0.0) + rough
+    text = "\n".join(check_map(HeightMap(hole, 0.001, "hole"), 0.008).lines())
+    assert "every turn about (60, 130) mm" in text, text
+    flat = check_map(HeightMap(rough, 0.001, "flat"), 0.008)
+    assert len(flat.symmetries) == 0 and "symmetries none found" in "\n".join(flat.lines())
+
+
 def test_a_surface_of_revolution_is_named_with_its_axis(rings_map):
     """Rings repeat under every turn about their axis: the report says so, and where the axis
     lies, rather than listing three of 179 turns as if they were all."""

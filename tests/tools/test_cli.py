@@ -88,6 +88,19 @@ def test_a_user_error_is_one_line_with_status_2(capsys) -> None:
     assert err.count("\n") == 1 and "not KEY=VALUE" in err
 
 
+@pytest.mark.parametrize("argv, words", [
+    (["run", "--seed", "abc"], "haptic run: error: argument --seed: invalid int value: 'abc'"),
+    (["bench", "grasp", "--runs", "x"], "haptic bench grasp: error: argument --runs"),
+])
+def test_a_bad_option_is_one_line_naming_the_help(capsys, argv: list[str], words: str) -> None:
+    """argparse printed its usage block first (a bad type, e.g. `--seed abc`)."""
+    with pytest.raises(SystemExit) as end:
+        main(argv)
+    err = capsys.readouterr().err
+    assert end.value.code == 2 and err.count("\n") == 1 and err.startswith(words), err
+    assert f"`haptic {' '.join(argv[:-2])} --help` lists the options" in err
+
+
 def _catches(pid: int, sig: int) -> bool:
     """Whether process `pid` has a handler installed for `sig` (Linux /proc)."""
     for line in Path(f"/proc/{pid}/status").read_text().splitlines():

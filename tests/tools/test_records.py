@@ -11,6 +11,7 @@ import sys
 from pathlib import Path
 
 import msgpack
+import pytest
 from mcap.reader import make_reader
 
 from service.daemon.harness import loopback_config, running_node
@@ -104,6 +105,22 @@ def test_replay_and_export_still_read_an_old_hrec(tmp_path: Path, capsys) -> Non
     (episode,) = json.loads(captured.out)
     assert episode["initial_candidates"] == 20000 and len(episode["steps"]) == 1
     assert episode["converged"] is False and "still running" in captured.err
+
+
+@pytest.mark.parametrize("damage", ["cut", "garbled"])
+def test_a_damaged_hrec_gives_what_comes_before_the_damage(tmp_path: Path, capsys,
+                                                           damage: str) -> None:
+    """A damaged `.hrec` was refused whole as "neither MCAP nor .hrec"; a cut MCAP file is
+    read to where it stops, and so is this."""
+    rec = tmp_path / "old.hrec"
+    write_hrec(rec, FINGER_EPISODE_3)
+    tail = b"\xc1\xc1\xc1" if damage == "garbled" else b""  # 0xc1: never valid msgpack
+    rec.write_bytes(rec.read_bytes()[:-5] + tail)  # the last record cut (then junk)
+    assert main(["replay", str(rec)]) == 0
+    captured = capsys.readouterr()
+    assert "episode_started" in captured.out
+    assert f"note: '{rec}' is damaged part way" in captured.err
+    assert f"read the {len(FINGER_EPISODE_3) - 1} records before that" in captured.err
 
 
 def test_export_writes_the_finger_episodes_of_a_recording_that_also_holds_a_hand(

@@ -78,13 +78,7 @@ def _find(surface: ContactSurface, threshold: float, min_overlap: float, limit: 
     ones = np.ones_like(a)
     found = []
     for k in turns:
-        b = np.rot90(a, k)
-        num = _convolve(a, b[::-1, ::-1])
-        ss_a = _convolve(a * a, ones[::-1, ::-1])
-        ss_b = _convolve(ones, (b * b)[::-1, ::-1])
-        overlap = _convolve(ones, ones[::-1, ::-1])
-        ncc = num / np.sqrt(np.maximum(ss_a * ss_b, 1e-300))
-        ncc[overlap < min_overlap * a.size] = -1.0
+        ncc, overlap = _masked_ncc(a, np.rot90(a, k), ones, min_overlap)
         peaks = (ncc >= min(threshold, LATTICE[0])) & (ncc == ndimage.maximum_filter(ncc, size=5))
         u, v = np.nonzero(peaks)
         shift_y, shift_x = u - (a.shape[0] - 1), v - (a.shape[1] - 1)
@@ -196,13 +190,48 @@ def _turned_ncc(a: np.ndarray, deg: float, min_overlap: float
     """Normalized correlation of `a` with itself turned by `deg` degrees (about its centre)
     at every shift, -1 where they overlap on less than `min_overlap` of it; and the
     overlaps, in samples."""
-    ones = np.ones_like(a)
-    mask = (ndimage.rotate(ones, deg, reshape=False, order=1) > 0.999).astype(np.float64)
-    b = mask * ndimage.rotate(a, deg, reshape=False, order=1)
-    overlap = _convolve(ones, mask[::-1, ::-1])
-    ncc = _convolve(a, b[::-1, ::-1]) / np.sqrt(np.maximum(
-        _convolve(a * a, mask[::-1, ::-1]) * _convolve(ones, (b * b)[::-1, ::-1]), 1e-300))
-    ncc[overlap < min_overlap * a.size] = -1.0
+    mask = (ndimage.rotate(np.ones_like(a), deg, reshape=False, order=1) > 0.999
+            ).astype(np.float64)
+    return _masked_ncc(a, mask * ndimage.rotate(a, deg, reshape=False, order=1), mask,
+                       min_overlap)
+
+
+FEATURED = 0.02
+"""An overlap counts only where each copy varies over it by at least this share of what
+the map varies over a region of its size (`_masked_ncc`): a plain does not vary at all,
+while part of a dome varies far less than the whole dome does (at 0.1 two shells lost a
+symmetry; at this share every preset keeps every one it had)."""
+
+
+def _masked_ncc(a: np.ndarray, b: np.ndarray, mask: np.ndarray, min_overlap: float
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """Normalized correlation of `a` (mean zero) with `b` (zero off `mask`, where it is
+    defined) at every shift, -1 where they overlap on less than `min_overlap` of `a` or
+    where either varies too little over the overlap (`FEATURED`); and the overlaps, in
+    samples. Two plains correlate perfectly: on a plate with one hole, turned copies that
+    missed the hole named the wrong axis of revolution, and a flat map "every turn about"
+    an arbitrary point."""
+    shape = [2 * n - 1 for n in a.shape]
+    padded = [fft.next_fast_len(n, real=True) for n in shape]
+
+    def spectrum(x: np.ndarray) -> np.ndarray:
+        return fft.rfft2(x, padded)
+
+    def back(spectrum: np.ndarray) -> np.ndarray:
+        return fft.irfft2(spectrum, padded)[:shape[0], :shape[1]]
+
+    # each array transformed once: the six sums below are products of their spectra
+    f_a, f_aa, f_ones = spectrum(a), spectrum(a * a), spectrum(np.ones_like(a))
+    f_mask, f_b, f_bb = (spectrum(x[::-1, ::-1]) for x in (mask, b, b * b))
+    overlap, ss_a, ss_b = back(f_ones * f_mask), back(f_aa * f_mask), back(f_ones * f_bb)
+    ncc = back(f_a * f_b) / np.sqrt(np.maximum(ss_a * ss_b, 1e-300))
+    n = np.maximum(overlap, 1.0)
+    varied_a = ss_a - back(f_a * f_mask) ** 2 / n
+    varied_b = ss_b - back(f_ones * f_b) ** 2 / n
+    featured = ((varied_a >= FEATURED * n / a.size * np.sum(a * a))
+                & (varied_b >= FEATURED * n / max(mask.sum(), 1.0) * np.sum(b * b))
+                & (varied_a > 0) & (varied_b > 0))
+    ncc[(overlap < min_overlap * a.size) | ~featured] = -1.0
     return ncc, overlap
 
 
