@@ -172,6 +172,12 @@ class DynamixelHand(PlanarHand, DynamixelBackend):  # type: ignore[misc]
         if not (settled or timed_out):
             return
         if settled and not all(self._touching):
+            try:  # a servo that restarted (a brown-out) presses on nothing too
+                self.bus.check_torque()
+            except HardwareFault as exc:
+                self._fault, self._torque = self._fault or str(exc), False
+                self._finish(blocked=True)
+                return
             self._dropped = True  # a finger pressing on nothing: the object is gone
         self._finish(blocked=not settled)
 

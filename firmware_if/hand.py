@@ -7,6 +7,7 @@ Loaded from TOML (a preset name from `firmware_if/hands/` or a file path), valid
 from __future__ import annotations
 
 import difflib
+import itertools
 import math
 import tomllib
 from collections.abc import Sequence
@@ -28,6 +29,10 @@ from firmware_if.registers import (
 )
 
 PRESET_DIR = Path(__file__).with_name("hands")
+MAX_TIP_RADIUS = 0.1
+MAX_REACH = 3.0
+"""Metres beyond which a fingertip's radius, and a finger's links together, are taken for
+millimetres (a hand file in millimetres was blamed on the object it could not hold)."""
 
 
 def joint_ticks(joints: Sequence[Joint], q: Sequence[float]) -> dict[int, int]:
@@ -132,6 +137,12 @@ class Finger:
         object.__setattr__(self, "tip", _vec3(self.tip, f"{where}: tip"))
         if not (math.isfinite(self.radius) and self.radius > 0):
             raise HandConfigError(f"{where}: radius must be > 0 metres, got {self.radius}")
+        reach = sum(float(np.linalg.norm(j.origin)) for j in self.joints) + float(
+            np.linalg.norm(self.tip))
+        if self.radius > MAX_TIP_RADIUS or reach > MAX_REACH:
+            raise HandConfigError(
+                f"{where}: a fingertip radius of {self.radius:g} m and links {reach:g} m long "
+                "in all are a hand's size in millimetres: a hand file's lengths are metres")
         if len(self.home) != len(self.joints):
             raise HandConfigError(f"{where}: home needs {len(self.joints)} angles, "
                                   f"got {len(self.home)}")
@@ -190,6 +201,13 @@ class Hand:
         ids = list(self.ids)
         if len(set(ids)) != len(ids):
             raise HandConfigError(f"hand '{self.name}': servo ids must be unique, got {ids}")
+        for a, b in itertools.combinations(self.fingers, 2):
+            apart = math.hypot(a.base[0] - b.base[0], a.base[1] - b.base[1])
+            if apart < a.radius + b.radius:
+                raise HandConfigError(
+                    f"hand '{self.name}': fingers '{a.name}' and '{b.name}' have bases "
+                    f"{apart * 1e3:.1f} mm apart, less than their tips are wide together: "
+                    "give each finger its own base")
         if len(self.fingers) > 1:
             for f in self.fingers:
                 if not (f.planar and abs(abs(f.joints[0].axis[1]) - 1) < 1e-9):

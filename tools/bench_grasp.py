@@ -2,10 +2,13 @@
 (BENCHMARKS.md B6, paper §6).
 
 For each hand (two and three fingers) and object family, `--runs` seeded runs at B2-level
-noise; run i holds family member NAME:i (held-out shapes, not one preset) with seed i. Each
+noise; run i holds family member NAME:i (held-out shapes, not one preset) with seed i; an
+object of one's own (a preset NAME:SEED or an outline or mesh file) is held in every run,
+seed i hiding its start pose. Each
 run is repeated with the hand's first finger alone on the same contour, the object clamped
 (the steps a single finger needs), and without the grasp gate (the ablation: its drops are
-what the gate prevents). `--workers` runs episodes in parallel processes. Each drop and wrong
+what the gate prevents). The episodes run where every benchmark's do (`tools.executor`: a
+local pool, one worker per core by default, or a Dask cluster). Each drop and wrong
 declaration of a gated run is listed, and either gives exit status 1.
 """
 
@@ -14,15 +17,16 @@ from __future__ import annotations
 import argparse
 import math
 from collections.abc import Sequence
-from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 from tqdm import tqdm
 
-from service.errors import ConfigError
-from tools.bench_common import fmt, percentile, write_json
+from service.errors import ConfigError, ServiceError
+from service.localization.surface import HeightMap
+from tools.bench_common import executor_for, fmt, percentile, write_json
+from tools.executor import Failed, add_executor_options
 
 OBJECTS = ("ellipse", "rounded", "blob", "keyed")
 HANDS = ("two-finger", "three-finger")
@@ -37,7 +41,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--first-seed", type=int, default=0, help="seed (and family member) of the "
                    "first run")
     p.add_argument("--objects", default=",".join(OBJECTS),
-                   help="object families, comma-separated (default: %(default)s)")
+                   help="object families, comma-separated (default: %(default)s), or objects "
+                        "of one's own (NAME:SEED, an outline .csv or a mesh cut at its "
+                        "centroid's z), each held in every run")
     p.add_argument("--hands", default=",".join(HANDS),
                    help="hands, comma-separated (default: %(default)s)")
     p.add_argument("--max-steps", type=int, default=60, help="(default: %(default)s)")
@@ -46,29 +52,36 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    "threshold)")
     p.add_argument("--no-ablation", action="store_true", help="skip the runs without the gate")
     p.add_argument("--no-single", action="store_true", help="skip the single-finger runs")
-    p.add_argument("--workers", type=int, default=1, help="parallel processes "
-                   "(default: %(default)s)")
     p.add_argument("--json", type=Path, metavar="FILE", help="write results as JSON")
     p.add_argument("--plot", type=Path, metavar="FILE.png", help="write a figure")
+    add_executor_options(p)
 
 
 def _check(args: argparse.Namespace) -> None:
-    if args.runs < 1 or args.workers < 1 or args.max_steps < 1:
-        raise ConfigError("--runs, --workers and --max-steps must be at least 1")
+    if args.runs < 1 or args.max_steps < 1:
+        raise ConfigError("--runs and --max-steps must be at least 1")
     for path in (args.json, args.plot):
         if path is not None and not path.resolve().parent.is_dir():
             raise ConfigError(f"cannot write {path}: folder {path.parent} does not exist")
+    from service.errors import ObjectError
+    from service.localization.objects.files import load_object
+
     for name in args.objects.split(","):
-        if name not in OBJECTS:
-            raise ConfigError(f"--objects: unknown family '{name}'; families: "
-                              f"{', '.join(OBJECTS)}")
+        if name in OBJECTS:
+            continue
+        try:
+            load_object(name)
+        except ObjectError as exc:
+            raise ConfigError(f"--objects: '{name}' is neither a family ("
+                              f"{', '.join(OBJECTS)}) nor an object: {exc}") from None
 
 
 _PARTS: dict[tuple, Any] = {}
 
 
-def episode(settings) -> dict[str, Any]:
-    """One episode's outcome, small enough to send between processes."""
+def episode(settings, maps: dict[str, HeightMap] | None = None) -> dict[str, Any]:
+    """One episode's outcome, small enough to send between processes (an executor's task:
+    a hand needs no map)."""
     from service.episode.hand_episode import simulate_hand
     from service.episode.hand_scenario import load_parts
 
@@ -128,18 +141,26 @@ def run(args: argparse.Namespace) -> int:
             for kind in kinds:
                 for seed in seeds:
                     jobs.append(((hand, family, kind), HandSettings(
-                        object=f"{family}:{seed}", hand=hand, seed=seed, noise=True,
+                        object=f"{family}:{seed}" if family in OBJECTS else family,
+                        hand=hand, seed=seed, noise=True,
                         max_steps=args.max_steps, gate=kind != "ablation",
                         single_finger=kind == "single", start_n=args.start_quality)))
     # a bad hand name or start quality fails here, not in a worker
     HandSettings(hand=hands[0], start_n=args.start_quality)
+    outcomes: list[dict[str, Any] | None] = [None] * len(jobs)
+    with executor_for(args) as executor, tqdm(total=len(jobs), desc="B6 grasp", unit="run",
+                                              leave=False, disable=None) as bar:
+        for index, outcome in executor.run([s for _, s in jobs], {}, task=episode):
+            if isinstance(outcome, Failed):
+                raise ServiceError(f"an episode raised: --hand {outcome.settings.hand} "
+                                   f"--object {outcome.settings.object} --seed "
+                                   f"{outcome.settings.seed}: {outcome.error}")
+            outcomes[index] = outcome
+            bar.update()
+        info = executor.info()
     results: dict[tuple, list[dict[str, Any]]] = {}
-    with ProcessPoolExecutor(args.workers) if args.workers > 1 else _Serial() as pool:
-        outcomes = pool.map(episode, [s for _, s in jobs], chunksize=4)
-        for (key, _), outcome in tqdm(zip(jobs, outcomes, strict=True), total=len(jobs),
-                                      desc="B6 grasp", unit="run", leave=False,
-                                      disable=None):
-            results.setdefault(key, []).append(outcome)
+    for (key, _), outcome in zip(jobs, outcomes, strict=True):
+        results.setdefault(key, []).append(outcome)  # in seed order, whoever ran it
     table = {f"{hand}/{family}/{kind}": _summary(results[(hand, family, kind)])
              for hand in hands for family in families for kind in kinds}
     gated = [o for (h, f, k), v in results.items() if k == "gated" for o in v]
@@ -153,7 +174,7 @@ def run(args: argparse.Namespace) -> int:
         print(line)
     write_json(args.json, {"scenario": "grasp", "targets": TARGETS,
                            "start_quality_n": args.start_quality, "summary": summary,
-                           "table": table,
+                           "table": table, **info,
                            "runs": {"/".join(k): v for k, v in results.items()}})
     if args.plot:
         grasp_figure(table, hands, families, kinds, args.plot)
@@ -179,19 +200,6 @@ def failed_runs(results: dict[tuple, list[dict[str, Any]]], start_n: float | Non
                 lines.append(f"WRONG: {where} ({o['position_error'] * 1e3:.1f} mm, "
                              f"{o['heading_error_deg']:.1f} deg off)")
     return lines
-
-
-class _Serial:
-    """`ProcessPoolExecutor`'s map, in this process (one worker)."""
-
-    def __enter__(self) -> _Serial:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        return None
-
-    def map(self, fn, items, chunksize: int = 1):
-        return map(fn, items)
 
 
 def _print(table: dict, summary: dict, hands, families, kinds) -> None:

@@ -45,7 +45,8 @@ def register_ctl(p: argparse.ArgumentParser) -> None:
                      "to whoever holds it, so use `haptic explore` to localize.")
     p.epilog = commands_help()
     p.add_argument("command", metavar="COMMAND", help="one of the commands listed below")
-    p.add_argument("args", nargs="*", metavar="KEY=VALUE",
+    p.add_argument("args", nargs="*", metavar="KEY=VALUE", default=[],  # optional, also
+                   # to parse_intermixed_args, which without a default calls it required
                    help="the command's arguments; VALUE is JSON where it parses (3, true, "
                         "{...}), else a string. For configure, SECTION.KEY=VALUE sets one "
                         "key (scenario.seed=3)")
@@ -352,7 +353,9 @@ class Follower:
         why = why_not_converged(candidates=int(est.get("candidates", 0)), steps=steps,
                                 max_steps=self.max_steps, pose=est.get("pose"),
                                 mode_mass=est.get("mode_mass"), runner_up=est.get("runner_up"),
-                                runner_up_mass=est.get("runner_up_mass"))
+                                runner_up_mass=est.get("runner_up_mass"), second=axis,
+                                where="of the object in the hand" if self.hand
+                                else "on this map")
         print(f"result    not localized after {steps} steps: {why}")
         return 1
 

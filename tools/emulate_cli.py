@@ -31,6 +31,10 @@ from tools.hand_cli import add_object_world_options, hand_settings
 from tools.scenario_options import add_scenario_options, settings_from_args
 from tools.signals import interrupted
 
+EMULATOR_PRIORITY = 30
+"""Above the daemon's loop (`loop.realtime_priority`, 20): starved on a loaded machine, an
+ordinary emulator answered late enough to fault an idle bus."""
+
 
 def register(p: argparse.ArgumentParser) -> None:
     p.description = ("Start a Protocol 2.0 servo-bus emulator whose servos move a fingertip "
@@ -46,6 +50,11 @@ def register(p: argparse.ArgumentParser) -> None:
                    help="hidden start pose instead of the seed's (metres, metres, degrees)")
     p.add_argument("--no-fast-read", action="store_true",
                    help="emulate firmware older than v45 (no Fast Sync/Bulk Read)")
+    p.add_argument("--priority", type=int, default=EMULATOR_PRIORITY, metavar="N",
+                   choices=range(0, 99),
+                   help="SCHED_FIFO priority (1-98) of the thread that answers, above "
+                        "hapticd's loop: servos answer whatever the host does; 0: ordinary "
+                        "scheduling (default: %(default)s)")
     p.add_argument("--link", metavar="PATH",
                    help="also make PATH a symlink to the port (a stable name, like "
                         "/dev/serial/by-id/..., that a restarted emulator takes over)")
@@ -91,7 +100,8 @@ def _bus(args: argparse.Namespace, servos, plant) -> ServoBus:
     link = getattr(args, "link", None)
     if link is not None and os.path.exists(link) and not os.path.islink(link):
         raise ConfigError(f"--link {link}: a file that is not a symlink is there already")
-    return ServoBus(servos, plant=plant, fast_read=not args.no_fast_read, link=link).start()
+    return ServoBus(servos, plant=plant, fast_read=not args.no_fast_read, link=link,
+                    priority=getattr(args, "priority", 0)).start()
 
 
 def run(args: argparse.Namespace, *, ready: Callable[[str], None] | None = None,
@@ -106,6 +116,8 @@ def run(args: argparse.Namespace, *, ready: Callable[[str], None] | None = None,
         print(f"emulating hand '{args.hand}' (ids {sorted(bus.servos)}) {where}, "
               f"heading={np.degrees(truth.heading):.1f} deg; Ctrl-C to stop; fault drills on "
               "standard input ('help' lists them)", flush=True)
+        if bus.scheduling is not None and bus.scheduling.note:
+            print(f"note: {bus.scheduling.note}", file=sys.stderr, flush=True)
         threading.Thread(target=_drills, args=(bus, drills or sys.stdin), daemon=True).start()
         if ready:
             ready(bus.port)

@@ -9,6 +9,8 @@ did (`Executor.describe`).
 
 Maps travel once per worker (the pool's initializer, Dask's `scatter`), not once per
 episode; a finished episode travels back without its map and is given it again here.
+An episode is a finger's on a map (`on_map`) unless the caller names another task, a
+module-level function of (settings, maps) (a hand's: `haptic bench grasp`).
 """
 
 from __future__ import annotations
@@ -17,7 +19,7 @@ import dataclasses
 import os
 import signal
 from abc import ABC, abstractmethod
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -38,14 +40,17 @@ PRELOAD = ["service.episode.simulate", "service.localization.kernels",
 class Failed:
     """An episode that raised instead of finishing (a benchmark reports it and goes on)."""
 
-    settings: RunSettings
+    settings: Any
+    """What the episode was asked to run (RunSettings, or a task's own settings)."""
     error: str
 
     def to_json(self) -> dict[str, Any]:
         return {"settings": self.settings.to_json(), "error": self.error}
 
 
-Outcome = EpisodeReport | Failed
+Outcome = EpisodeReport | Failed | Any
+Task = Callable[[Any, dict[str, HeightMap]], Any]
+"""One episode from its settings and the shared maps, in whichever process runs it."""
 
 
 def cores() -> int:
@@ -56,11 +61,16 @@ def cores() -> int:
         return os.cpu_count() or 1
 
 
-def run_one(settings: RunSettings, maps: dict[str, HeightMap]) -> Outcome:
+def on_map(settings: RunSettings, maps: dict[str, HeightMap]) -> EpisodeReport:
+    """A finger's episode on its map: the default task."""
+    return simulate(settings, maps[settings.map])
+
+
+def run_one(settings: Any, maps: dict[str, HeightMap], task: Task = on_map) -> Outcome:
     """One episode, in whichever process runs it; an exception becomes `Failed`."""
     _one_thread()
     try:
-        return simulate(settings, maps[settings.map])
+        return task(settings, maps)
     except Exception as exc:  # noqa: BLE001 - reported per episode, the rest go on
         first = str(exc).splitlines()[0] if str(exc) else ""
         return Failed(settings, f"{type(exc).__name__}: {first}")
@@ -102,8 +112,8 @@ class Executor(ABC):
         """Where the episodes ran and who shared the machine, for reports."""
 
     @abstractmethod
-    def run(self, settings: Sequence[RunSettings],
-            maps: dict[str, HeightMap]) -> Iterator[tuple[int, Outcome]]: ...
+    def run(self, settings: Sequence[Any], maps: dict[str, HeightMap],
+            task: Task = on_map) -> Iterator[tuple[int, Outcome]]: ...
 
     def info(self) -> dict[str, Any]:
         return {"executor": self.describe(), "workers": self.workers, "cores": cores()}
@@ -127,9 +137,9 @@ class InProcess(Executor):
     def describe(self) -> str:
         return f"1 worker (this process) on a machine with {cores()} cores"
 
-    def run(self, settings, maps):
+    def run(self, settings, maps, task=on_map):
         for i, s in enumerate(settings):
-            yield i, run_one(s, maps)
+            yield i, run_one(s, maps, task)
 
     def close(self) -> None:
         """Nothing to release."""
@@ -145,9 +155,9 @@ def _pool_start(maps: dict[str, HeightMap]) -> None:
     _one_thread()
 
 
-def _pool_task(item: tuple[int, RunSettings]) -> tuple[int, Outcome]:
-    index, settings = item
-    return index, _portable(run_one(settings, _pool_maps))
+def _pool_task(item: tuple[int, Any, Task]) -> tuple[int, Outcome]:
+    index, settings, task = item
+    return index, _portable(run_one(settings, _pool_maps, task))
 
 
 class LocalPool(Executor):
@@ -165,12 +175,12 @@ class LocalPool(Executor):
         return (f"a local pool of {self.workers} worker processes sharing a machine with "
                 f"{cores()} cores")
 
-    def run(self, settings, maps):
+    def run(self, settings, maps, task=on_map):
         self._pool = self._context.Pool(self.workers, initializer=_pool_start,
                                         initargs=(maps,))
         try:
-            for index, outcome in self._pool.imap_unordered(_pool_task,
-                                                            list(enumerate(settings))):
+            items = [(i, s, task) for i, s in enumerate(settings)]
+            for index, outcome in self._pool.imap_unordered(_pool_task, items):
                 yield index, _arrived(outcome, maps)
         finally:
             self.close()
@@ -182,8 +192,8 @@ class LocalPool(Executor):
             self._pool = None
 
 
-def _dask_task(settings: RunSettings, maps: dict[str, HeightMap]) -> Outcome:
-    return _portable(run_one(settings, maps))
+def _dask_task(settings: Any, maps: dict[str, HeightMap], task: Task) -> Outcome:
+    return _portable(run_one(settings, maps, task))
 
 
 class DaskCluster(Executor):
@@ -207,13 +217,13 @@ class DaskCluster(Executor):
     def describe(self) -> str:
         return f"the Dask cluster at {self.address} ({self.workers} workers)"
 
-    def run(self, settings, maps):
+    def run(self, settings, maps, task=on_map):
         from distributed import as_completed
 
         shared = self._client.scatter(maps, broadcast=True)
         index = {}
         for i, s in enumerate(settings):
-            future = self._client.submit(_dask_task, s, shared, pure=False)
+            future = self._client.submit(_dask_task, s, shared, task, pure=False)
             index[future.key] = i
             self._futures.append(future)
         try:

@@ -178,8 +178,8 @@ def _print_summary(report, on_servos: bool = False) -> None:
               f"({_pose_text(report.truth)}) and servos cannot see where it went")
     else:
         print(f"truth     {_pose_text(report.truth)}"
-              + ("  (the seed's start, where `haptic emulate` placed the object)"
-                 if on_servos else ""))
+              + ("  (the seed's start: where `haptic emulate` placed the object if it "
+                 "was given the same --hand, --object and --seed)" if on_servos else ""))
     if est is None or est.pose is None:
         print("estimate  none")
     else:

@@ -78,7 +78,9 @@ class CommandHandlers:
         rebuild = (self.backend is None or new.backend != self.config.backend
                    or new.backend.name == "sim"
                    or _servos(new) != _servos(self.config)  # another hand on the bus
-                   or self.lifecycle.state in (State.UNCONFIGURED, State.FAULT))
+                   or self.lifecycle.state in (State.UNCONFIGURED, State.FAULT)
+                   # the object put back after a drop: a hand on servos starts afresh
+                   or bool(self.last_state is not None and self.last_state.dropped))
         deferred = Deferred()
         port = new.backend.options.get("port")
         same_port = (self.backend is not None and port is not None

@@ -111,6 +111,11 @@ class Explorer:
         self._next: HandCommand | None = None
         self._before = 0
         self._step_started_ns = 0
+        self._started = False
+        """The episode under way has had its first belief (`episode_started` is out)."""
+        self._undo: tuple[Any, ...] = ()
+        """What `_begin` replaced, put back when an episode ends before its first belief:
+        a start refused (a fault at once) used up an id and wiped the estimate."""
 
     @property
     def running(self) -> bool:
@@ -131,6 +136,10 @@ class Explorer:
         if self.phase not in (Phase.IDLE, Phase.RESTART):  # RESTART: the last one is done
             with contextlib.suppress(WorkerDied):  # a dead process has nothing to cancel
                 self._req = self.link.send("cancel")
+        if self.phase is Phase.DECIDE and not self._started:  # it never began: no trace
+            (self.episode, self.steps, self.truth, self.estimate, self._topic, self._cloud,
+             self.candidates) = self._undo
+        elif self.phase not in (Phase.IDLE, Phase.RESTART):
             est = {k: v for k, v in self.estimate_fields().items()
                    if k not in ("step", "kind", "displacement", "predicted_quality", "quality")}
             # a step commanded but not yet read has no `step` event: it is not counted
@@ -153,6 +162,9 @@ class Explorer:
             self.estimate, self._topic = previous.estimate, dict(previous._topic)
 
     def _begin(self, state: HandState, truth: list[float] | None) -> None:
+        self._undo = (self.episode, self.steps, self.truth, self.estimate, self._topic,
+                      self._cloud, self.candidates)
+        self._started = False
         self.episode += 1
         self.steps = 0
         self.truth = truth
@@ -168,7 +180,9 @@ class Explorer:
         """Advance as far as this tick allows; `replies` are the compute process's."""
         out = TickOutput()
         if self.phase is Phase.RESTART:
-            if not self.paused:  # a lost lease's hold starts no episode
+            if state.dropped:  # nothing left to hold: `repeat` began 242 episodes in 5 s
+                self.phase, self.repeat = Phase.IDLE, False
+            elif not self.paused:  # a lost lease's hold starts no episode
                 self._begin(state, None if self._truth_at is None else self._truth_at(state))
             return out
         for msg in replies:
@@ -195,6 +209,7 @@ class Explorer:
         out.estimate_updated = True
         out.localizer_ms = float(msg["update_ms"])
         if first:
+            self._started = True
             out.started = True
             out.events.append(("episode_started", {
                 "episode": self.episode, "candidates": self.candidates,

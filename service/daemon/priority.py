@@ -26,8 +26,17 @@ class Scheduling:
 
 
 def set_loop_priority(priority: int) -> Scheduling:
-    """Put the calling thread under SCHED_FIFO at `priority` (1-98); 0 leaves it ordinary.
-    Never raises: a machine that forbids it keeps the ordinary scheduler, with a note."""
+    """Put the calling thread (the loop's) under SCHED_FIFO at `priority` (1-98); 0 leaves
+    it ordinary. Never raises: a machine that forbids it keeps the ordinary scheduler, with
+    a note."""
+    return set_thread_priority(priority, "the loop keeps ordinary scheduling and may miss "
+                               "its period on a loaded machine",
+                               "set loop.realtime_priority = 0 to stop asking")
+
+
+def set_thread_priority(priority: int, refused: str, stop_asking: str) -> Scheduling:
+    """Put the calling thread under SCHED_FIFO at `priority`, or say why not: `refused`
+    says what that costs, `stop_asking` how to ask for nothing."""
     fifo = getattr(os, "SCHED_FIFO", None)
     if fifo is None:
         return Scheduling("other", 0, None if priority == 0 else
@@ -36,13 +45,13 @@ def set_loop_priority(priority: int) -> Scheduling:
         if priority == 0:
             os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
             return Scheduling("other", 0)
-        # the compute process, restarted from this thread after a crash, stays ordinary
+        # a process forked from this thread (the compute process, restarted after a
+        # crash) stays ordinary
         os.sched_setscheduler(0, fifo | getattr(os, "SCHED_RESET_ON_FORK", 0),
                               os.sched_param(priority))
     except OSError as exc:
         return Scheduling("other", 0, (
-            f"SCHED_FIFO {priority} refused ({exc.strerror}): the loop keeps ordinary "
-            "scheduling and may miss its period on a loaded machine; allow it with "
+            f"SCHED_FIFO {priority} refused ({exc.strerror}): {refused}; allow it with "
             "`setcap cap_sys_nice+ep` on the Python binary, an rtprio limit in "
-            "/etc/security/limits.conf, or set loop.realtime_priority = 0 to stop asking"))
+            f"/etc/security/limits.conf, or {stop_asking}"))
     return Scheduling("fifo", priority)

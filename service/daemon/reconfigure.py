@@ -165,15 +165,8 @@ def make_backend(config: DaemonConfig, settings: RunSettings | HandSettings,
         options = dict(config.backend.options)
         factory = getattr(cls, "from_cli", None)  # the hardware backends' builder, if any
         if factory is not None:
-            missing = [name for name, (_, default) in keyword_params(factory).items()
-                       if default is inspect.Parameter.empty and name not in options
-                       and name not in BACKEND_BUILDER_ARGS]
-            if missing:
-                raise ConfigError(
-                    f"backend.options for '{config.backend.name}' need {', '.join(missing)} "
-                    f"beside what they give ({', '.join(options) or 'nothing'}): a configure "
-                    "replaces the whole table, e.g. backend.options={\"port\": \"/dev/ttyUSB0\","
-                    " \"hand\": \"planar\"}")
+            _check_required(config.backend.name, factory, options, BACKEND_BUILDER_ARGS,
+                            '{"port": "/dev/ttyUSB0", "hand": "planar"}')
         try:
             if factory is not None:
                 return factory(radius=settings.radius, step=settings.step, **options)
@@ -208,7 +201,24 @@ def _hand_backend(config: DaemonConfig, settings: HandSettings) -> Backend:
                               step_duration_s=config.backend.step_duration_s)[0]
     from firmware_if.dynamixel_hand import DynamixelHand
 
+    _check_required(config.backend.name, DynamixelHand.from_cli, config.backend.options,
+                    ("hand",), '{"port": "/dev/ttyUSB0"}')
     try:
         return DynamixelHand.from_cli(hand=settings.hand, **config.backend.options)
     except TypeError as exc:
         raise ConfigError(f"backend '{config.backend.name}' options for a hand: {exc}") from None
+
+
+def _check_required(name: str, factory: Any, options: dict[str, Any],
+                    supplied: tuple[str, ...], example: str) -> None:
+    """Refuse `options` that lack one of `factory`'s required keywords (beside those the
+    daemon `supplied`), naming it: Python's own words ("from_cli() missing 1 required
+    keyword-only argument") told a client nothing it could act on."""
+    missing = [key for key, (_, default) in keyword_params(factory).items()
+               if default is inspect.Parameter.empty and key not in options
+               and key not in supplied]
+    if missing:
+        raise ConfigError(
+            f"backend.options for '{name}' need {', '.join(missing)} beside what they give "
+            f"({', '.join(options) or 'nothing'}): a configure replaces the whole table, "
+            f"e.g. backend.options={example}")

@@ -138,6 +138,7 @@ def draw_truth(settings: HandSettings, parts: HandParts, rng: np.random.Generato
     field = contact_field(world)
     centre = np.asarray(parts.hand.grasp_centre)
     spec = settings.grasp
+    best = -np.inf  # the best quality of a hold that reached, for the refusal
     for _ in range(200):
         if settings.start is not None:
             pose = np.asarray(settings.start, dtype=np.float64)
@@ -151,6 +152,7 @@ def draw_truth(settings: HandSettings, parts: HandParts, rng: np.random.Generato
             tips, angles = grasp
             quality = float(hand_quality(field, pose[None], tips[None],
                                          parts.hand.fingers, angles, parts.torque, spec)[0])
+            best = max(best, quality)
             if quality >= spec.start_quality_n:
                 return tuple(float(v) for v in pose)  # type: ignore[return-value]
         if settings.start is not None:
@@ -158,8 +160,34 @@ def draw_truth(settings: HandSettings, parts: HandParts, rng: np.random.Generato
                               f"hold object '{parts.contour.name}' with quality "
                               f"{spec.start_quality_n} N (--start-quality)")
     raise ConfigError(f"hand '{parts.hand.name}' found no hold on object "
-                      f"'{parts.contour.name}' in 200 tries: it is too big, too small or too "
-                      "slippery for this hand")
+                      f"'{parts.contour.name}' in 200 tries: "
+                      + _why_no_hold(parts, field, centre, best, spec))
+
+
+def _why_no_hold(parts: HandParts, field: ContactField, centre: np.ndarray, best: float,
+                 spec: GraspSpec) -> str:
+    """What kept every try from holding, in words: fingers that reach the object at no
+    heading (a base or links wrong), else a grip too weak for the threshold (the mass,
+    friction or threshold), else the object's size. The same words for all of them left
+    a researcher guessing."""
+    from sim_backend.hand import close_fingers
+
+    headings = np.linspace(-np.pi, np.pi, 12, endpoint=False)
+    never = [f.name for f in parts.hand.fingers
+             if all(close_fingers([f], field, np.array([*centre, h])) is None
+                    for h in headings)]
+    if never:
+        return (f"finger{'s' if len(never) > 1 else ''} {', '.join(map(repr, never))} "
+                f"reach{'' if len(never) > 1 else 'es'} no part of it held at the grasp "
+                f"centre ({centre[0] * 1e3:.1f}, {centre[1] * 1e3:.1f}) mm: check the "
+                "finger's base and links (metres) in the hand file")
+    if np.isfinite(best):
+        return (f"the firmest hold found has a quality of {best:.2f} N, below the "
+                f"{spec.start_quality_n:g} N the start needs (--start-quality, "
+                f"--threshold): a lighter object (--mass), more friction (--mu) or a lower "
+                "threshold")
+    return "every finger reaches it alone, but never all at once: it is too big or too " \
+        "small for this hand"
 
 
 def streams(seed: int) -> list[np.random.Generator]:

@@ -20,6 +20,7 @@ from dataclasses import dataclass
 from typing import Protocol
 
 from firmware_if import packets as pk
+from service.daemon.priority import Scheduling, set_thread_priority
 from sim_backend.clock import Clock, MonotonicClock
 from sim_backend.emulator.instructions import HANDLERS, MOVES, READS
 from sim_backend.emulator.servo import ERR_CRC, ERR_INSTRUCTION, EmulatedServo
@@ -53,7 +54,8 @@ class ServoBus:
 
     def __init__(self, servos: list[EmulatedServo], *, plant: Plant | None = None,
                  clock: Clock | None = None, fast_read: bool = True,
-                 honour_return_delay: bool = True, link: str | None = None) -> None:
+                 honour_return_delay: bool = True, link: str | None = None,
+                 priority: int = 0) -> None:
         self.servos = {s.id: s for s in servos}
         self.plant = plant
         self.clock = clock or MonotonicClock()
@@ -68,6 +70,13 @@ class ServoBus:
         self.link = link
         """A stable path made a symlink to the pty (as udev's /dev/serial/by-id/... names an
         adapter), so a restarted emulator is found where the last one was."""
+        self.priority = priority
+        """SCHED_FIFO priority of the thread that answers (0: ordinary): servos answer
+        whatever the host does, and an emulator starved on a loaded machine answered late
+        enough to fault an idle bus (`haptic emulate --priority`)."""
+        self.scheduling: Scheduling | None = None
+        """What the answering thread got (set once it runs)."""
+        self._started = threading.Event()
         self._master = self._slave = -1
         self._wake_r = self._wake_w = -1
         self._thread: threading.Thread | None = None
@@ -89,7 +98,9 @@ class ServoBus:
         self._wake_r, self._wake_w = os.pipe()
         self._stop.clear()
         self._thread = threading.Thread(target=self._serve, name="servo-bus", daemon=True)
+        self._started.clear()
         self._thread.start()
+        self._started.wait()
         return self
 
     def stop(self) -> None:
@@ -133,6 +144,12 @@ class ServoBus:
 
     # -- serving -------------------------------------------------------------------------
     def _serve(self) -> None:
+        if self.priority:
+            self.scheduling = set_thread_priority(
+                self.priority, "the emulated servos keep ordinary scheduling and may answer "
+                "late on a loaded machine (a bus fault without a drill)",
+                "pass --priority 0 to stop asking")
+        self._started.set()
         buf = bytearray()
         while not self._stop.is_set():
             ready, _, _ = select.select([self._master, self._wake_r], [], [])

@@ -94,20 +94,44 @@ def test_failures_are_tolerated_then_latch_a_fault_with_torque_off(emulator, bus
 
 
 def test_a_late_servo_is_named_late_not_silent(emulator, bus):
-    # `haptic emulate`'s `late 2 0.02` drill was diagnosed "no servo answers a ping": the
-    # late replies landed in the next servo's ping and spoiled it
+    # `haptic emulate`'s `late 2 0.02` drill was diagnosed "no servo answers a ping", then,
+    # with pings cut at a cycle's budget, its late replies spoiled the next servos' pings
     bus.torque(True)
-    emulator.fault(3).late_s = 0.02  # within the setup's timeout, past a cycle's
+    emulator.fault(2).late_s = 0.02  # within the setup's timeout, past a cycle's
     for _ in range(2):
         with pytest.raises(CommunicationError):
             bus.cycle()
     with pytest.raises(HardwareFault, match="3 consecutive failed cycles") as fault:
         bus.cycle()
     words = str(fault.value)
-    assert re.search(r"servos? ([0-9, ]*, )?3(, [0-9, ]*)? answers? a ping only after \d+ ms "
-                     r"\(a cycle allows 10 ms\)", words), words
-    assert "no servo answers" not in words and "latency timer" in words
+    # servo 2 named late, none silent (the emulator answers from a thread of this process:
+    # on a loaded machine another servo's ping may also come late)
+    assert re.search(r"; servos? (\d, )*2(, \d)* answers? a ping only after \d+ ms \(a cycle "
+                     r"allows 10 ms\): a slow adapter", words), words
+    assert "not answer" not in words, words
     assert emulator.wait_until(lambda: not any(s.torque_on for s in emulator.servos.values()))
+
+
+def test_a_host_that_missed_the_cycles_is_told_from_a_dead_bus(emulator, bus, monkeypatch):
+    """Starved of the CPU, the host read the bus late: every servo answers when asked."""
+    bus.torque(True)
+    calls = {"n": 0}
+    real = bus._sync_read if not bus.stats.fast_read else bus._fast_sync_read
+
+    def starved():
+        calls["n"] += 1
+        raise CommunicationError("fast sync read: [TxRxResult] There is no status packet!",
+                                 IDS)
+
+    monkeypatch.setattr(bus, "_fast_sync_read" if bus.stats.fast_read else "_sync_read",
+                        starved)
+    for _ in range(2):
+        with pytest.raises(CommunicationError):
+            bus.cycle()
+    with pytest.raises(HardwareFault, match="every servo answers a ping in time now: the "
+                       "host missed the cycles"):
+        bus.cycle()
+    assert calls["n"] == 3 and real is not None
 
 
 def test_a_bus_where_no_servo_answers_names_the_baud(emulator, bus):

@@ -162,3 +162,17 @@ def test_commands_the_hand_cannot_take_are_refused(rig):
 def test_a_single_finger_is_not_a_dynamixel_hand():
     with pytest.raises(HandConfigError, match="one finger"):
         DynamixelHand(load_hand("planar"), "/dev/null")
+
+
+def test_a_servo_that_restarts_during_a_step_is_a_fault_not_a_drop(rig):
+    """A fault campaign's finding: the restarted servo drew no current, its finger "pressed
+    on nothing", and the hand reported the object dropped, with no fault."""
+    hand, bus = rig.hand, rig.bus
+    hand.set_torque(True)
+    hand.command_hand(HandCommand((FingerMove(dz=0.002), None)))
+    with bus.lock:
+        for sid in (1, 2):  # the first finger's joints: a brown-out (torque off, RAM reset)
+            bus.servos[sid].reboot()
+    state = _finish(hand)
+    assert not state.dropped
+    assert "servo 1, 2 lost torque by itself" in (state.fingers[0].fault or "")

@@ -101,6 +101,14 @@ def two_finger_dict() -> dict:
      "'goal_current_a'"),  # a hand's setting, not a finger's
     (lambda d: d.update(grasp_centre=[0, "a"]), "grasp_centre"),
     (lambda d: d.update(joints=[]), "not both"),
+    # a researcher's hand file: two fingers on one base ran, their tips overlapping
+    (lambda d: d["fingers"][1].update(base=d["fingers"][0]["base"]),
+     "fingers 'left' and 'right' have bases 0.0 mm apart, less than their tips are wide "
+     "together: give each finger its own base"),
+    # in millimetres, it was blamed on the object ("narrower than the fingertip radius")
+    (lambda d: d["fingers"][0].update(radius=8), "finger 'left': a fingertip radius of 8 m "
+     "and links .* long in all are a hand's size in millimetres: a hand file's lengths are "
+     "metres"),
 ])
 def test_several_fingers_validator_names_the_field(edit, message):
     data = copy.deepcopy(two_finger_dict())

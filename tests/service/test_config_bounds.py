@@ -251,6 +251,16 @@ def test_a_finger_backends_hand_file_tells_a_client_nothing_and_a_missing_hand_i
             for leak in ("hunter2", "line", "column", "exist", "TypeError", "keyword"):
                 assert leak not in message, message
         assert ctl.call("get_config") == before
+        # a hand's options without a port: "DynamixelHand.from_cli() missing 1 required
+        # keyword-only argument: 'port'" (a fault campaign's finding)
+        with pytest.raises(CommandFailed) as err:
+            ctl.call("configure", changes={
+                "backend": {"name": "dynamixel", "options": {}},
+                "scenario": {"object": "blob", "hand": "three-finger"}})
+        message = str(err.value)
+        assert "backend.options for 'dynamixel' need port beside what they give " \
+               "(nothing)" in message and "keyword" not in message, message
+        assert ctl.call("get_config") == before
 
 
 def test_a_map_in_millimetres_is_accepted_with_a_warning_the_client_sees(tmp_path: Path) -> None:

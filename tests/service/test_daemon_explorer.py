@@ -3,6 +3,7 @@ the offline episode runner takes; the compute process survives what the loop thr
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Iterator
 from dataclasses import asdict
 
@@ -150,6 +151,53 @@ def test_a_hold_starts_no_new_episode_when_the_step_under_way_ends_one(
         assert not out.started and not out.events
     assert explorer.phase is Phase.RESTART and explorer.episode == episode
     assert explorer.stop() is None and explorer.phase is Phase.IDLE
+
+
+@pytest.fixture
+def own_link() -> Iterator[WorkerLink]:
+    """A compute process of the test's own: a cut episode's late replies stay in it."""
+    link = WorkerLink()
+    link.start()
+    yield link
+    link.close()
+
+
+def test_an_episode_cut_before_its_first_belief_leaves_no_trace(own_link: WorkerLink) -> None:
+    """A fault just as an episode starts (its start refused): `episode_done` went out for an
+    episode that never began, its id was used up and the last estimate wiped."""
+    link = own_link
+    settings = RunSettings(max_steps=1)
+    configure(link, settings)
+    f = finger(settings, surface_for(settings), 1)
+    explorer = Explorer(link, settings)
+    explorer.start(f.read_hand())
+    while explorer.phase is not Phase.IDLE:  # one step, then done
+        explorer.tick(f.read_hand(), f.command_hand, link.poll(1.0))
+    kept, episode = explorer.estimate, explorer.episode
+    assert kept is not None
+    explorer.start(f.read_hand())
+    assert explorer.estimate is None and explorer.episode == episode + 1
+    assert explorer.stop("fault") is None  # no episode_done
+    assert explorer.episode == episode and explorer.estimate == kept
+    assert explorer.estimate_fields()["episode"] == episode
+
+
+def test_repeat_begins_nothing_once_the_object_is_dropped(own_link: WorkerLink) -> None:
+    """With `repeat`, a drop ended one episode and began the next, which ended at once,
+    242 times in 5 s."""
+    link = own_link
+    settings = RunSettings(max_steps=1)
+    configure(link, settings)
+    f = finger(settings, surface_for(settings), 1)
+    explorer = Explorer(link, settings)
+    explorer.start(f.read_hand(), repeat=True)
+    while explorer.phase is not Phase.RESTART:
+        explorer.tick(f.read_hand(), f.command_hand, link.poll(1.0))
+    episode = explorer.episode
+    dropped = dataclasses.replace(f.read_hand(), dropped=True)
+    out = explorer.tick(dropped, f.command_hand, [])
+    assert explorer.phase is Phase.IDLE and not explorer.repeat and not out.events
+    assert explorer.episode == episode
 
 
 def test_a_refused_setup_leaves_the_current_scenario(link: WorkerLink) -> None:

@@ -225,7 +225,7 @@ def test_another_hand_on_a_running_dynamixel_daemon_opens_the_bus_again() -> Non
     parser = argparse.ArgumentParser()
     register(parser)
     bus = start_emulator(parser.parse_args(
-        ["--hand", "two-finger", "--object", "keyed", "--seed", "2"]))[0]
+        ["--hand", "two-finger", "--object", "keyed", "--seed", "2", "--priority", "0"]))[0]
     try:
         config = loopback_config({
             "backend": {"name": "dynamixel", "options": {
@@ -245,5 +245,36 @@ def test_another_hand_on_a_running_dynamixel_daemon_opens_the_bus_again() -> Non
             assert status["hand"] == "two-finger" and status["state"] == "inactive"
             c.call("activate")
             assert c.call("start_exploration")["episode"] >= 1  # the old hand still runs
+    finally:
+        bus.stop()
+
+
+def test_on_servos_a_configure_after_a_drop_starts_the_hand_afresh() -> None:
+    """A fault campaign's finding: on servos, `configure` (the object put back) replied ok
+    and left `dropped` latched; only an estop, then a configure in fault, cleared it."""
+    import argparse
+
+    from tools.emulate_cli import register, start_emulator
+
+    parser = argparse.ArgumentParser()
+    register(parser)
+    bus = start_emulator(parser.parse_args(
+        ["--hand", "two-finger", "--object", "keyed", "--seed", "2", "--priority", "0"]))[0]
+    try:
+        config = loopback_config({
+            "backend": {"name": "dynamixel", "options": {
+                "port": bus.port, "cycle_budget_s": 0.05}},  # a busy test machine is slow
+            "scenario": {"object": "keyed", "hand": "two-finger", "seed": 2,
+                         "max_steps": 2}})
+        with running_node(config) as node, \
+                Subscriber(node.endpoints["pub"], ["state"]) as sub, \
+                Controller(node.endpoints["cmd"], timeout_s=30.0) as c:
+            assert sub.wait_for(lambda m: len(m["fingers"]) == 2, 10.0)
+            node.backend._dropped = True  # as a finger pressing on nothing latches it
+            assert sub.wait_for(lambda m: m["dropped"], 10.0)
+            c.call("configure")
+            assert sub.wait_for(lambda m: m["fingers"] and not m["dropped"], 10.0)
+            c.call("activate")
+            assert c.call("start_exploration")["episode"] >= 1
     finally:
         bus.stop()

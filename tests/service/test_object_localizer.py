@@ -63,6 +63,18 @@ def test_a_symmetric_object_stays_not_yet():
     assert not report.result.dropped
 
 
+def test_an_undecided_pose_and_its_mirror_are_given_the_masses_they_were_weighed_at():
+    """A mirror that fitted a hair better left the estimate at "0 %" beside its "50 %"
+    (`haptic run --object ellipse:2 --hand three-finger --max-steps 5`)."""
+    est = simulate_hand(HandSettings(object="ellipse:2", hand="three-finger", seed=0,
+                                     max_steps=5)).result.estimate
+    assert not est.converged and est.runner_up is not None
+    assert est.mode_mass > 0.3 and est.runner_up_mass > 0.3
+    assert est.mode_mass + est.runner_up_mass <= 1.0 + 1e-9
+    turned = abs(wrap_angle(est.runner_up[2] - est.pose[2]))
+    assert turned > np.deg2rad(170)  # the mirror, half a turn away
+
+
 def test_an_ellipse_is_not_declared_against_its_exact_mirror():
     """ellipse:316, seed 316, three fingers: the half-turned mirror held 0.4988 of the
     tracks' probability, yet the final comparison declared the leader at 0.9999 at step

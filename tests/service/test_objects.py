@@ -93,6 +93,9 @@ def test_csv_outline_round_trip_and_errors(tmp_path):
         "tiny.csv": ([(x / 100, z / 100) for x, z in square], "at least 2 mm wide"),
         # a researcher's finding: "open (its last point is 0 mm from its first)"
         "two.csv": ([(0, 0), (0.05, 0), (0, 0)], "at least 3 distinct vertices"),
+        # the geometry library's own words, without units: "Self-intersection[0.02 0]"
+        "line.csv": ([(0, 0), (0.01, 0), (0.02, 0), (0.03, 0), (0, 0)],
+                     "encloses no area \\(its vertices lie on a line\\)"),
     }
     for name, (points, message) in cases.items():
         _write_csv(tmp_path / name, points)
@@ -105,6 +108,10 @@ def test_csv_outline_round_trip_and_errors(tmp_path):
     with pytest.raises(ObjectError, match="holds no numbers"):
         load_object(str(tmp_path / "empty.csv"))
     assert load_object(str(tmp_path / "mm.csv"), units="mm").area == pytest.approx(0.04**2)
+    # millimetres asked of metres were told "coordinates are metres"
+    with pytest.raises(ObjectError, match="'square.csv' read as millimetres .* spans only "
+                       "0.04 mm; as metres it spans 40 mm: drop the units"):
+        load_object(str(good), units="mm")
     with pytest.raises(ObjectError, match="not presets: presets are in metres"):
         load_object("keyed:3", units="mm")  # it was ignored
     with pytest.raises(ObjectError, match="does not exist"):
@@ -127,8 +134,14 @@ def test_mesh_section_through_a_plane(tmp_path):
     assert c.area == pytest.approx(0.05 * 0.03, rel=1e-6)
     side = load_object(str(path), plane="0.1,0,0,1,0,0")  # the plane x = 0.1
     assert side.area == pytest.approx(0.03 * 0.02, rel=1e-6)
-    with pytest.raises(ObjectError, match="the plane misses the mesh"):
+    with pytest.raises(ObjectError, match="the plane through \\[0.0, 0.0, 500.0\\] mm "
+                       "misses the mesh 'part.stl', which lies -510.000 to -490.000 mm"):
         load_object(str(path), plane="z=0.5")
+    # on its top face the section is degenerate: it "missed" where the bottom face cut
+    with pytest.raises(ObjectError, match="only touches a face of the mesh 'part.stl'"):
+        load_object(str(path), plane="z=0.01")
+    with pytest.raises(ObjectError, match="'part.stl' read as millimetres"):
+        load_object(str(path), plane="z=0", units="mm")
     with pytest.raises(ObjectError, match="--plane takes"):
         load_object(str(path), plane="w=1")
     two = trimesh.util.concatenate([box, box.copy().apply_translation((0.1, 0, 0))])

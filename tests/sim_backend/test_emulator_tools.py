@@ -149,3 +149,37 @@ def test_a_drill_typed_into_emulate_faults_the_backend(capsys):
             thread.join(10)
     out = capsys.readouterr().out
     assert "drill refused: no servo 9 on this bus" in out and "ok: reboot 2" in out
+
+
+@pytest.mark.skipif(not hasattr(os, "SCHED_FIFO"), reason="no SCHED_FIFO here")
+def test_the_emulator_answers_from_a_real_time_thread_or_says_why_not():
+    """Starved on a loaded machine, an ordinary emulator answered late enough to fault an
+    idle bus: `haptic emulate` asks for SCHED_FIFO above hapticd's loop."""
+    from sim_backend.emulator import EmulatedServo, ServoBus
+
+    with ServoBus([EmulatedServo(1)], priority=emulate_cli.EMULATOR_PRIORITY) as bus:
+        policy = os.sched_getscheduler(bus._thread.native_id) & ~getattr(
+            os, "SCHED_RESET_ON_FORK", 0)
+        got = bus.scheduling
+        if got.policy == "fifo":
+            assert policy == os.SCHED_FIFO and got.priority == emulate_cli.EMULATOR_PRIORITY
+        else:
+            assert policy == os.SCHED_OTHER and "--priority 0" in got.note
+    with ServoBus([EmulatedServo(1)]) as bus:  # tests and benches: ordinary
+        assert bus.scheduling is None
+        assert os.sched_getscheduler(bus._thread.native_id) == os.SCHED_OTHER
+
+
+def test_emulate_says_when_its_priority_is_refused(monkeypatch, capsys):
+    from service.daemon import priority
+
+    def refuse(pid: int, policy: int, param: object) -> None:
+        raise PermissionError(1, "Operation not permitted")
+
+    monkeypatch.setattr(priority.os, "sched_setscheduler", refuse)
+    args = cli.build_parser().parse_args(["emulate", "--hand", "spatial", "--seed", "3"])
+    stop = threading.Event()
+    stop.set()  # serve until asked: at once
+    assert emulate_cli.run(args, stop=stop) == 0
+    err = capsys.readouterr().err
+    assert "note: SCHED_FIFO 30 refused (Operation not permitted): the emulated servos" in err

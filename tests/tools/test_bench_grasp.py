@@ -25,9 +25,47 @@ def test_bench_grasp_writes_its_summary_and_figure(tmp_path, capsys):
     assert fig.stat().st_size > 10_000
 
 
+TIMINGS = ("compute_ms_after_first", "policy_ms", "settle_ms")
+
+
+def test_bench_grasp_runs_where_every_benchmark_runs(tmp_path, capsys):
+    """It had a pool of its own: one worker by default, no --scheduler, and no word of how
+    many workers shared the machine. A pool of two gives one worker's results."""
+    runs = {}
+    for workers in ("1", "2"):
+        out = tmp_path / f"b6-{workers}.json"
+        assert main(["bench", "grasp", "--runs", "2", "--objects", "blob", "--hands",
+                     "three-finger", "--max-steps", "6", "--no-ablation", "--no-single",
+                     "--workers", workers, "--json", str(out)]) == 0
+        assert f"episodes run on {'1 worker' if workers == '1' else 'a local pool of 2'}" \
+            in capsys.readouterr().out
+        result = json.loads(out.read_text())
+        assert result["workers"] == int(workers) and result["cores"] >= 1
+        runs[workers] = [{k: v for k, v in o.items() if k not in TIMINGS}
+                         for o in result["runs"]["three-finger/blob/gated"]]
+    assert runs["1"] == runs["2"] and [o["seed"] for o in runs["1"]] == [0, 1]
+    assert main(["bench", "grasp", "--scheduler", "tcp://127.0.0.1:1", "--workers", "2"]) == 2
+    assert "--workers applies to the local pool" in capsys.readouterr().err
+
+
 def test_bench_grasp_refuses_an_unknown_family(capsys):
     assert main(["bench", "grasp", "--objects", "cube"]) == 2
-    assert "unknown family 'cube'" in capsys.readouterr().err
+    assert "'cube' is neither a family (ellipse, rounded, blob, keyed) nor an object" in \
+        capsys.readouterr().err
+
+
+def test_bench_grasp_holds_an_object_of_ones_own_in_every_run(tmp_path, capsys):
+    """A researcher's outline was refused: "unknown family"."""
+    outline = tmp_path / "part.csv"
+    outline.write_text("0,0\n0.05,0\n0.06,0.03\n0.02,0.05\n-0.01,0.03\n0,0\n")
+    out = tmp_path / "b6.json"
+    assert main(["bench", "grasp", "--runs", "2", "--objects", f"{outline},blob:3", "--hands",
+                 "three-finger", "--max-steps", "4", "--no-ablation", "--no-single",
+                 "--workers", "1", "--json", str(out)]) == 0
+    runs = json.loads(out.read_text())["runs"]
+    assert [o["object"] for o in runs[f"three-finger/{outline}/gated"]] == [str(outline)] * 2
+    assert [(o["object"], o["seed"]) for o in runs["three-finger/blob:3/gated"]] == [
+        ("blob:3", 0), ("blob:3", 1)]
 
 
 def test_bench_grasp_lists_each_gated_drop_and_wrong_declaration():

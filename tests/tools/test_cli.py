@@ -91,6 +91,8 @@ def test_a_user_error_is_one_line_with_status_2(capsys) -> None:
 @pytest.mark.parametrize("argv, words", [
     (["run", "--seed", "abc"], "haptic run: error: argument --seed: invalid int value: 'abc'"),
     (["bench", "grasp", "--runs", "x"], "haptic bench grasp: error: argument --runs"),
+    (["ctl", "--timeout", "1"],  # KEY=VALUE was called required too
+     "haptic ctl: error: the following arguments are required: COMMAND ("),
 ])
 def test_a_bad_option_is_one_line_naming_the_help(capsys, argv: list[str], words: str) -> None:
     """argparse printed its usage block first (a bad type, e.g. `--seed abc`)."""

@@ -103,3 +103,19 @@ def test_a_clamped_object_shows_no_grasp_quality(tmp_path, capsys):
     steps = [line for line in capsys.readouterr().out.splitlines() if line.startswith("step")]
     assert steps and not any("quality" in line for line in steps)
     assert all(s["quality"] is None for s in json.loads(out.read_text())["steps"])
+
+
+def test_no_hold_says_which_finger_or_setting_stands_in_the_way(tmp_path, capsys):
+    """Every cause said "too big, too small or too slippery for this hand"."""
+    from firmware_if.hand import PRESET_DIR
+
+    text = (PRESET_DIR / "three-finger.toml").read_text()
+    far = tmp_path / "far.toml"  # the top finger's base 300 mm up: it reaches nothing
+    far.write_text(text.replace("base = [0.000000, 0.085000,", "base = [0.0, 0.3,"))
+    assert main(["run", "--hand", str(far), "--object", "blob", "--quiet"]) == 2
+    assert "finger 'top' reaches no part of it held at the grasp centre (0.0, 0.0) mm: " \
+           "check the finger's base" in capsys.readouterr().err
+    assert main(["run", "--hand", "three-finger", "--object", "blob", "--threshold", "50",
+                 "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert "the firmest hold found has a quality of" in err and "below the 50 N" in err

@@ -177,3 +177,15 @@ def test_every_client_command_reaches_a_curve_daemon_with_keys(tmp_path: Path, c
     assert main(["ctl", "status", "--curve-server-key", "nope.key", "--curve-client-key",
                  "x"]) == 2
     assert "does not exist" in capsys.readouterr().err
+
+
+def test_explore_of_a_hand_out_of_steps_names_its_poses_in_the_hand_plane(capsys) -> None:
+    """Its result line said `y` where its estimate line said `z` (a fault campaign)."""
+    config = loopback_config({"backend": {"step_duration_s": 0.0},
+                              "scenario": {"object": "ellipse", "hand": "three-finger",
+                                           "max_steps": 2}})
+    with running_node(config) as n:
+        assert main(["explore", *endpoints(n)]) == 1
+    result = next(line for line in capsys.readouterr().out.splitlines()
+                  if line.startswith("result"))
+    assert " z " in result and " y " not in result, result

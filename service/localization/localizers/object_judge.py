@@ -261,13 +261,20 @@ def judge(ctx: ObjectContext, points: np.ndarray, radii: np.ndarray, tracks: Obj
         ll = temper * prior[[order[0]] + rivals] + _offset_log_likelihood(
             ctx, np.array([f.pose for f in fits]), points, radii, max(sigma, 0.002 * scale),
             temper)
-        rivals_ll, images_ll = _rivals_beside(ctx, tracks, order[0], fit, centres[rivals],
-                                              ll[1:], temper * prior[rivals], motions,
-                                              points, radii, temper)
+        rivals_ll, images, images_ll = _rivals_beside(
+            ctx, tracks, order[0], fit, centres[rivals], ll[1:], temper * prior[rivals],
+            motions, points, radii, temper)
         ll = np.concatenate([ll[:1], rivals_ll, images_ll])
         rest = share[1 + len(rivals):].sum()
         w = np.exp(ll - ll.max())
-        mass = float(w[0] / w.sum()) * (1.0 - rest) if ll[0] >= ll.max() else 0.0
+        w = w / w.sum() * (1.0 - rest)
+        # the leader's mass and the heaviest other's, as they were weighed (a mirror that
+        # fits better was "0 %" beside its "50 %")
+        mass = float(w[0])
+        others = np.vstack([np.array([f.pose for f in fits[1:]]).reshape(-1, 3), images])
+        if len(others):
+            j = int(np.argmax(w[1:]))
+            runner, runner_mass = tuple(float(v) for v in others[j]), float(w[1 + j])
         fit = _widened(_floored(ctx, lead_points, lead_radii, fit),
                        _temper(ctx, lead_points))
         converged = rule.holds(readings=places - 1, noisy=noisy, mode_mass=mass, fit=fit,
@@ -338,11 +345,11 @@ def _whole_object(ctx: ObjectContext, points: np.ndarray, radii: np.ndarray,
 def _rivals_beside(ctx: ObjectContext, tracks: ObjectTracks, leader: int, fit: Fit,
                    rivals: np.ndarray, refined_ll: np.ndarray, rivals_prior: np.ndarray,
                    motions: np.ndarray, points: np.ndarray, radii: np.ndarray,
-                   temper: float) -> tuple[np.ndarray, np.ndarray]:
+                   temper: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The final comparison's rivals judged fairly: each refined rival (`refined_ll`) at no
     worse than where it started, and the refined leader's own images, which fit as well as
     it does except where the one feature tells them apart. Returns the rivals' log
-    likelihoods, raised by any image beside them, and those of the other images.
+    likelihoods, raised by any image beside them, and the other images with theirs.
 
     From 5 readings of three fingers, a refinement took an ellipse's half-turned image 6
     degrees off onto a poorer fit, and the leader was declared at 0.9997 against its exact
@@ -353,18 +360,19 @@ def _rivals_beside(ctx: ObjectContext, tracks: ObjectTracks, leader: int, fit: F
         rivals_ll = np.maximum(rivals_ll, rivals_prior + _offset_log_likelihood(
             ctx, rivals, points, radii, sd, temper))
     if leader >= len(tracks.centres):
-        return rivals_ll, np.empty(0)
+        return rivals_ll, np.empty((0, 3)), np.empty(0)
     mirrored, prior = _images(ctx, tracks, leader, np.asarray(fit.pose), motions, points,
                               radii)
     if len(mirrored) == 0:
-        return rivals_ll, np.empty(0)
+        return rivals_ll, np.empty((0, 3)), np.empty(0)
     ll = temper * prior + _offset_log_likelihood(ctx, mirrored, points, radii, sd, temper)
     beside = near(mirrored, rivals, *tolerance(ctx))
     for i, row in enumerate(beside):
         if row.any():
             j = int(np.argmax(row))
             rivals_ll[j] = max(rivals_ll[j], ll[i])
-    return rivals_ll, ll[~beside.any(axis=1)]
+    alone = ~beside.any(axis=1)
+    return rivals_ll, mirrored[alone], ll[alone]
 
 
 def _images(ctx: ObjectContext, tracks: ObjectTracks, lead: int, pose: np.ndarray,

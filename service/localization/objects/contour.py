@@ -133,12 +133,17 @@ def make_contour(points: np.ndarray, name: str = "object", *, closed: bool = Fal
     if span < SMALLEST_EXTENT:
         raise ObjectError(f"object '{name}' spans only {span * 1e3:.3g} mm across: coordinates "
                           "are metres, and a fingertip needs an object at least 2 mm wide")
+    across = np.linalg.svd(pts - pts.mean(axis=0), compute_uv=False)[1] / np.sqrt(len(pts))
+    if across <= 1e-3 * span:  # before simplicity: a line doubling back on itself
+        # "crosses itself" in the geometry library's words ("Self-intersection[0.02 0]")
+        raise ObjectError(f"object '{name}': the contour encloses no area (its vertices "
+                          "lie on a line)")
+    polygon = Polygon(pts)
     ring = LinearRing(pts)
     if not ring.is_simple:
-        where = explain_validity(Polygon(pts))
+        where = explain_validity(polygon)
         raise ObjectError(f"object '{name}': the contour crosses itself ({where}); give a "
                           "simple closed outline")
-    polygon = Polygon(pts)
     if polygon.area <= (1e-3 * span) ** 2:
         raise ObjectError(f"object '{name}': the contour encloses no area")
     if not ring.is_ccw:

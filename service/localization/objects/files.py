@@ -20,7 +20,7 @@ from shapely.ops import unary_union
 
 from service.errors import ObjectError
 from service.localization.maps import load_rows, numpy_reason
-from service.localization.objects.contour import Contour, make_contour
+from service.localization.objects.contour import SMALLEST_EXTENT, Contour, make_contour
 from service.localization.objects.presets import preset_object
 
 MESH_SUFFIXES = {".stl", ".obj", ".ply"}
@@ -61,7 +61,24 @@ def _csv(path: Path, scale: float) -> Contour:
         raise ObjectError(f"object file '{path}' could not be read as x,z rows "
                           f"({numpy_reason(exc)}): each row needs two numbers separated by a "
                           "comma") from None
+    _check_units(points, scale, path)
     return make_contour(points * scale, path.stem, closed=True)
+
+
+def _check_units(points: np.ndarray, scale: float, path: Path) -> None:
+    """Refuse millimetres asked of coordinates that are metres already: scaled, the object
+    is smaller than a fingertip, and the contour's own message ("coordinates are metres")
+    contradicted the units just given."""
+    span = float(np.ptp(points, axis=0).max()) if len(points) else 0.0
+    if scale < 1.0 and span * scale < SMALLEST_EXTENT <= span:
+        raise ObjectError(f"object file '{path.name}' read as millimetres (--object-units "
+                          f"mm, `scenario.object_units`) spans only {span * scale * 1e3:.3g} "
+                          f"mm; as metres it spans {span * 1e3:.3g} mm: drop the units")
+
+
+PLANE_TOUCH = 1e-6
+"""Metres within which a plane lies on a mesh's outermost face: the section there is
+degenerate (a box's top face "missed" while its bottom face cut)."""
 
 
 def parse_plane(text: str | None, centroid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -109,13 +126,18 @@ def mesh_section(path: Path, plane: str | None, scale: float = 1.0) -> Contour:
                           ) from None
     if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
         raise ObjectError(f"object file '{path}' holds no triangles")
+    _check_units(np.asarray(mesh.vertices), scale, path)
     mesh.apply_scale(scale)
     origin, normal = parse_plane(plane, np.asarray(mesh.centroid))
     section = mesh.section(plane_origin=origin, plane_normal=normal)
     if section is None or len(section.entities) == 0:
-        lo, hi = mesh.bounds
-        raise ObjectError(f"the plane misses the mesh '{path.name}' (it spans "
-                          f"{np.round(lo, 4).tolist()} to {np.round(hi, 4).tolist()} m)")
+        along = (np.asarray(mesh.vertices) - origin) @ normal
+        lo, hi = (f"{1e3 * v:+.3f}" for v in (along.min(), along.max()))
+        misses = along.min() > PLANE_TOUCH or along.max() < -PLANE_TOUCH
+        raise ObjectError(f"the plane through {np.round(origin * 1e3, 3).tolist()} mm "
+                          f"{'misses' if misses else 'only touches a face of'} the mesh "
+                          f"'{path.name}', which lies {lo} to {hi} mm from it along its "
+                          "normal: choose a plane through its inside")
     if not all(bool(e.closed) for e in section.entities):
         raise ObjectError(f"the section of '{path.name}' is open (the mesh has a hole where "
                           "the plane cuts it): repair the mesh or choose another --plane")
