@@ -16,6 +16,7 @@ FirmwareError, and `reopen()` gives the bus a fresh port (the same path, or a ne
 from __future__ import annotations
 
 import contextlib
+import functools
 import os
 import select
 import termios
@@ -319,7 +320,7 @@ class DxlBus:
             self.stats.consecutive_failures += 1
             if self.stats.consecutive_failures >= self.failure_tolerance:
                 self._latch(f"{self.stats.consecutive_failures} consecutive failed cycles "
-                            f"(last: {exc})", explain=self._silent_servos)
+                            f"(last: {exc})", explain=functools.partial(self._silent_servos, exc))
             raise
         port.budget_ms = SETUP_TIMEOUT_MS
         self.stats.consecutive_failures = 0
@@ -384,12 +385,14 @@ class DxlBus:
             raise CommunicationError(f"fast sync read: {exc}", self.ids, bytes(rx)) from None
         return {sid: _reading(data, error) for sid, (error, data) in decoded.items()}
 
-    def check_torque(self) -> None:
+    def check_torque(self, *, patient: bool = False) -> None:
         """Latch a fault if a servo's torque went off by itself (one Sync Read of Torque
-        Enable). A read that fails says nothing: the control cycle's own read counts those."""
+        Enable). A read that fails says nothing: the control cycle's own read counts those.
+        `patient`: each reply may take the setup's timeout, not half a cycle (once, where
+        the answer decides between a fault and a drop)."""
         port = self._require()
         address, ids = REG["torque_enable"].address, list(self.ids)
-        port.budget_ms = self.cycle_budget_s * 1e3 / 2
+        port.budget_ms = SETUP_TIMEOUT_MS if patient else self.cycle_budget_s * 1e3 / 2
         try:
             if self._sdk("torque check", self._ph.syncReadTx, port, address, 1, ids, len(ids),
                          False) != COMM_SUCCESS:
@@ -409,7 +412,7 @@ class DxlBus:
             self._latch(f"servo {', '.join(map(str, off))} lost torque by itself (it "
                         "restarted: a brown-out? check its power supply and cable)")
 
-    def _silent_servos(self) -> str:
+    def _silent_servos(self, last: CommunicationError) -> str:
         """Which servos do not answer a ping, or answer it late, as words for a fault (one
         silent servo spoils a sync read of all: the read alone cannot say which). Each ping
         waits the setup's timeout and is timed: cut at a cycle's budget, a late servo's
@@ -434,9 +437,12 @@ class DxlBus:
                     late[sid] = ms
         except (FirmwareError, *PORT_ERRORS, ValueError):
             return ""  # the port itself: its own error says so
-        if not late and not silent:
+        if not late and not silent and isinstance(last, BusTimeoutError):
             return ("; every servo answers a ping in time now: the host missed the cycles "
                     "(a loaded machine? the loop's scheduling is in `haptic ctl status`)")
+        if not late and not silent:  # the replies came, damaged
+            return ("; every servo answers a ping now, but the cycles' replies came damaged: "
+                    "a noisy or loose cable or connector, or a baud too fast for the cable")
         return (_late_words(late, self.cycle_budget_s)
                 + _silent_words(silent, len(self.ids), self.baud))
 

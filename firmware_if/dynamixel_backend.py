@@ -86,6 +86,9 @@ class DynamixelBackend(HandOfOne):
         self._step: _Step | None = None
         self._joints_moving = False
         self._nominal_xy: np.ndarray | None = None
+        self.warnings: list[str] = []
+        """What the last `open` found worth a word but no refusal (servos on the bus that
+        the hand does not use: another device, or the wrong hand file)."""
 
     @classmethod
     def from_cli(cls, *, port: str, hand: str, radius: float, step: float,
@@ -136,11 +139,14 @@ class DynamixelBackend(HandOfOne):
             raise
 
     def _set_up(self) -> None:
-        """Torque off, every servo configured and checked, fast reads detected, first read."""
+        """Torque off, every servo configured and checked, fast reads detected, first read;
+        servos on the bus that the hand does not use are a warning (`warnings`)."""
         self.bus.torque(False)
         self._settings_hold()
         self.bus.detect_fast_read()
         self._state = self._tolerant_read()
+        strangers = self._strangers()
+        self.warnings = [strangers] if strangers else []
 
     def _settings_hold(self) -> None:
         """Every servo's settings read back, and written again where one differs, before
@@ -332,21 +338,23 @@ class DynamixelBackend(HandOfOne):
         if self._fault:
             raise HardwareFault(self._fault)
         if no_surface:
+            strangers = self._strangers()
             raise HardwareFault(f"no surface found within {self.settings.max_press} m below "
                                 "the fingertip; move the hand closer and retry"
-                                + self._strangers())
+                                + (f"; {strangers}" if strangers else ""))
 
     def _strangers(self) -> str:
         """Words for servos that answer on this bus but are not the hand's: a hand file
-        that is not this bus's (`--hand planar` on a spatial finger) moves joints whose
-        tip never reaches the surface, and said only "no surface found"."""
+        that is not this bus's (`--hand planar` on a spatial finger, a two-finger hand on
+        a three-finger bus) moves joints whose tip never reaches the surface, and said only
+        "no surface found", or ran on the wrong kinematics without a word."""
         try:
             others = sorted(set(self.bus.scan(range(32))) - set(self.hand.ids))
         except FirmwareError:
             return ""
         if not others:
             return ""
-        return (f"; servo{'s' if len(others) > 1 else ''} {', '.join(map(str, others))} "
+        return (f"servo{'s' if len(others) > 1 else ''} {', '.join(map(str, others))} "
                 f"also answer{'' if len(others) > 1 else 's'} on this bus, which hand "
                 f"'{self.hand.name}' does not use (ids {', '.join(map(str, self.hand.ids))}): "
                 "is it the right hand?")

@@ -173,7 +173,7 @@ class DynamixelHand(PlanarHand, DynamixelBackend):  # type: ignore[misc]
             return
         if settled and not all(self._touching):
             try:  # a servo that restarted (a brown-out) presses on nothing too
-                self.bus.check_torque()
+                self.bus.check_torque(patient=True)
             except HardwareFault as exc:
                 self._fault, self._torque = self._fault or str(exc), False
                 self._finish(blocked=True)

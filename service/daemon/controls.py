@@ -117,6 +117,8 @@ class CommandHandlers:
         self.map_warnings = rc.warnings
         for warning in rc.warnings:
             logging.getLogger("hapticd").warning("map %s: %s", new.scenario.map, warning)
+        for warning in rc.backend_warnings:
+            logging.getLogger("hapticd").warning("backend %s: %s", new.backend.name, warning)
         self.lease.ttl_ns = int(new.lease.ttl_s * 1e9)
         if new.loop.period_ns != self.loop.period_ns or new.loop.overrun != self.loop.overrun:
             self.loop.overrun = new.loop.overrun
@@ -126,7 +128,8 @@ class CommandHandlers:
         self._read()  # a first reading now, so the finger may be activated at once
         for line in rc.rebooted:
             logging.getLogger("hapticd").warning("configure: %s", line)
-        rc.deferred.resolve({"state": self.lifecycle.state.value, "warnings": rc.warnings,
+        rc.deferred.resolve({"state": self.lifecycle.state.value,
+                             "warnings": rc.warnings + rc.backend_warnings,
                              "rebooted": rc.rebooted})
 
     def activate(self: Node) -> dict[str, Any]:

@@ -120,8 +120,7 @@ def test_a_host_that_missed_the_cycles_is_told_from_a_dead_bus(emulator, bus, mo
 
     def starved():
         calls["n"] += 1
-        raise CommunicationError("fast sync read: [TxRxResult] There is no status packet!",
-                                 IDS)
+        raise BusTimeoutError("fast sync read: [TxRxResult] There is no status packet!", IDS)
 
     monkeypatch.setattr(bus, "_fast_sync_read" if bus.stats.fast_read else "_sync_read",
                         starved)
@@ -132,6 +131,18 @@ def test_a_host_that_missed_the_cycles_is_told_from_a_dead_bus(emulator, bus, mo
                        "host missed the cycles"):
         bus.cycle()
     assert calls["n"] == 3 and real is not None
+
+
+def test_damaged_replies_are_told_from_a_host_that_missed_the_cycles(emulator, bus):
+    """Three corrupt replies were "the host missed the cycles" once every servo answered."""
+    bus.torque(True)
+    emulator.fault(2).corrupt = 3
+    for _ in range(2):
+        with pytest.raises(CommunicationError):
+            bus.cycle()
+    with pytest.raises(HardwareFault, match="every servo answers a ping now, but the cycles' "
+                       "replies came damaged: a noisy or loose cable"):
+        bus.cycle()
 
 
 def test_a_bus_where_no_servo_answers_names_the_baud(emulator, bus):

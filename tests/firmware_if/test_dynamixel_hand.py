@@ -168,7 +168,8 @@ def test_a_servo_that_restarts_during_a_step_is_a_fault_not_a_drop(rig):
     """A fault campaign's finding: the restarted servo drew no current, its finger "pressed
     on nothing", and the hand reported the object dropped, with no fault."""
     hand, bus = rig.hand, rig.bus
-    hand.set_torque(True)
+    hand.set_torque(True)  # a sync write, which no servo acknowledges: wait for it to land
+    assert bus.wait_until(lambda: all(s.torque_on for s in bus.servos.values()))
     hand.command_hand(HandCommand((FingerMove(dz=0.002), None)))
     with bus.lock:
         for sid in (1, 2):  # the first finger's joints: a brown-out (torque off, RAM reset)
@@ -176,3 +177,23 @@ def test_a_servo_that_restarts_during_a_step_is_a_fault_not_a_drop(rig):
     state = _finish(hand)
     assert not state.dropped
     assert "servo 1, 2 lost torque by itself" in (state.fingers[0].fault or "")
+
+
+def test_servos_the_hand_does_not_use_are_a_warning_at_open():
+    """A fault campaign's finding: a two-finger hand configured on a three-finger bus was
+    accepted without a word and explored on the wrong kinematics."""
+    sim = _sim("three-finger")
+    plant = HandPlant(sim)
+    with ServoBus(hand_bus_servos(sim.hand, plant), plant=plant) as bus:
+        wrong = DynamixelHand(load_hand("two-finger"), bus.port)
+        wrong.open()
+        try:
+            assert len(wrong.warnings) == 1
+            assert wrong.warnings[0].startswith("servos 7, 8, 9 also answer on this bus, "
+                                                "which hand 'two-finger' does not use")
+        finally:
+            wrong.close()
+        right = DynamixelHand(sim.hand, bus.port)
+        right.open()
+        assert right.warnings == []
+        right.close()
