@@ -79,7 +79,8 @@ def perturbed_contour(contour: Contour, sigma: float, correlation: float,
     noise = ndimage.gaussian_filter1d(rng.standard_normal(len(points)),
                                       max(correlation / spacing, 1e-6), mode="wrap")
     noise *= sigma / max(noise.std(), 1e-300)
-    return Contour(points=points + noise[:, None] * normals, name=f"{contour.name}+world")
+    return Contour(points=points + noise[:, None] * normals, name=f"{contour.name}+world",
+                   origin=contour.origin)
 
 
 def close_fingers(fingers: Sequence[Finger], field: ContactField, pose: np.ndarray

@@ -11,6 +11,7 @@ import math
 from pathlib import Path
 
 from service.errors import ConfigError
+from service.localization.objects.files import OBJECT_FILE_SUFFIXES
 from tools.words import NO_SAFE_MOVE, hand_step_text, pose_text, why_not_converged
 
 DEFAULT_HAND = "two-finger"
@@ -128,6 +129,10 @@ def run_hand(args: argparse.Namespace) -> int:
           f"{settings.step * 1e3:g} mm; {settings.algorithm}"
           f"{' with noise' if settings.noise else ''}"
           f"{'' if settings.gate else '; NO grasp gate (ablation)'}")
+    x0, z0 = parts.contour.origin
+    if Path(settings.object).suffix.lower() in OBJECT_FILE_SUFFIXES:  # poses: its centroid's
+        print(f"          poses are of its centroid, at ({x0 * 1e3:.2f}, {z0 * 1e3:.2f}) mm in "
+              "the file's frame, headings from the file's first axis")
     report = simulate_hand(settings, parts, on_step=None if args.quiet else _print_step,
                            snapshot_steps=(0,) if args.plot else (),
                            backend_factory=backend_factory)

@@ -135,6 +135,7 @@ class HandEpisodeReport:
         return {
             "settings": self.settings.to_json(),
             "object": self.parts.contour.name,
+            "object_origin": list(self.parts.contour.origin),
             "hand": self.parts.hand.name,
             "start": list(self.start),
             "truth": list(self.truth),

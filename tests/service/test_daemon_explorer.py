@@ -162,17 +162,22 @@ def own_link() -> Iterator[WorkerLink]:
     link.close()
 
 
-def test_an_episode_cut_before_its_first_belief_leaves_no_trace(own_link: WorkerLink) -> None:
-    """A fault just as an episode starts (its start refused): `episode_done` went out for an
-    episode that never began, its id was used up and the last estimate wiped."""
-    link = own_link
+def one_step_episode(link: WorkerLink, *, repeat: bool) -> tuple[Explorer, SimulatedFinger]:
+    """An explorer whose one-step episode has ended (`repeat`: the next not yet begun)."""
     settings = RunSettings(max_steps=1)
     configure(link, settings)
     f = finger(settings, surface_for(settings), 1)
     explorer = Explorer(link, settings)
-    explorer.start(f.read_hand())
-    while explorer.phase is not Phase.IDLE:  # one step, then done
+    explorer.start(f.read_hand(), repeat=repeat)
+    while explorer.phase is not (Phase.RESTART if repeat else Phase.IDLE):
         explorer.tick(f.read_hand(), f.command_hand, link.poll(1.0))
+    return explorer, f
+
+
+def test_an_episode_cut_before_its_first_belief_leaves_no_trace(own_link: WorkerLink) -> None:
+    """A fault just as an episode starts (its start refused): `episode_done` went out for an
+    episode that never began, its id was used up and the last estimate wiped."""
+    explorer, f = one_step_episode(own_link, repeat=False)
     kept, episode = explorer.estimate, explorer.episode
     assert kept is not None
     explorer.start(f.read_hand())
@@ -185,14 +190,7 @@ def test_an_episode_cut_before_its_first_belief_leaves_no_trace(own_link: Worker
 def test_repeat_begins_nothing_once_the_object_is_dropped(own_link: WorkerLink) -> None:
     """With `repeat`, a drop ended one episode and began the next, which ended at once,
     242 times in 5 s."""
-    link = own_link
-    settings = RunSettings(max_steps=1)
-    configure(link, settings)
-    f = finger(settings, surface_for(settings), 1)
-    explorer = Explorer(link, settings)
-    explorer.start(f.read_hand(), repeat=True)
-    while explorer.phase is not Phase.RESTART:
-        explorer.tick(f.read_hand(), f.command_hand, link.poll(1.0))
+    explorer, f = one_step_episode(own_link, repeat=True)
     episode = explorer.episode
     dropped = dataclasses.replace(f.read_hand(), dropped=True)
     out = explorer.tick(dropped, f.command_hand, [])

@@ -4,6 +4,7 @@ version-1 client is told to move to version 2."""
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import time
 from collections.abc import Iterator
@@ -213,68 +214,57 @@ def test_a_subscriber_says_why_a_version_1_stream_cannot_be_read() -> None:
         pub.close()
 
 
+@contextlib.contextmanager
+def two_finger_daemon_on_servos() -> Iterator[tuple[Node, Subscriber, Controller]]:
+    """A daemon driving the emulated two-finger bus holding keyed (seed 2), with a
+    subscriber to `state` that has seen both fingers, and a controller."""
+    import argparse
+
+    from tools.emulate_cli import register, start_emulator
+
+    parser = argparse.ArgumentParser()
+    register(parser)
+    bus = start_emulator(parser.parse_args(
+        ["--hand", "two-finger", "--object", "keyed", "--seed", "2", "--priority", "0"]))[0]
+    try:
+        config = loopback_config({
+            "backend": {"name": "dynamixel", "options": {
+                "port": bus.port, "cycle_budget_s": 0.05}},  # a busy test machine is slow
+            "scenario": {"object": "keyed", "hand": "two-finger", "seed": 2,
+                         "max_steps": 2}})
+        with running_node(config) as node, \
+                Subscriber(node.endpoints["pub"], ["state"]) as sub, \
+                Controller(node.endpoints["cmd"], timeout_s=30.0) as c:
+            assert sub.wait_for(lambda m: len(m["fingers"]) == 2, 10.0)
+            yield node, sub, c
+    finally:
+        bus.stop()
+
+
 def test_another_hand_on_a_running_dynamixel_daemon_opens_the_bus_again() -> None:
     """A held-out check: `configure scenario.hand=three-finger` on a daemon driving a
     two-finger bus was accepted, the two-finger backend kept, and the next episode failed
     in the compute process. The hand is the backend's: changing it opens the bus again,
     which has no servo 7, so the configure is refused and nothing changes."""
-    import argparse
-
-    from tools.emulate_cli import register, start_emulator
-
-    parser = argparse.ArgumentParser()
-    register(parser)
-    bus = start_emulator(parser.parse_args(
-        ["--hand", "two-finger", "--object", "keyed", "--seed", "2", "--priority", "0"]))[0]
-    try:
-        config = loopback_config({
-            "backend": {"name": "dynamixel", "options": {
-                "port": bus.port, "cycle_budget_s": 0.05}},  # a busy test machine is slow
-            "scenario": {"object": "keyed", "hand": "two-finger", "seed": 2,
-                         "max_steps": 2}})
-        with running_node(config) as node, \
-                Subscriber(node.endpoints["pub"], ["state"]) as sub, \
-                Controller(node.endpoints["cmd"], timeout_s=30.0) as c:
-            assert sub.wait_for(lambda m: len(m["fingers"]) == 2, 10.0)
-            before = c.call("get_config")
-            with pytest.raises(CommandFailed) as err:
-                c.call("configure", changes={"scenario": {"hand": "three-finger"}})
-            assert "servo 7" in str(err.value), err.value
-            assert c.call("get_config") == before
-            status = c.call("status")
-            assert status["hand"] == "two-finger" and status["state"] == "inactive"
-            c.call("activate")
-            assert c.call("start_exploration")["episode"] >= 1  # the old hand still runs
-    finally:
-        bus.stop()
+    with two_finger_daemon_on_servos() as (_, _, c):
+        before = c.call("get_config")
+        with pytest.raises(CommandFailed) as err:
+            c.call("configure", changes={"scenario": {"hand": "three-finger"}})
+        assert "servo 7" in str(err.value), err.value
+        assert c.call("get_config") == before
+        status = c.call("status")
+        assert status["hand"] == "two-finger" and status["state"] == "inactive"
+        c.call("activate")
+        assert c.call("start_exploration")["episode"] >= 1  # the old hand still runs
 
 
 def test_on_servos_a_configure_after_a_drop_starts_the_hand_afresh() -> None:
     """A fault campaign's finding: on servos, `configure` (the object put back) replied ok
     and left `dropped` latched; only an estop, then a configure in fault, cleared it."""
-    import argparse
-
-    from tools.emulate_cli import register, start_emulator
-
-    parser = argparse.ArgumentParser()
-    register(parser)
-    bus = start_emulator(parser.parse_args(
-        ["--hand", "two-finger", "--object", "keyed", "--seed", "2", "--priority", "0"]))[0]
-    try:
-        config = loopback_config({
-            "backend": {"name": "dynamixel", "options": {
-                "port": bus.port, "cycle_budget_s": 0.05}},  # a busy test machine is slow
-            "scenario": {"object": "keyed", "hand": "two-finger", "seed": 2,
-                         "max_steps": 2}})
-        with running_node(config) as node, \
-                Subscriber(node.endpoints["pub"], ["state"]) as sub, \
-                Controller(node.endpoints["cmd"], timeout_s=30.0) as c:
-            assert sub.wait_for(lambda m: len(m["fingers"]) == 2, 10.0)
-            node.backend._dropped = True  # as a finger pressing on nothing latches it
-            assert sub.wait_for(lambda m: m["dropped"], 10.0)
-            c.call("configure")
-            assert sub.wait_for(lambda m: m["fingers"] and not m["dropped"], 10.0)
-            c.call("activate")
-            assert c.call("start_exploration")["episode"] >= 1
-    finally:
-        bus.stop()
+    with two_finger_daemon_on_servos() as (node, sub, c):
+        node.backend._dropped = True  # as a finger pressing on nothing latches it
+        assert sub.wait_for(lambda m: m["dropped"], 10.0)
+        c.call("configure")
+        assert sub.wait_for(lambda m: m["fingers"] and not m["dropped"], 10.0)
+        c.call("activate")
+        assert c.call("start_exploration")["episode"] >= 1

@@ -119,3 +119,19 @@ def test_no_hold_says_which_finger_or_setting_stands_in_the_way(tmp_path, capsys
                  "--quiet"]) == 2
     err = capsys.readouterr().err
     assert "the firmest hold found has a quality of" in err and "below the 50 N" in err
+
+
+def test_an_outline_file_says_where_its_poses_are_measured_from(tmp_path, capsys):
+    """An outline shifted by (0.2, 0.1) m gave the same poses with no word of the shift: a
+    researcher could not map them back to their drawing."""
+    rows = [(0, 0), (0.05, 0), (0.06, 0.03), (0.02, 0.05), (-0.01, 0.03), (0, 0)]
+    origins = []
+    for name, (dx, dz) in (("here", (0.0, 0.0)), ("moved", (0.2, 0.1))):
+        path = tmp_path / f"{name}.csv"
+        path.write_text("".join(f"{x + dx},{z + dz}\n" for x, z in rows))
+        out = tmp_path / f"{name}.json"
+        assert main(["run", "--hand", "three-finger", "--object", str(path), "--quiet",
+                     "--max-steps", "1", "--json", str(out)]) == 0
+        assert "poses are of its centroid, at (" in capsys.readouterr().out
+        origins.append(json.loads(out.read_text())["object_origin"])
+    assert np.allclose(np.subtract(origins[1], origins[0]), (0.2, 0.1))

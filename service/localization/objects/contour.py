@@ -33,6 +33,10 @@ class Contour:
     points: np.ndarray
     """(N, 2) vertices in metres, the last not repeating the first."""
     name: str = "object"
+    origin: tuple[float, float] = (0.0, 0.0)
+    """Where the centroid, every pose's origin, lies in the outline's own frame (a file's
+    x, z; a mesh section's in-plane axes from the plane's point), metres: a researcher maps
+    a pose back to their drawing by it. A pose's heading is from that frame's first axis."""
     polygon: Polygon = field(init=False, repr=False)
     max_radius: float = field(init=False)
     """Largest distance from the centroid to the contour: the object's lever arm."""
@@ -149,7 +153,8 @@ def make_contour(points: np.ndarray, name: str = "object", *, closed: bool = Fal
     if not ring.is_ccw:
         pts = pts[::-1]
     centroid = np.asarray(polygon.centroid.coords[0])
-    return Contour(points=pts - centroid, name=name)
+    return Contour(points=pts - centroid, name=name,
+                   origin=(float(centroid[0]), float(centroid[1])))
 
 
 def check_fits(contour: Contour, radius: float) -> None:
