@@ -433,7 +433,7 @@ class DxlBus:
                 if not answered:
                     silent.append(sid)
                     self._drain()  # its reply may yet come, into the next ping
-                elif ms > self.cycle_budget_s * 1e3:
+                elif ms > self.cycle_budget_s * 1e3 / 2:  # a cycle's read waits half of it
                     late[sid] = ms
         except (FirmwareError, *PORT_ERRORS, ValueError):
             return ""  # the port itself: its own error says so
@@ -488,13 +488,14 @@ class DxlBus:
 
 
 def _late_words(late: dict[int, float], cycle_budget_s: float) -> str:
-    """A fault's words for servos that answer a ping, but later than a cycle allows."""
+    """A fault's words for servos that answer a ping, but later than a cycle's read waits
+    (half the cycle's budget)."""
     if not late:
         return ""
     who = (f"servo {next(iter(late))} answers" if len(late) == 1
            else f"servos {', '.join(map(str, late))} answer")
-    return (f"; {who} a ping only after {max(late.values()):.0f} ms (a cycle allows "
-            f"{cycle_budget_s * 1e3:.0f} ms): a slow adapter or a loaded host (a USB "
+    return (f"; {who} a ping only after {max(late.values()):.0f} ms (a cycle's read waits "
+            f"{cycle_budget_s * 1e3 / 2:g} ms): a slow adapter or a loaded host (a USB "
             "adapter's latency timer, 16 ms by default on FTDI, should be 1 ms: `haptic bus "
             "check` tells)")
 

@@ -14,6 +14,7 @@ A blocked step leaves the finger where it started, as the simulated finger does.
 
 from __future__ import annotations
 
+import logging
 import time
 from dataclasses import dataclass
 
@@ -39,6 +40,8 @@ from firmware_if.registers import (
     rad_s_to_velocity,
     ticks_to_rad,
 )
+
+log = logging.getLogger("haptic.servos")
 
 
 @dataclass(frozen=True)
@@ -147,6 +150,8 @@ class DynamixelBackend(HandOfOne):
         self._state = self._tolerant_read()
         strangers = self._strangers()
         self.warnings = [strangers] if strangers else []
+        for warning in self.warnings:  # `haptic run` shows it on stderr, hapticd in its log
+            log.warning("warning: %s", warning)
 
     def _settings_hold(self) -> None:
         """Every servo's settings read back, and written again where one differs, before

@@ -80,7 +80,7 @@ def perturbed_contour(contour: Contour, sigma: float, correlation: float,
                                       max(correlation / spacing, 1e-6), mode="wrap")
     noise *= sigma / max(noise.std(), 1e-300)
     return Contour(points=points + noise[:, None] * normals, name=f"{contour.name}+world",
-                   origin=contour.origin)
+                   origin=contour.origin, axis=contour.axis)
 
 
 def close_fingers(fingers: Sequence[Finger], field: ContactField, pose: np.ndarray

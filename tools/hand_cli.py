@@ -129,10 +129,12 @@ def run_hand(args: argparse.Namespace) -> int:
           f"{settings.step * 1e3:g} mm; {settings.algorithm}"
           f"{' with noise' if settings.noise else ''}"
           f"{'' if settings.gate else '; NO grasp gate (ablation)'}")
-    x0, z0 = parts.contour.origin
     if Path(settings.object).suffix.lower() in OBJECT_FILE_SUFFIXES:  # poses: its centroid's
-        print(f"          poses are of its centroid, at ({x0 * 1e3:.2f}, {z0 * 1e3:.2f}) mm in "
-              "the file's frame, headings from the file's first axis")
+        at = ", ".join(f"{v * 1e3:.2f}" for v in parts.contour.origin)
+        along = ("its x axis" if len(parts.contour.axis) == 2 else "the plane's axis ("
+                 + ", ".join(f"{v:.3f}" for v in parts.contour.axis) + ")")
+        print(f"          poses are of its centroid, at ({at}) mm in the file's frame, "
+              f"headings from {along}")
     report = simulate_hand(settings, parts, on_step=None if args.quiet else _print_step,
                            snapshot_steps=(0,) if args.plot else (),
                            backend_factory=backend_factory)

@@ -117,8 +117,6 @@ class CommandHandlers:
         self.map_warnings = rc.warnings
         for warning in rc.warnings:
             logging.getLogger("hapticd").warning("map %s: %s", new.scenario.map, warning)
-        for warning in rc.backend_warnings:
-            logging.getLogger("hapticd").warning("backend %s: %s", new.backend.name, warning)
         self.lease.ttl_ns = int(new.lease.ttl_s * 1e9)
         if new.loop.period_ns != self.loop.period_ns or new.loop.overrun != self.loop.overrun:
             self.loop.overrun = new.loop.overrun

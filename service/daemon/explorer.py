@@ -136,10 +136,7 @@ class Explorer:
         if self.phase not in (Phase.IDLE, Phase.RESTART):  # RESTART: the last one is done
             with contextlib.suppress(WorkerDied):  # a dead process has nothing to cancel
                 self._req = self.link.send("cancel")
-        if self.phase is Phase.DECIDE and not self._started:  # it never began: no trace
-            (self.episode, self.steps, self.truth, self.estimate, self._topic, self._cloud,
-             self.candidates) = self._undo
-        elif self.phase not in (Phase.IDLE, Phase.RESTART):
+        if not self._forget_unstarted() and self.phase not in (Phase.IDLE, Phase.RESTART):
             est = {k: v for k, v in self.estimate_fields().items()
                    if k not in ("step", "kind", "displacement", "predicted_quality", "quality")}
             # a step commanded but not yet read has no `step` event: it is not counted
@@ -151,6 +148,15 @@ class Explorer:
         self.repeat = False
         self._next = None  # a move held back by a pause ends with its episode
         return cut
+
+    def _forget_unstarted(self) -> bool:
+        """Undo `_begin` if the episode never had its first belief: it never began. Whether
+        it did so."""
+        if self.phase is not Phase.DECIDE or self._started:
+            return False
+        (self.episode, self.steps, self.truth, self.estimate, self._topic, self._cloud,
+         self.candidates) = self._undo
+        return True
 
     def cloud(self) -> Cloud | None:
         return self._cloud
@@ -189,6 +195,7 @@ class Explorer:
             if int(msg.get("req", -1)) != self._req or self.phase is Phase.IDLE:
                 continue  # an answer to a request the explorer has moved past
             if msg.type == "error":
+                self._forget_unstarted()  # a start the compute process refused
                 self.phase = Phase.IDLE
                 raise ComputeError(str(msg.get("code")), str(msg.get("message")))
             if msg.type == "belief":

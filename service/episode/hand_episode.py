@@ -136,6 +136,7 @@ class HandEpisodeReport:
             "settings": self.settings.to_json(),
             "object": self.parts.contour.name,
             "object_origin": list(self.parts.contour.origin),
+            "object_axis": list(self.parts.contour.axis),
             "hand": self.parts.hand.name,
             "start": list(self.start),
             "truth": list(self.truth),

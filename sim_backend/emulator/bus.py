@@ -144,12 +144,14 @@ class ServoBus:
 
     # -- serving -------------------------------------------------------------------------
     def _serve(self) -> None:
-        if self.priority:
-            self.scheduling = set_thread_priority(
-                self.priority, "the emulated servos keep ordinary scheduling and may answer "
-                "late on a loaded machine (a bus fault without a drill)",
-                "pass --priority 0 to stop asking")
-        self._started.set()
+        try:
+            if self.priority:
+                self.scheduling = set_thread_priority(
+                    self.priority, "the emulated servos keep ordinary scheduling and may "
+                    "answer late on a loaded machine (a bus fault without a drill)",
+                    "pass --priority 0 to stop asking")
+        finally:
+            self._started.set()  # `start` waits for this
         buf = bytearray()
         while not self._stop.is_set():
             ready, _, _ = select.select([self._master, self._wake_r], [], [])

@@ -106,8 +106,8 @@ def test_a_late_servo_is_named_late_not_silent(emulator, bus):
     words = str(fault.value)
     # servo 2 named late, none silent (the emulator answers from a thread of this process:
     # on a loaded machine another servo's ping may also come late)
-    assert re.search(r"; servos? (\d, )*2(, \d)* answers? a ping only after \d+ ms \(a cycle "
-                     r"allows 10 ms\): a slow adapter", words), words
+    assert re.search(r"; servos? (\d, )*2(, \d)* answers? a ping only after \d+ ms \(a cycle's "
+                     r"read waits 5 ms\): a slow adapter", words), words
     assert "not answer" not in words, words
     assert emulator.wait_until(lambda: not any(s.torque_on for s in emulator.servos.values()))
 

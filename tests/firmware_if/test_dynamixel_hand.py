@@ -179,7 +179,7 @@ def test_a_servo_that_restarts_during_a_step_is_a_fault_not_a_drop(rig):
     assert "servo 1, 2 lost torque by itself" in (state.fingers[0].fault or "")
 
 
-def test_servos_the_hand_does_not_use_are_a_warning_at_open():
+def test_servos_the_hand_does_not_use_are_a_warning_at_open(caplog):
     """A fault campaign's finding: a two-finger hand configured on a three-finger bus was
     accepted without a word and explored on the wrong kinematics."""
     sim = _sim("three-finger")
@@ -191,6 +191,8 @@ def test_servos_the_hand_does_not_use_are_a_warning_at_open():
             assert len(wrong.warnings) == 1
             assert wrong.warnings[0].startswith("servos 7, 8, 9 also answer on this bus, "
                                                 "which hand 'two-finger' does not use")
+            # said where a user sees it: `haptic run`'s stderr, hapticd's log
+            assert f"warning: {wrong.warnings[0]}" in caplog.messages
         finally:
             wrong.close()
         right = DynamixelHand(sim.hand, bus.port)

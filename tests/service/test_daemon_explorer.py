@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from firmware_if.backend import HandCommand
-from service.daemon.explorer import Explorer, Phase
+from service.daemon.explorer import ComputeError, Explorer, Phase
 from service.daemon.finger_compute import estimate_fields
 from service.daemon.worker_link import WorkerDied, WorkerLink
 from service.episode.runner import run_episode
@@ -23,6 +23,7 @@ from service.episode.scenario import (
     episode_streams,
     surface_for,
 )
+from service.wire.envelope import Message
 from sim_backend.finger import SimConfig, SimulatedFinger
 
 
@@ -185,6 +186,19 @@ def test_an_episode_cut_before_its_first_belief_leaves_no_trace(own_link: Worker
     assert explorer.stop("fault") is None  # no episode_done
     assert explorer.episode == episode and explorer.estimate == kept
     assert explorer.estimate_fields()["episode"] == episode
+
+
+def test_a_start_the_compute_process_refuses_leaves_no_trace(own_link: WorkerLink) -> None:
+    """Its error reply left the new episode's id used and the estimate wiped (a review)."""
+    explorer, f = one_step_episode(own_link, repeat=False)
+    kept, episode = explorer.estimate, explorer.episode
+    explorer.start(f.read_hand())
+    refusal = Message(type="error", seq=1, t_mono_ns=0, t_wall_ns=0,
+                      body={"req": explorer._req, "code": "bad", "message": "refused"})
+    with pytest.raises(ComputeError, match="refused"):
+        explorer.tick(f.read_hand(), f.command_hand, [refusal])
+    assert explorer.episode == episode and explorer.estimate == kept
+    assert explorer.phase is Phase.IDLE and explorer.stop("fault") is None
 
 
 def test_repeat_begins_nothing_once_the_object_is_dropped(own_link: WorkerLink) -> None:

@@ -109,6 +109,9 @@ def test_csv_outline_round_trip_and_errors(tmp_path):
         load_object(str(tmp_path / "empty.csv"))
     assert load_object(str(tmp_path / "mm.csv"), units="mm").area == pytest.approx(0.04**2)
     # millimetres asked of metres were told "coordinates are metres"
+    _write_csv(tmp_path / "speck.csv", [(x * 30, z * 30) for x, z in square])  # 1.2 mm
+    with pytest.raises(ObjectError, match="at least 2 mm wide"):  # not "drop the units"
+        load_object(str(tmp_path / "speck.csv"), units="mm")
     with pytest.raises(ObjectError, match="'square.csv' read as millimetres .* spans only "
                        "0.04 mm; as metres it spans 40 mm: drop the units"):
         load_object(str(good), units="mm")
@@ -134,6 +137,9 @@ def test_mesh_section_through_a_plane(tmp_path):
     assert c.area == pytest.approx(0.05 * 0.03, rel=1e-6)
     side = load_object(str(path), plane="0.1,0,0,1,0,0")  # the plane x = 0.1
     assert side.area == pytest.approx(0.03 * 0.02, rel=1e-6)
+    # where poses are measured from, in the mesh's own frame (a review: the plane's was given)
+    assert np.allclose(c.origin, (0.1, 0.0, 0.005)) and np.allclose(c.axis, (1, 0, 0))
+    assert np.allclose(side.origin, (0.1, 0.0, 0.0)) and np.allclose(side.axis, (0, 1, 0))
     with pytest.raises(ObjectError, match="the plane through \\[0.0, 0.0, 500.0\\] mm "
                        "misses the mesh 'part.stl', which lies -510.000 to -490.000 mm"):
         load_object(str(path), plane="z=0.5")

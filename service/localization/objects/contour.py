@@ -33,10 +33,13 @@ class Contour:
     points: np.ndarray
     """(N, 2) vertices in metres, the last not repeating the first."""
     name: str = "object"
-    origin: tuple[float, float] = (0.0, 0.0)
-    """Where the centroid, every pose's origin, lies in the outline's own frame (a file's
-    x, z; a mesh section's in-plane axes from the plane's point), metres: a researcher maps
-    a pose back to their drawing by it. A pose's heading is from that frame's first axis."""
+    origin: tuple[float, ...] = (0.0, 0.0)
+    """Where the centroid, every pose's origin, lies in the file's own frame, metres: (x, z)
+    of an outline, (x, y, z) of a mesh. A researcher maps a pose back to the drawing by it
+    and by `axis`."""
+    axis: tuple[float, ...] = (1.0, 0.0)
+    """The file's direction a pose's heading is measured from: an outline's x axis, a mesh
+    section's first in-plane axis (x for a `z=V` plane)."""
     polygon: Polygon = field(init=False, repr=False)
     max_radius: float = field(init=False)
     """Largest distance from the centroid to the contour: the object's lever arm."""

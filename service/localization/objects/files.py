@@ -12,6 +12,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import numpy as np
@@ -20,7 +21,12 @@ from shapely.ops import unary_union
 
 from service.errors import ObjectError
 from service.localization.maps import load_rows, numpy_reason
-from service.localization.objects.contour import SMALLEST_EXTENT, Contour, make_contour
+from service.localization.objects.contour import (
+    LARGEST_EXTENT,
+    SMALLEST_EXTENT,
+    Contour,
+    make_contour,
+)
 from service.localization.objects.presets import preset_object
 
 MESH_SUFFIXES = {".stl", ".obj", ".ply"}
@@ -70,7 +76,7 @@ def _check_units(points: np.ndarray, scale: float, path: Path) -> None:
     is smaller than a fingertip, and the contour's own message ("coordinates are metres")
     contradicted the units just given."""
     span = float(np.ptp(points, axis=0).max()) if len(points) else 0.0
-    if scale < 1.0 and span * scale < SMALLEST_EXTENT <= span:
+    if scale < 1.0 and span * scale < SMALLEST_EXTENT <= span <= LARGEST_EXTENT:
         raise ObjectError(f"object file '{path.name}' read as millimetres (--object-units "
                           f"mm, `scenario.object_units`) spans only {span * scale * 1e3:.3g} "
                           f"mm; as metres it spans {span * 1e3:.3g} mm: drop the units")
@@ -149,4 +155,8 @@ def mesh_section(path: Path, plane: str | None, scale: float = 1.0) -> Contour:
     if not isinstance(shape, Polygon):
         raise ObjectError(f"the plane cuts '{path.name}' into {len(shape.geoms)} separate "
                           "pieces; choose a --plane through one part")
-    return make_contour(np.asarray(shape.exterior.coords)[:-1], path.stem)
+    contour = make_contour(np.asarray(shape.exterior.coords)[:-1], path.stem)
+    # the centroid and the heading's axis in the mesh's own frame, not the plane's
+    centre = origin + basis.T @ np.asarray(contour.origin)
+    return dataclasses.replace(contour, origin=tuple(float(v) for v in centre),
+                               axis=tuple(float(v) for v in basis[0]))
