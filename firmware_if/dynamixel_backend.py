@@ -342,11 +342,10 @@ class DynamixelBackend(HandOfOne):
         no_surface, self._blocked = self._blocked, False
         if self._fault:
             raise HardwareFault(self._fault)
-        if no_surface:
-            strangers = self._strangers()
+        if no_surface:  # what `open` found on the bus may say why (`warnings`)
             raise HardwareFault(f"no surface found within {self.settings.max_press} m below "
                                 "the fingertip; move the hand closer and retry"
-                                + (f"; {strangers}" if strangers else ""))
+                                + "".join(f"; {w}" for w in self.warnings))
 
     def _strangers(self) -> str:
         """Words for servos that answer on this bus but are not the hand's: a hand file

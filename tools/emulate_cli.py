@@ -51,7 +51,6 @@ def register(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-fast-read", action="store_true",
                    help="emulate firmware older than v45 (no Fast Sync/Bulk Read)")
     p.add_argument("--priority", type=int, default=EMULATOR_PRIORITY, metavar="N",
-                   choices=range(0, 99),
                    help="SCHED_FIFO priority (1-98) of the thread that answers, above "
                         "hapticd's loop: servos answer whatever the host does; 0: ordinary "
                         "scheduling (default: %(default)s)")
@@ -100,8 +99,12 @@ def _bus(args: argparse.Namespace, servos, plant) -> ServoBus:
     link = getattr(args, "link", None)
     if link is not None and os.path.exists(link) and not os.path.islink(link):
         raise ConfigError(f"--link {link}: a file that is not a symlink is there already")
+    priority = getattr(args, "priority", 0)
+    if not 0 <= priority <= 98:
+        raise ConfigError(f"--priority {priority}: SCHED_FIFO priorities are 1-98 (0: "
+                          "ordinary scheduling)")
     return ServoBus(servos, plant=plant, fast_read=not args.no_fast_read, link=link,
-                    priority=getattr(args, "priority", 0)).start()
+                    priority=priority).start()
 
 
 def run(args: argparse.Namespace, *, ready: Callable[[str], None] | None = None,

@@ -34,6 +34,17 @@ def bus(emulator):
         yield b
 
 
+def latched_on_the_third_failed_cycle(bus: DxlBus, words: str) -> pytest.ExceptionInfo:
+    """Two cycles fail (a truncated fast read, or a timeout) and are tolerated; the third
+    latches a fault whose text matches `words`."""
+    for _ in range(2):
+        with pytest.raises(CommunicationError):
+            bus.cycle()
+    with pytest.raises(HardwareFault, match=words) as fault:
+        bus.cycle()
+    return fault
+
+
 def test_no_io_before_open():
     bus = DxlBus("/dev/does-not-exist", IDS)
     with pytest.raises(NotReadyError):
@@ -78,11 +89,7 @@ def test_falls_back_to_sync_read(firmware):
 def test_failures_are_tolerated_then_latch_a_fault_with_torque_off(emulator, bus):
     bus.torque(True)
     emulator.fault(2).mute = True
-    for _ in range(2):
-        with pytest.raises(CommunicationError):  # a truncated fast read, or a timeout
-            bus.cycle()
-    with pytest.raises(HardwareFault, match="3 consecutive failed cycles") as fault:
-        bus.cycle()
+    fault = latched_on_the_third_failed_cycle(bus, "3 consecutive failed cycles")
     assert "servo 2 does not answer a ping: check its cable" in str(fault.value)  # named
     assert emulator.wait_until(lambda: not any(s.torque_on for s in emulator.servos.values()))
     with pytest.raises(HardwareFault, match="reset first"):
@@ -98,11 +105,7 @@ def test_a_late_servo_is_named_late_not_silent(emulator, bus):
     # with pings cut at a cycle's budget, its late replies spoiled the next servos' pings
     bus.torque(True)
     emulator.fault(2).late_s = 0.02  # within the setup's timeout, past a cycle's
-    for _ in range(2):
-        with pytest.raises(CommunicationError):
-            bus.cycle()
-    with pytest.raises(HardwareFault, match="3 consecutive failed cycles") as fault:
-        bus.cycle()
+    fault = latched_on_the_third_failed_cycle(bus, "3 consecutive failed cycles")
     words = str(fault.value)
     # servo 2 named late, none silent (the emulator answers from a thread of this process:
     # on a loaded machine another servo's ping may also come late)
@@ -116,7 +119,6 @@ def test_a_host_that_missed_the_cycles_is_told_from_a_dead_bus(emulator, bus, mo
     """Starved of the CPU, the host read the bus late: every servo answers when asked."""
     bus.torque(True)
     calls = {"n": 0}
-    real = bus._sync_read if not bus.stats.fast_read else bus._fast_sync_read
 
     def starved():
         calls["n"] += 1
@@ -124,36 +126,26 @@ def test_a_host_that_missed_the_cycles_is_told_from_a_dead_bus(emulator, bus, mo
 
     monkeypatch.setattr(bus, "_fast_sync_read" if bus.stats.fast_read else "_sync_read",
                         starved)
-    for _ in range(2):
-        with pytest.raises(CommunicationError):
-            bus.cycle()
-    with pytest.raises(HardwareFault, match="every servo answers a ping in time now: the "
-                       "host missed the cycles"):
-        bus.cycle()
-    assert calls["n"] == 3 and real is not None
+    latched_on_the_third_failed_cycle(
+        bus, "every servo answers a ping in time now: the host missed the cycles")
+    assert calls["n"] == 3
 
 
 def test_damaged_replies_are_told_from_a_host_that_missed_the_cycles(emulator, bus):
     """Three corrupt replies were "the host missed the cycles" once every servo answered."""
     bus.torque(True)
     emulator.fault(2).corrupt = 3
-    for _ in range(2):
-        with pytest.raises(CommunicationError):
-            bus.cycle()
-    with pytest.raises(HardwareFault, match="every servo answers a ping now, but the cycles' "
-                       "replies came damaged: a noisy or loose cable"):
-        bus.cycle()
+    latched_on_the_third_failed_cycle(
+        bus, "every servo answers a ping now, but the cycles' replies came damaged: a noisy "
+        "or loose cable")
 
 
 def test_a_bus_where_no_servo_answers_names_the_baud(emulator, bus):
     for sid in IDS:
         emulator.fault(sid).mute = True
-    for _ in range(2):
-        with pytest.raises(CommunicationError):
-            bus.cycle()
-    with pytest.raises(HardwareFault, match="no servo answers a ping: check the bus power, "
-                       "the adapter, and that the servos use 1000000 baud"):
-        bus.cycle()
+    latched_on_the_third_failed_cycle(
+        bus, "no servo answers a ping: check the bus power, the adapter, and that the servos "
+        "use 1000000 baud")
 
 
 def test_a_corrupt_reply_is_counted_and_forgiven(emulator, bus):
