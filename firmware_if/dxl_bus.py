@@ -36,7 +36,7 @@ from firmware_if.errors import (
     NotReadyError,
     PortLost,
 )
-from firmware_if.packets import PacketError, split_fast_read
+from firmware_if.packets import PacketError, first_damaged, split_fast_read
 from firmware_if.registers import (
     ALERT_BIT,
     REG,
@@ -376,11 +376,17 @@ class DxlBus:
             raise CommunicationError(f"fast sync read: {self._ph.getTxRxResult(result)}",
                                      self.ids)
         rx, result = self._sdk("fast sync read", self._ph.rxPacket, port, True)
+        parts = [(sid, SYNC_READ_LENGTH) for sid in self.ids]
         if result != COMM_SUCCESS:
             cls = BusTimeoutError if result in _TIMEOUT_RESULTS else CommunicationError
-            raise cls(f"fast sync read: {self._ph.getTxRxResult(result)}", self.ids, bytes(rx))
+            damaged = first_damaged(bytes(rx), parts)  # a whole reply, spoiled in one part
+            if damaged is None:
+                raise cls(f"fast sync read: {self._ph.getTxRxResult(result)}", self.ids,
+                          bytes(rx))
+            raise cls(f"fast sync read: {self._ph.getTxRxResult(result)} (damaged from "
+                      f"servo {damaged}'s part on)", (damaged,), bytes(rx))
         try:
-            decoded = split_fast_read(bytes(rx), [(sid, SYNC_READ_LENGTH) for sid in self.ids])
+            decoded = split_fast_read(bytes(rx), parts)
         except PacketError as exc:
             raise CommunicationError(f"fast sync read: {exc}", self.ids, bytes(rx)) from None
         return {sid: _reading(data, error) for sid, (error, data) in decoded.items()}
@@ -441,8 +447,11 @@ class DxlBus:
             return ("; every servo answers a ping in time now: the host missed the cycles "
                     "(a loaded machine? the loop's scheduling is in `haptic ctl status`)")
         if not late and not silent:  # the replies came, damaged
-            return ("; every servo answers a ping now, but the cycles' replies came damaged: "
-                    "a noisy or loose cable or connector, or a baud too fast for the cable")
+            where = (f", first in servo {last.servo_ids[0]}'s reply (its cable, or one "
+                     "between it and the adapter)" if len(last.servo_ids) == 1 else "")
+            return (f"; every servo answers a ping now, but the cycles' replies came damaged"
+                    f"{where}: a noisy or loose cable or connector, or a baud too fast for "
+                    "the cable")
         return (_late_words(late, self.cycle_budget_s)
                 + _silent_words(silent, len(self.ids), self.baud))
 

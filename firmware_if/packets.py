@@ -144,7 +144,7 @@ def split_fast_read(raw: bytes, lengths: list[tuple[int, int]]) -> dict[int, tup
     if length != expected or len(raw) != 7 + length:
         raise PacketError(f"fast read length {length}, expected {expected}")
     if crc16(raw[:-2]) != (raw[-2] | raw[-1] << 8):
-        raise PacketError("CRC mismatch")
+        raise PacketError(f"CRC mismatch from servo {first_damaged(raw, lengths)}'s part on")
     out: dict[int, tuple[int, bytes]] = {}
     i = 8
     for sid, n in lengths:
@@ -154,3 +154,19 @@ def split_fast_read(raw: bytes, lengths: list[tuple[int, int]]) -> dict[int, tup
         out[sid] = (error, bytes(raw[i + 2:i + 2 + n]))
         i += 4 + n
     return out
+
+
+def first_damaged(raw: bytes, lengths: list[tuple[int, int]]) -> int | None:
+    """The id of the first servo whose part of a Fast Sync/Bulk Read status fails its CRC,
+    [(id, data length)] in request order: each servo's CRC covers the packet so far, so
+    damage fails the part it falls in and every part after it (damage in the header fails
+    the first). None where the packet's length is not the request's, or every part checks."""
+    if len(raw) != 8 + sum(4 + n for _, n in lengths):
+        return None
+    end = 8
+    for sid, n in lengths:
+        end += 2 + n
+        if crc16(raw[:end]) != (raw[end] | raw[end + 1] << 8):
+            return sid
+        end += 2
+    return None

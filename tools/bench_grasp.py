@@ -161,7 +161,9 @@ def run(args: argparse.Namespace) -> int:
     results: dict[tuple, list[dict[str, Any]]] = {}
     for (key, _), outcome in zip(jobs, outcomes, strict=True):
         results.setdefault(key, []).append(outcome)  # in seed order, whoever ran it
-    table = {f"{hand}/{family}/{kind}": _summary(results[(hand, family, kind)])
+    # keyed HAND/OBJECT/KIND, and each says its own: a hand or object file's path has "/" too
+    table = {f"{hand}/{family}/{kind}": {"hand": hand, "object": family, "kind": kind,
+                                         **_summary(results[(hand, family, kind)])}
              for hand in hands for family in families for kind in kinds}
     gated = [o for (h, f, k), v in results.items() if k == "gated" for o in v]
     summary = _summary(gated)

@@ -52,6 +52,7 @@ class CommandHandlers:
             "commands": {"handled": self.cmd.handled, "errors": self.cmd.errors},
             "backend": self.config.backend.name, "map": self.config.scenario.map,
             "map_warnings": list(self.map_warnings),
+            "backend_warnings": list(getattr(self.backend, "warnings", [])),
             "object": scenario.object,
             "hand": None if scenario.object is None else scenario.hand_name,
             "loop_scheduling": self.scheduling and dataclasses.asdict(self.scheduling),

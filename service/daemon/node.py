@@ -70,9 +70,9 @@ class Node(CommandHandlers):
         """A `start_exploration` waiting for the episode's first belief."""
         self.faults = 0
         self.configure_error: str | None = None
+        """Why the last configure failed (the one at start-up too), until one succeeds."""
         self.map_warnings: list[str] = []
         """The map check's warnings on the configured map (`status`)."""
-        """Why the last configure failed (the one at start-up too), until one succeeds."""
         self.last_state: HandState | None = None
         self.localizer_work = Samples()
         self.lease = Lease(config.lease.ttl_s)

@@ -128,7 +128,7 @@ def fast_read(bus: ServoBus, requests: list[tuple[int, int, int]]) -> None:
     """One status packet for all; it stops where a servo is absent or silent."""
     parts: list[tuple[int, int, bytes]] = []
     first: EmulatedServo | None = None
-    corrupt = False
+    corrupt: int | None = None  # where the first corrupting servo's CRC lies (later parts fail too)
     for sid, address, length in requests:
         servo = bus.servos.get(sid)
         plan = bus.faults.get(sid)
@@ -140,8 +140,9 @@ def fast_read(bus: ServoBus, requests: list[tuple[int, int, int]]) -> None:
             break
         if plan is not None and plan.corrupt:
             plan.corrupt -= 1
-            corrupt = True
             bus.stats["corrupted"] += 1
+            if corrupt is None:
+                corrupt = 8 + sum(4 + len(d) for _, _, d in parts) + 2 + length
         error, data = servo.read(address, length)
         if error:
             data = bytes(length)
@@ -156,8 +157,8 @@ def fast_read(bus: ServoBus, requests: list[tuple[int, int, int]]) -> None:
         data = bytes(out)
     else:
         data = pk.fast_read_status(parts)
-    if corrupt:
-        data = data[:-1] + bytes([data[-1] ^ 0xFF])
+    if corrupt is not None:
+        data = data[:corrupt] + bytes([data[corrupt] ^ 0xFF]) + data[corrupt + 1:]
     late = sum(bus.faults[sid].late_s for sid, _, _ in requests if sid in bus.faults)
     bus.delay(first, late)
     bus.write_raw(data)

@@ -52,6 +52,19 @@ def test_fast_sync_read_status_matches_the_e_manual_and_decodes():
         pk.split_fast_read(raw[:-1] + b"\x00", [(3, 4), (7, 4), (4, 4)])
 
 
+def test_a_damaged_fast_read_status_names_the_first_part_that_fails():
+    lengths = [(3, 4), (7, 4), (4, 4)]
+    raw = pk.fast_read_status([(0, 3, h("A6 00 00 00")), (0, 7, h("1F 08 00 00")),
+                               (0, 4, h("FF 03 00 00"))])
+    assert pk.first_damaged(raw, lengths) is None
+    for at, servo in ((2, 3), (10, 3), (17, 7), (21, 7), (28, 4), (len(raw) - 1, 4)):
+        spoiled = raw[:at] + bytes([raw[at] ^ 0x10]) + raw[at + 1:]
+        assert pk.first_damaged(spoiled, lengths) == servo, at
+    assert pk.first_damaged(raw[:-1], lengths) is None  # short: nothing to say
+    with pytest.raises(pk.PacketError, match="from servo 7's part on"):
+        pk.split_fast_read(raw[:20] + b"\x01" + raw[21:], lengths)
+
+
 def test_stuffing_follows_the_rule():
     assert pk.stuff(h("03 FF FF FD 01")) == h("03 FF FF FD FD 01")
     assert pk.stuff(h("FF FF FD FD")) == h("FF FF FD FD FD")

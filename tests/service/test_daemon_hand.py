@@ -215,9 +215,10 @@ def test_a_subscriber_says_why_a_version_1_stream_cannot_be_read() -> None:
 
 
 @contextlib.contextmanager
-def two_finger_daemon_on_servos() -> Iterator[tuple[Node, Subscriber, Controller]]:
-    """A daemon driving the emulated two-finger bus holding keyed (seed 2), with a
-    subscriber to `state` that has seen both fingers, and a controller."""
+def two_finger_daemon_on_servos(bus_hand: str = "two-finger"
+                                ) -> Iterator[tuple[Node, Subscriber, Controller]]:
+    """A daemon driving a two-finger hand on the emulated bus of `bus_hand` holding keyed
+    (seed 2), with a subscriber to `state` that has seen both fingers, and a controller."""
     import argparse
 
     from tools.emulate_cli import register, start_emulator
@@ -225,7 +226,7 @@ def two_finger_daemon_on_servos() -> Iterator[tuple[Node, Subscriber, Controller
     parser = argparse.ArgumentParser()
     register(parser)
     bus = start_emulator(parser.parse_args(
-        ["--hand", "two-finger", "--object", "keyed", "--seed", "2", "--priority", "0"]))[0]
+        ["--hand", bus_hand, "--object", "keyed", "--seed", "2", "--priority", "0"]))[0]
     try:
         config = loopback_config({
             "backend": {"name": "dynamixel", "options": {
@@ -256,6 +257,19 @@ def test_another_hand_on_a_running_dynamixel_daemon_opens_the_bus_again() -> Non
         assert status["hand"] == "two-finger" and status["state"] == "inactive"
         c.call("activate")
         assert c.call("start_exploration")["episode"] >= 1  # the old hand still runs
+
+
+def test_servos_the_hand_does_not_use_stay_in_status() -> None:
+    """A client that connects after the configure that opened the bus saw nothing of the
+    servos the hand does not use: they were only in that configure's reply and the log."""
+    with two_finger_daemon_on_servos(bus_hand="three-finger") as (_, _, c):
+        words = "servos 7, 8, 9 also answer on this bus, which hand 'two-finger' does not use"
+        status = c.call("status")
+        assert len(status["backend_warnings"]) == 1, status["backend_warnings"]
+        assert status["backend_warnings"][0].startswith(words)
+        assert status["map_warnings"] == []
+        c.call("configure")  # keeps the bus open: what opening it found still holds
+        assert c.call("status")["backend_warnings"] == status["backend_warnings"]
 
 
 def test_on_servos_a_configure_after_a_drop_starts_the_hand_afresh() -> None:

@@ -62,8 +62,12 @@ def test_bench_grasp_holds_an_object_of_ones_own_in_every_run(tmp_path, capsys):
     assert main(["bench", "grasp", "--runs", "2", "--objects", f"{outline},blob:3", "--hands",
                  "three-finger", "--max-steps", "4", "--no-ablation", "--no-single",
                  "--workers", "1", "--json", str(out)]) == 0
-    runs = json.loads(out.read_text())["runs"]
+    written = json.loads(out.read_text())
+    runs = written["runs"]
     assert [o["object"] for o in runs[f"three-finger/{outline}/gated"]] == [str(outline)] * 2
+    # a path has "/" in it: each row of the table says its hand, object and kind
+    assert sorted((r["hand"], r["object"], r["kind"]) for r in written["table"].values()) == [
+        ("three-finger", str(outline), "gated"), ("three-finger", "blob:3", "gated")]
     assert [(o["object"], o["seed"]) for o in runs["three-finger/blob:3/gated"]] == [
         ("blob:3", 0), ("blob:3", 1)]
 
