@@ -99,6 +99,35 @@ def test_the_gate_holds_for_the_leaders_spread(guard, safe):
     assert policy._safe(view, quality, np.array([1.0, 0.0, 0.0])) is safe
 
 
+@pytest.mark.parametrize(("guard_quality", "likely_quality", "safe"), [
+    (0.8, 1.1, True),    # a guard below the threshold, above the margin's buffer
+    (0.35, 1.1, False),  # a guard within the buffer (0.2 + 0.25 x 0.8 = 0.4 N)
+    (0.8, 0.9, False),   # a likely pose below the threshold, as ever
+])
+def test_as_a_last_resort_the_guards_are_kept_only_off_the_margin(guard_quality,
+                                                                   likely_quality, safe):
+    policy = GraspGatedPolicy()
+    policy._now = np.array([1.5, 1.2])
+    policy._guard = np.array([False, True])
+    weights = np.array([1.0, 0.0])
+    view = HandView(hypotheses=Hypotheses(np.zeros((2, 3)), weights),
+                    centres=np.zeros((2, 2)), joints=(), field=None, fingers=(), torque=0.5,
+                    grasp=GraspSpec(margin_n=0.2, threshold_n=1.0), step_length=0.003,
+                    sigma=2e-4)
+    quality = np.array([likely_quality, guard_quality])
+    assert policy._safe(view, quality, weights, last_resort=True) is safe
+    assert not policy._safe(view, quality, weights)  # the guard below the threshold
+
+
+def test_three_fingers_leave_a_start_whose_edge_poses_forbade_every_move():
+    """rounded:23, seed 23, three fingers: the true grasp held 11.6 N, but the gate's guards
+    at the edge of what the start allows (1.06-1.4 N) forbade every roll and every turn,
+    and the episode ended where it began."""
+    report = simulate_hand(HandSettings(object="rounded:23", hand="three-finger", seed=23,
+                                        noise=True, max_steps=3))
+    assert len(report.result.steps) == 3 and not report.result.dropped
+
+
 def test_each_modes_neighbours_lie_two_spreads_away_at_most_the_cap():
     poses = np.array([[0.0, 0.0, 1.0], [0.01, 0.0, 2.0], [0.001, 0.0, 1.02]])
     weights = np.array([0.7, 0.2, 0.1])  # the third is in the leader's mode
