@@ -282,3 +282,25 @@ def test_on_servos_a_configure_after_a_drop_starts_the_hand_afresh() -> None:
         assert sub.wait_for(lambda m: m["fingers"] and not m["dropped"], 10.0)
         c.call("activate")
         assert c.call("start_exploration")["episode"] >= 1
+
+
+def test_at_start_up_a_bad_hand_file_stops_hapticd_and_a_bad_object_file_does_not(
+        tmp_path, capsys) -> None:
+    """The README's contract: the loop needs the hand, so a hand file that cannot be read is
+    a bad configuration (exit status 2, one line); an object file that will not load leaves
+    the daemon unconfigured, saying why, until a configure names a good one."""
+    from service.daemon.main import main
+
+    bad_hand = tmp_path / "hapticd.toml"
+    bad_hand.write_text(f'[scenario]\nobject = "blob"\nhand = "{tmp_path / "nohand.toml"}"\n')
+    assert main(["--config", str(bad_hand)]) == 2
+    last = capsys.readouterr().err.strip().splitlines()[-1]
+    assert last.startswith("hapticd: error: scenario.hand: hand file") and "nohand" in last
+    missing = tmp_path / "part.csv"
+    config = loopback_config({"scenario": {"object": str(missing), "hand": "three-finger"}})
+    with running_node(config) as node, Controller(node.endpoints["cmd"]) as c:
+        status = c.call("status")
+        assert status["state"] == "unconfigured" and "part.csv" in status["configure_error"]
+        assert c.call("configure", changes={"scenario": {"object": "blob"}})["state"] == \
+            "inactive"
+        assert c.call("status")["configure_error"] is None
