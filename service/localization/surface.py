@@ -12,13 +12,13 @@ extruded along y, so lookups ignore y.
 
 from __future__ import annotations
 
-import weakref
 from dataclasses import dataclass, field
 
 import numpy as np
 from scipy import ndimage
 
 from service.errors import MapError
+from service.localization.memo import kept
 
 
 @dataclass(frozen=True, eq=False)
@@ -164,11 +164,6 @@ def sphere_filter(grid: np.ndarray, radius: float, spacing: float, *,
     return out
 
 
-_CACHE: weakref.WeakKeyDictionary[HeightMap, dict[float, ContactSurface]] = (
-    weakref.WeakKeyDictionary()
-)
-
-
 DILATION_WORK_LIMIT = 1e10
 """Most map samples x fingertip footprint samples a contact surface may cost (about a
 minute at this machine's 100-500 million per second)."""
@@ -200,15 +195,14 @@ def check_radius(height_map: HeightMap, radius: float) -> None:
 
 
 def contact_surface(height_map: HeightMap, radius: float) -> ContactSurface:
-    """The centre-height surface for a sphere of `radius` metres, cached per map and radius."""
+    """The centre-height surface for a sphere of `radius` metres, kept while the map lives
+    (`memo.kept`)."""
     check_radius(height_map, radius)
-    per_map = _CACHE.setdefault(height_map, {})
-    cached = per_map.get(radius)
-    if cached is not None:
-        return cached
-    dilated = np.ascontiguousarray(sphere_filter(height_map.heights, radius,
-                                                 height_map.spacing))
-    dilated.setflags(write=False)
-    surface = ContactSurface(map=height_map, radius=float(radius), centre_heights=dilated)
-    per_map[radius] = surface
-    return surface
+
+    def build() -> ContactSurface:
+        dilated = np.ascontiguousarray(sphere_filter(height_map.heights, radius,
+                                                     height_map.spacing))
+        dilated.setflags(write=False)
+        return ContactSurface(map=height_map, radius=float(radius), centre_heights=dilated)
+
+    return kept(height_map, ("contact surface", float(radius)), build)

@@ -8,7 +8,6 @@ not cross itself), of plausible size in metres.
 
 from __future__ import annotations
 
-import functools
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -17,6 +16,7 @@ from shapely.geometry import LinearRing, Polygon
 from shapely.validation import explain_validity
 
 from service.errors import ObjectError
+from service.localization.memo import kept
 
 LARGEST_EXTENT = 1.0
 """Metres. A hand-held object spans less; a bigger one is a file in millimetres."""
@@ -75,10 +75,12 @@ class Contour:
         proj = hull @ normals.T
         return float(np.min(proj.max(axis=0) - proj.min(axis=0)))
 
-    @functools.lru_cache(maxsize=64)  # noqa: B019 - a few contours per process, kept alive anyway
     def resampled(self, spacing: float) -> tuple[np.ndarray, np.ndarray]:
         """Points (M, 2) every `spacing` metres of arc, and their outward unit normals.
-        Cached (read-only arrays): the whole-object check asks for them every declaration."""
+        Kept (read-only arrays): the whole-object check asks for them every declaration."""
+        return kept(self, ("resampled", float(spacing)), lambda: self._resample(spacing))
+
+    def _resample(self, spacing: float) -> tuple[np.ndarray, np.ndarray]:
         ring = self.polygon.exterior
         count = max(8, int(np.ceil(ring.length / spacing)))
         distances = np.linspace(0.0, ring.length, count, endpoint=False)

@@ -15,13 +15,13 @@ outline pieces beside it. The sign comes from shapely's point-in-polygon test.
 
 from __future__ import annotations
 
-import weakref
 from dataclasses import dataclass, field
 
 import numpy as np
 import shapely
 from scipy.spatial import cKDTree
 
+from service.localization.memo import kept
 from service.localization.objects import kernels
 from service.localization.objects.contour import Contour
 
@@ -82,15 +82,14 @@ def exact_distance(contour: Contour, u: np.ndarray, v: np.ndarray,
     return np.where(inside, -best, best).reshape(np.shape(u))
 
 
-_CACHE: weakref.WeakKeyDictionary[Contour, ContactField] = weakref.WeakKeyDictionary()
-
-
 def contact_field(contour: Contour, spacing: float = SPACING, pad: float = PAD
                   ) -> ContactField:
-    """The signed-distance grid of `contour`, cached per contour."""
-    cached = _CACHE.get(contour)
-    if cached is not None and cached.spacing == spacing:
-        return cached
+    """The signed-distance grid of `contour`, kept while the contour lives (`memo.kept`)."""
+    return kept(contour, ("contact field", float(spacing), float(pad)),
+                lambda: _grid(contour, spacing, pad))
+
+
+def _grid(contour: Contour, spacing: float, pad: float) -> ContactField:
     lo = contour.points.min(axis=0) - pad
     hi = contour.points.max(axis=0) + pad
     cols = int(np.ceil((hi[0] - lo[0]) / spacing)) + 1
@@ -98,7 +97,5 @@ def contact_field(contour: Contour, spacing: float = SPACING, pad: float = PAD
     u, v = np.meshgrid(lo[0] + spacing * np.arange(cols), lo[1] + spacing * np.arange(rows))
     sdf = np.ascontiguousarray(exact_distance(contour, u, v))
     sdf.setflags(write=False)
-    result = ContactField(contour=contour, sdf=sdf, spacing=float(spacing),
-                          origin=(float(lo[0]), float(lo[1])))
-    _CACHE[contour] = result
-    return result
+    return ContactField(contour=contour, sdf=sdf, spacing=float(spacing),
+                        origin=(float(lo[0]), float(lo[1])))
