@@ -171,7 +171,7 @@ def run(args: argparse.Namespace) -> int:
         summary["ablation_drops"] = int(sum(o["dropped"] for (_, _, k), v in results.items()
                                             if k == "ablation" for o in v))
     _print(table, summary, hands, families, kinds)
-    failures = failed_runs(results, args.start_quality)
+    failures = failed_runs(results, args.max_steps, args.start_quality)
     for line in failures:
         print(line)
     write_json(args.json, {"scenario": "grasp", "targets": TARGETS,
@@ -184,16 +184,18 @@ def run(args: argparse.Namespace) -> int:
     return 1 if failures else 0
 
 
-def failed_runs(results: dict[tuple, list[dict[str, Any]]], start_n: float | None = None
-                ) -> list[str]:
+def failed_runs(results: dict[tuple, list[dict[str, Any]]], max_steps: int,
+                start_n: float | None = None) -> list[str]:
     """A line for each gated run that dropped the object or declared a wrong pose (the
-    ablation's drops are what it is for), as `haptic run --noise` options to re-run it."""
+    ablation's drops are what it is for), with the `haptic run` options that re-run it as
+    it ran (a helper re-ran one without `--noise` and saw it localize)."""
     lines = []
     for (hand, _, kind), outcomes in results.items():
         if kind != "gated":
             continue
         for o in outcomes:
-            where = f"--hand {hand} --object {o['object']} --seed {o['seed']}" + (
+            where = (f"--hand {hand} --object {o['object']} --seed {o['seed']} --noise "
+                     f"--max-steps {max_steps}") + (
                 "" if start_n is None else f" --start-quality {start_n:g}")
             if o["dropped"]:
                 lines.append(f"DROPPED: {where} at step {o['steps']} (least quality "

@@ -79,10 +79,11 @@ def test_bench_grasp_lists_each_gated_drop_and_wrong_declaration():
                 "heading_error_deg": 136.0}
     lines = failed_runs({("two-finger", "rounded", "gated"): [run(1), run(7, dropped=True),
                                                                run(8, wrong=True)],
-                         ("two-finger", "rounded", "ablation"): [run(7, dropped=True)]})
-    assert lines == ["DROPPED: --hand two-finger --object rounded:7 --seed 7 at step 4 (least "
-                     "quality 0.10 N)",
-                     "WRONG: --hand two-finger --object rounded:8 --seed 8 (2.1 mm, 136.0 deg off)"]
+                         ("two-finger", "rounded", "ablation"): [run(7, dropped=True)]}, 60)
+    assert lines == ["DROPPED: --hand two-finger --object rounded:7 --seed 7 --noise --max-steps "
+                     "60 at step 4 (least quality 0.10 N)",
+                     "WRONG: --hand two-finger --object rounded:8 --seed 8 --noise --max-steps 60 "
+                     "(2.1 mm, 136.0 deg off)"]
 
 
 def test_bench_grasp_refuses_a_start_weaker_than_the_threshold(capsys):
@@ -93,6 +94,6 @@ def test_bench_grasp_refuses_a_start_weaker_than_the_threshold(capsys):
 def test_a_failure_line_reruns_with_the_start_quality_it_had():
     lines = failed_runs({("three-finger", "blob", "gated"): [
         {"object": "blob:4", "seed": 4, "dropped": True, "wrong": False, "steps": 2,
-         "min_quality": 0.3}]}, start_n=2.0)
-    assert lines == ["DROPPED: --hand three-finger --object blob:4 --seed 4 --start-quality 2 "
-                     "at step 2 (least quality 0.30 N)"]
+         "min_quality": 0.3}]}, 60, start_n=2.0)
+    assert lines == ["DROPPED: --hand three-finger --object blob:4 --seed 4 --noise --max-steps "
+                     "60 --start-quality 2 at step 2 (least quality 0.30 N)"]
