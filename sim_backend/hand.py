@@ -150,6 +150,9 @@ class SimulatedHand(PlanarHand, FaultLatch):
         """The grasp's true quality now (newtons): for scoring and figures, not the service."""
         self.min_quality = float("inf")
         """The least true quality seen at any substep of any move."""
+        self.step_min_quality = float("nan")
+        """The least true quality at the substeps of the last move, where it ended included
+        (a turn may dip far below where it ends)."""
 
     # -- lifecycle -------------------------------------------------------------------------
     def open(self) -> None:
@@ -170,7 +173,7 @@ class SimulatedHand(PlanarHand, FaultLatch):
             raise ConfigError(f"hand '{self.hand.name}' cannot hold object "
                               f"'{self.contour.name}' at pose {np.round(self._pose, 4)}: "
                               f"grasp quality {self.quality:.3f} N is below the margin")
-        self.min_quality = self.quality
+        self.min_quality = self.step_min_quality = self.quality
         self._reachable(self._centres)  # loads the compiled IK now, not in a step's tick
         self._measure()
 
@@ -234,6 +237,7 @@ class SimulatedHand(PlanarHand, FaultLatch):
         if not explore and self.config.fixed:
             raise NotReadyError("the object is clamped in place: it cannot be manipulated")
         self._blocked = not self._reachable(self._centres + moves)
+        self.step_min_quality = self.quality if self._blocked else float("inf")
         if not self._blocked:
             self._motion = (self._explore(moving[0], moves[moving[0]]) if explore
                             else self._manipulate(moves, rolls))
@@ -297,6 +301,7 @@ class SimulatedHand(PlanarHand, FaultLatch):
         quality = self._quality(pose, centres, q)
         self.quality = quality
         self.min_quality = min(self.min_quality, quality)
+        self.step_min_quality = min(self.step_min_quality, quality)
         if quality < self.config.grasp.margin_n:
             raise _Dropped
 

@@ -95,9 +95,12 @@ def hand_step_text(step: dict) -> str:
     if step["blocked"]:
         what += " (blocked)"
     predicted, quality = step.get("predicted_quality"), step.get("quality")
+    least = step.get("least_quality")
+    dipped = quality is not None and least is not None and least < quality - 0.005
     return (f"step {step['index']:3d}  {what:<26}  candidates {step['candidates']:5d}  "
             f"{'' if predicted is None else f'predicted {_newtons(predicted)}  '}"
             f"{'' if quality is None else f'quality {_newtons(quality)}  '}"
+            f"{f'(least {_newtons(least)})  ' if dipped else ''}"
             f"{step['compute_ms']:6.2f} ms")
 
 

@@ -120,10 +120,11 @@ class HandEpisode:
             stepper.updated()
         compute_ms = (time.monotonic_ns() - t0) / 1e6
         settle_ms = stepper.confirm() if measurement is not None else 0.0
-        quality = reading.get("quality")
+        quality, least = reading.get("quality"), reading.get("least_quality")
         record = stepper.record(step, self.decision, state, compute_ms=compute_ms,
                                 settle_ms=settle_ms,
                                 quality=float("nan") if quality is None else float(quality),
+                                least_quality=float("nan") if least is None else float(least),
                                 truth=reading.get("truth"))
         events = [("step", step_json(record))]
         if state.dropped:

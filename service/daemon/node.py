@@ -319,11 +319,13 @@ class Node(CommandHandlers):
 
     def hidden(self) -> dict[str, Any]:
         """The simulated hand's hidden state now, for the record: the object's pose and the
-        grasp's true quality (nothing for a finger or on hardware)."""
+        grasp's true quality, now and its least during the last move (nothing for a finger
+        or on hardware)."""
         quality = getattr(self.backend, "quality", None)  # only the simulated hand has it
         if self.truth is None or quality is None:
             return {}
-        return {"truth": [float(v) for v in self.backend.pose], "quality": float(quality)}
+        return {"truth": [float(v) for v in self.backend.pose], "quality": float(quality),
+                "least_quality": float(self.backend.step_min_quality)}
 
     def _publish_state(self, tick: Tick) -> None:
         if tick.index % 20 == 0 or not self._timing_cache:

@@ -74,9 +74,11 @@ def run_hand_episode(hand: Any, localizer: Any, policy: GraspGatedPolicy, parts:
                      settings: HandSettings, *,
                      on_step: Callable[[HandStepRecord], None] | None = None,
                      truth: Callable[[], tuple[float, float, float]] | None = None,
-                     quality: Callable[[], float] | None = None) -> HandEpisodeResult:
+                     quality: Callable[[], tuple[float, float]] | None = None
+                     ) -> HandEpisodeResult:
     """Explore until the localizer converges, `max_steps` pass, the object drops or no safe
-    move is left. `truth`/`quality` read the simulator's hidden state for the record."""
+    move is left. `truth`/`quality` read the simulator's hidden state for the record
+    (`quality`: the grasp's after the step, and its least during it)."""
     state = hand.read_hand()
     stepper = HandStepper(localizer, policy, parts, settings)
     result = HandEpisodeResult(start_centres=tuple(map(tuple, plane_centres(state).tolist())))
@@ -100,9 +102,9 @@ def run_hand_episode(hand: Any, localizer: Any, policy: GraspGatedPolicy, parts:
             compute_ms = (time.perf_counter() - t0) * 1e3
             stepper.updated()
             settle_ms = stepper.confirm()  # what a declaration waits on, before another move
+        now, least = (float("nan"), float("nan")) if quality is None else quality()
         record = stepper.record(index, decision, state, compute_ms=compute_ms,
-                                settle_ms=settle_ms,
-                                quality=float("nan") if quality is None else quality(),
+                                settle_ms=settle_ms, quality=now, least_quality=least,
                                 truth=None if truth is None else truth())
         result.steps.append(record)
         if on_step:
@@ -224,7 +226,8 @@ def simulate_hand(settings: HandSettings, parts: HandParts | None = None, *,
         result = run_hand_episode(hand, localizer, build_policy(settings), parts, settings,
                                   on_step=record,
                                   truth=None if world is None else lambda: world.pose,
-                                  quality=None if unknown_quality else lambda: world.quality)
+                                  quality=None if unknown_quality else lambda: (
+                                      world.quality, world.step_min_quality))
         if 0 in snapshot_steps:
             snapshots.setdefault(0, localizer.hypotheses(limit=SNAPSHOT_LIMIT))
     finally:

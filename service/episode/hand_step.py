@@ -40,6 +40,9 @@ class HandStepRecord:
     """Least quality the policy predicted over the plausible poses (newtons)."""
     quality: float
     """The grasp's true quality after the step (simulation only; NaN otherwise)."""
+    least_quality: float
+    """The least true quality during the step: a turn may dip far below where it ends
+    (simulation only; NaN otherwise)."""
     candidates: int
     compute_ms: float
     policy_ms: float
@@ -141,6 +144,7 @@ class HandStepper:
 
     def record(self, index: int, decision: HandDecision, state: HandState, *,
                compute_ms: float, settle_ms: float = 0.0, quality: float = float("nan"),
+               least_quality: float = float("nan"),
                truth: tuple[float, float, float] | None = None) -> HandStepRecord:
         return HandStepRecord(
             index=index, kind=decision.kind, finger=decision.finger,
@@ -149,7 +153,7 @@ class HandStepper:
             centres=tuple(map(tuple, plane_centres(state).tolist())),
             blocked=self.was_blocked(decision, state),
             predicted_quality=decision.predicted_quality, quality=quality,
-            candidates=self.estimate.candidates, compute_ms=compute_ms,
+            least_quality=least_quality, candidates=self.estimate.candidates, compute_ms=compute_ms,
             policy_ms=self.policy_ms, settle_ms=settle_ms, estimate=self.estimate.pose,
             truth=truth)
 
@@ -166,6 +170,7 @@ def step_json(s: HandStepRecord) -> dict[str, Any]:
             "centres": [list(c) for c in s.centres], "blocked": s.blocked,
             "predicted_quality": json_number(s.predicted_quality),
             "quality": json_number(s.quality),
+            "least_quality": json_number(s.least_quality),
             "candidates": s.candidates, "compute_ms": s.compute_ms, "policy_ms": s.policy_ms,
             "settle_ms": s.settle_ms,
             "estimate": None if s.estimate is None else list(s.estimate),

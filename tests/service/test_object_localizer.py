@@ -20,6 +20,7 @@ from service.episode.hand_scenario import (
     score,
     streams,
 )
+from service.episode.hand_step import step_json
 from service.localization.localizers import object_judge
 from service.localization.localizers.base import Estimate, update, wrap_angle
 from service.localization.localizers.contour_fit import refine
@@ -309,3 +310,16 @@ def test_no_wrong_declaration_on_an_outline_near_its_120_degree_turn():
         object=str(data / "rounded_triangle_near_120.csv"),
         hand=str(data / "wide_three_finger_hand.toml"), seed=1, noise=True, max_steps=60))
     assert not report.score.wrong_declaration
+
+
+def test_each_step_says_the_least_quality_during_it():
+    """A held-out check: a run's least quality (0.48 N) was far below every step's shown
+    quality (at least 1.63 N): the dip came inside a turn, where no step said so."""
+    report = simulate_hand(HandSettings(object="blob:4", hand="three-finger", seed=4,
+                                        noise=True, max_steps=8))
+    steps = report.result.steps
+    assert any(s.kind == "manipulate" for s in steps)
+    assert all(s.least_quality <= s.quality for s in steps)
+    assert min([report.start_quality] + [s.least_quality for s in steps]) == pytest.approx(
+        report.min_quality)
+    assert step_json(steps[0])["least_quality"] == steps[0].least_quality
