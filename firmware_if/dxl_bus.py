@@ -216,11 +216,18 @@ class DxlBus:
     def _patient(self, what: str, call: Callable[..., Any], *args: Any) -> Any:
         """One exchange outside the control cycle (`call(port, *args)`, which returns its
         result code second to last), tried up to `SETUP_ATTEMPTS` times while it times
-        out."""
-        for _ in range(SETUP_ATTEMPTS):
+        out. A late reply to an attempt given up on is drained before anything else is
+        sent, and so is one after a retry that answered (it may have been the late reply,
+        its own still coming): the SDK takes any reply from the same servo as the answer,
+        and on a loaded host a write's late status was read back as a register's value
+        ("return_delay_time reads 161 after writing 0", its CRC byte)."""
+        for attempt in range(SETUP_ATTEMPTS):
             out = self._sdk(what, call, self._require(), *args)
             if out[-2] not in _TIMEOUT_RESULTS:
+                if attempt:  # that answer may have been an earlier attempt's: this one's next
+                    self._drain()
                 break
+            self._drain()  # its reply may yet come, into the next exchange
         return out
 
     def read(self, servo_id: int, name: str) -> int:

@@ -202,3 +202,15 @@ def test_close_turns_torque_off(emulator):
     bus.close()
     bus.close()
     assert emulator.wait_until(lambda: not any(s.torque_on for s in emulator.servos.values()))
+
+
+def test_a_setup_exchange_retried_after_a_late_reply_reads_its_own_answer(emulator, bus):
+    """A helper's loaded machine: a write's status came after the setup's timeout, the retry
+    took it as its own, and the retry's status was then read as the next register's value
+    ("return_delay_time reads 161 after writing 0")."""
+    emulator.fault(1).late_s = 0.045  # past the setup's 34 ms timeout, within two of them
+    with pytest.raises(BusTimeoutError):  # it never answers in time: not a late success
+        bus.write(1, "goal_current", 123)
+    emulator.fault(1).late_s = 0.0
+    assert bus.read(1, "goal_current") == 123  # the write landed; the read gets its own
+    assert bus.read(1, "return_delay_time") == 0
