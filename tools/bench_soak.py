@@ -19,6 +19,7 @@ reader: they depend on the machine).
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import subprocess
@@ -92,13 +93,20 @@ def memory_trend(samples: list[tuple[float, float]]) -> dict[str, float | None]:
             "second_half_mb_per_min": slope}
 
 
+def _episode(status: dict[str, Any]) -> int:
+    """The latest episode a `status` reply shows. Its estimate is nil from an episode's start
+    to its first belief, so the soak keeps the most any read showed: one read at the end
+    counted 0 episodes under load."""
+    return int((status.get("estimate") or {}).get("episode", 0))
+
+
 def soak(args: argparse.Namespace) -> dict[str, Any]:
     load_before = _load()
     floor = wake_floor(args.rate, args.floor_s, DaemonConfig().loop.realtime_priority)
     with bench_service.daemon_process(args) as (proc, pub, cmd):
         ctl = Client(cmd, timeout_s=60.0, retries=0)
         subs: list[subprocess.Popen] = []
-        unanswered = refused = pings = 0
+        unanswered = refused = pings = episodes = 0
         memory: list[tuple[float, float]] = []
         try:
             bench_service.wait_configured(ctl)
@@ -121,6 +129,8 @@ def soak(args: argparse.Namespace) -> dict[str, Any]:
                     refused += 1
                 now = time.monotonic()
                 if now >= next_rss:
+                    with contextlib.suppress(CommandTimeout, CommandFailed):
+                        episodes = max(episodes, _episode(ctl.status()))
                     mb = rss_mb(proc.pid)
                     if mb is not None:
                         memory.append((now - t0, mb))
@@ -148,7 +158,7 @@ def soak(args: argparse.Namespace) -> dict[str, Any]:
         "periods_timed": steady.get("periods", 0),
         "tick_work_ms": {"p99": t["work_p99_ms"], "max": t["work_max_ms"]},
         "localizer_update_ms": {"p99": t["localizer_p99_ms"], "max": t["localizer_max_ms"]},
-        "episodes": (status["estimate"] or {}).get("episode", 0),
+        "episodes": max(episodes, _episode(status)),
         "gaps": sum(s.get("gaps", 0) for s in seen),
         "received": {"steady": steady.get("received", 0),
                      "reconnecting_min": min((s.get("received", 0)
