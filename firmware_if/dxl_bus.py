@@ -387,11 +387,9 @@ class DxlBus:
         if result != COMM_SUCCESS:
             cls = BusTimeoutError if result in _TIMEOUT_RESULTS else CommunicationError
             damaged = first_damaged(bytes(rx), parts)  # a whole reply, spoiled in one part
-            if damaged is None:
-                raise cls(f"fast sync read: {self._ph.getTxRxResult(result)}", self.ids,
-                          bytes(rx))
-            raise cls(f"fast sync read: {self._ph.getTxRxResult(result)} (damaged from "
-                      f"servo {damaged}'s part on)", (damaged,), bytes(rx))
+            where = "" if damaged is None else f" (damaged from servo {damaged}'s part on)"
+            raise cls(f"fast sync read: {self._ph.getTxRxResult(result)}{where}",
+                      self.ids if damaged is None else (damaged,), bytes(rx))
         try:
             decoded = split_fast_read(bytes(rx), parts)
         except PacketError as exc:

@@ -163,10 +163,12 @@ def first_damaged(raw: bytes, lengths: list[tuple[int, int]]) -> int | None:
     the first). None where the packet's length is not the request's, or every part checks."""
     if len(raw) != 8 + sum(4 + n for _, n in lengths):
         return None
-    end = 8
+    crc, start, end = 0, 0, 8
     for sid, n in lengths:
         end += 2 + n
-        if crc16(raw[:end]) != (raw[end] | raw[end + 1] << 8):
+        crc = crc16(raw[start:end], crc)  # carried on from the part before
+        if crc != (raw[end] | raw[end + 1] << 8):
             return sid
-        end += 2
+        crc = crc16(raw[end:end + 2], crc)
+        start = end = end + 2
     return None

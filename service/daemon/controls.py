@@ -128,7 +128,7 @@ class CommandHandlers:
         for line in rc.rebooted:
             logging.getLogger("hapticd").warning("configure: %s", line)
         rc.deferred.resolve({"state": self.lifecycle.state.value,
-                             "warnings": rc.warnings + rc.backend_warnings,
+                             "warnings": rc.warnings + getattr(rc.backend, "warnings", []),
                              "rebooted": rc.rebooted})
 
     def activate(self: Node) -> dict[str, Any]:

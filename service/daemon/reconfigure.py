@@ -71,8 +71,6 @@ class Reconfiguration:
         self._world: dict[str, Any] | None = None
         self.warnings: list[str] = []
         """The map check's warnings on the new scenario's map."""
-        self.backend_warnings: list[str] = []
-        """What opening the new backend found (servos on the bus its hand does not use)."""
         self._thread: threading.Thread | None = None
         self.req = link.send("setup", settings=asdict(settings), backend=new.backend.name,
                              scenario="hand" if isinstance(settings, HandSettings) else "finger",
@@ -125,7 +123,6 @@ class Reconfiguration:
                     backend.close()
                 raise
             self.backend = backend
-            self.backend_warnings = list(getattr(backend, "warnings", []))
         except Exception as exc:  # reported to the client; the old backend stays
             self.error = exc
             if self.release is not None:

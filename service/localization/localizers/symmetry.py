@@ -14,11 +14,10 @@ quarter turn about its centre, and k need not be whole (a hexagonal lattice: k =
 
 from __future__ import annotations
 
-import weakref
-
 import numpy as np
 from scipy import fft, ndimage
 
+from service.localization.memo import kept
 from service.localization.surface import ContactSurface
 
 OTHER_TURN_STEP = 2.0
@@ -37,10 +36,6 @@ OTHER_TURN_SIDE = 100
 """Samples along the map's side at which those turns are tried (a coarse map is plenty to
 find a pattern's turn, and each turn costs a correlation)."""
 
-_CACHE: weakref.WeakKeyDictionary[ContactSurface, dict[tuple, np.ndarray]] = (
-    weakref.WeakKeyDictionary())
-
-
 def symmetries(surface: ContactSurface, threshold: float = 0.85, min_overlap: float = 0.3,
                limit: int = 400) -> np.ndarray:
     """(S, 3) motions (quarter turns k, dx, dy in metres) under which the surface repeats,
@@ -57,12 +52,9 @@ def symmetry_matches(surface: ContactSurface, threshold: float = 0.85,
     """(S, 5) `symmetries` with how well each holds: the correlation of the surface with
     its image, and the share of the map where the two overlap. A report must give both:
     a plate whose pocket is a rectangle correlates with its half turn at 0.9 over a third
-    of the map, though its bosses do not repeat."""
-    per_surface = _CACHE.setdefault(surface, {})
-    key = (threshold, min_overlap, limit)
-    if key not in per_surface:
-        per_surface[key] = _find(surface, threshold, min_overlap, limit)
-    return per_surface[key]
+    of the map, though its bosses do not repeat. Kept while the surface lives."""
+    return kept(surface, ("symmetries", threshold, min_overlap, limit),
+                lambda: _find(surface, threshold, min_overlap, limit))
 
 
 def _find(surface: ContactSurface, threshold: float, min_overlap: float, limit: int

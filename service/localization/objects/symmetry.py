@@ -10,13 +10,10 @@ explicitly before declaring it (as `localizers/symmetry.py` does for periodic ma
 
 from __future__ import annotations
 
-import weakref
-
 import numpy as np
 
+from service.localization.memo import kept
 from service.localization.objects.field import ContactField
-
-_CACHE: weakref.WeakKeyDictionary[ContactField, np.ndarray] = weakref.WeakKeyDictionary()
 
 
 def _mismatch(field: ContactField, points: np.ndarray, motions: np.ndarray,
@@ -60,10 +57,13 @@ def near_symmetries(field: ContactField, tolerance: float = 0.001, coverage: flo
     """Motions (A, 3) = (turn, shift u, shift v), best match first, under which at least
     `coverage` of the outline lands within `tolerance` metres of itself. Turns within
     `exclude` of none are not rivals. A round outline (most turns match) returns turns every
-    5 degrees: its heading cannot be told at all."""
-    cached = _CACHE.get(field)
-    if cached is not None:
-        return cached
+    5 degrees: its heading cannot be told at all. Kept while the field lives."""
+    return kept(field, ("near symmetries", tolerance, coverage, resolution, exclude),
+                lambda: _near_symmetries(field, tolerance, coverage, resolution, exclude))
+
+
+def _near_symmetries(field: ContactField, tolerance: float, coverage: float,
+                     resolution: float, exclude: float) -> np.ndarray:
     points, _ = field.contour.resampled(0.001)
     turns = np.arange(exclude, 2 * np.pi - exclude + 1e-9, resolution)
     coarse = np.column_stack([turns, np.zeros((len(turns), 2))])
@@ -91,7 +91,6 @@ def near_symmetries(field: ContactField, tolerance: float = 0.001, coverage: flo
     found = np.array(found, dtype=np.float64).reshape(-1, 3)
     found[:, 0] = (found[:, 0] + np.pi) % (2 * np.pi) - np.pi
     found.setflags(write=False)
-    _CACHE[field] = found
     return found
 
 
