@@ -269,17 +269,18 @@ class CommandServer:
                 rid = _echoed(exc.request_id)  # a map whose keys are wrong names its request
                 raise CommandError(exc.code, str(exc)) from None
             rid = _echoed(req.get("id"))
-            rid, cmd, client, args, spec = validate(req)
             if self.curve is not None and not self.curve.authorized(peer.key):
                 raise CommandError("unauthorized", "this client's key is no longer in "
                                    "authorized_clients")
+            if rid is not None:  # a retry is known by its id: any reply to it is kept
+                key = (peer.connection, peer.fd, rid)
+                cached = self._recent.get(key)
+                if cached is not None and cached[0] == payload:
+                    return cached[1]  # the same bytes again: a retry, answered from the cache
+                if self._pending.get(key) == payload:
+                    return None  # a retry of a request still at work: its reply is coming
+            rid, cmd, client, args, spec = validate(req)
             peer = dataclasses.replace(peer, label=client)
-            key = (peer.connection, peer.fd, rid)
-            cached = self._recent.get(key)
-            if cached is not None and cached[0] == payload:
-                return cached[1]  # the same bytes again: a retry, answered from the cache
-            if self._pending.get(key) == payload:
-                return None  # a retry of a request still at work: its reply is coming
             before = self.lease.snapshot()
             if spec.lease:
                 try:

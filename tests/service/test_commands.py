@@ -180,6 +180,24 @@ def test_retry_of_a_refused_request_is_refused_again(node: Node, raw: zmq.Socket
     assert first["error"]["code"] == "lease_held" and second == first
 
 
+@pytest.mark.parametrize(("fields", "code"), [
+    ({"cmd": "fly"}, "unknown_command"),
+    ({"cmd": "set_map", "args": {"map": 3}}, "bad_args"),
+    ({"cmd": "ping", "v": 1}, "bad_version"),
+])
+def test_a_retried_refusal_of_its_form_is_the_first_reply(node: Node, raw: zmq.Socket,
+                                                          fields, code) -> None:
+    """A client written from the docs alone: a retry of a request refused for its shape was
+    judged again (a new `seq`, and counted again), where the docs promise the first reply."""
+    body = {"v": 2, "type": "request", "id": f"again-{code}", "client": "retrier"} | fields
+    payload = msgpack.packb(body)
+    first = ask(raw, payload)
+    errors = node.cmd.errors
+    second = ask(raw, payload)
+    assert first["error"]["code"] == code and second == first
+    assert node.cmd.errors == errors
+
+
 def test_a_refusal_names_the_command_that_was_sent(node: Node) -> None:
     """set_map while active was refused as "cannot configure while active"."""
     with Client(node.endpoints["cmd"]) as ctl:
