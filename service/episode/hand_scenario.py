@@ -204,7 +204,8 @@ def build_localizer(settings: HandSettings, parts: HandParts, rng: np.random.Gen
                         sensor=sensor,
                         motion=TwistNoise(noise.step_length_fraction, noise.step_direction_sigma),
                         scale=UNIT, rng=rng,
-                        mismatch_length=noise.surface_correlation if noise.surface_sigma else 0.0)
+                        mismatch_length=noise.surface_correlation if noise.surface_sigma else 0.0,
+                        mismatch_sd=noise.surface_sigma)
     return OBJECT_LOCALIZERS.load(settings.algorithm)(ctx)
 
 

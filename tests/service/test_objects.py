@@ -29,6 +29,15 @@ def test_presets_are_seeded_families_of_valid_contours(name):
         assert 0.03 < c.extent < 0.08
 
 
+def test_an_outline_s_extent_is_its_largest_width(tmp_path):
+    """A held-out check: a 72 x 50 mm egg was "88 mm across" (the bounding box's diagonal)."""
+    t = np.linspace(0, 2 * np.pi, 401)  # closed: the last point is the first
+    ellipse = np.column_stack([0.036 * np.cos(t), 0.025 * np.sin(t)])
+    path = tmp_path / "oval.csv"
+    np.savetxt(path, ellipse, delimiter=",")
+    assert load_object(str(path)).extent == pytest.approx(0.072, rel=1e-3)
+
+
 def test_preset_errors():
     with pytest.raises(ObjectError, match="unknown object 'cube'"):
         preset_object("cube")

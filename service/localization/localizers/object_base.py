@@ -56,6 +56,8 @@ class ObjectContext:
     """Metres over which the world's outline may differ from the model's coherently (B2's
     perturbation); readings closer than this share that error, so their evidence is not
     independent. 0: the model is exact."""
+    mismatch_sd: float = 0.0
+    """Metres: sd of that coherent difference along the outline's normals."""
     rng: np.random.Generator = field(default_factory=lambda: np.random.default_rng(0))
 
     @property
@@ -84,12 +86,14 @@ def carry_poses(ctx: ObjectContext, poses: np.ndarray, centres: np.ndarray, move
 
 
 def object_rule() -> ConvergenceRule:
-    """The declaration rule for a held object: B2's, with half the heading spread and
-    0.06 scales of position spread. A held object is felt on a few short arcs, where the
-    world's outline differs from the model coherently; at 1.5 degrees a heading 5.5
-    degrees off was declared (rounded:8, seed 8). (B2's rule allows 0.08 steps with noise
-    because there its spread is the sandwich of `convergence._with_model_error`; the
-    object judge counts shared error by patches felt (`object_judge._temper`), measured
-    against 0.06.)"""
+    """The declaration rule for a held object: B2's, with 0.06 scales of position spread
+    and a heading spread of at most 1.2 degrees. A held object is felt on a few short arcs,
+    where the world's outline differs from the model coherently; the judge's spread counts
+    that error (`object_judge._with_shared_error`, the sandwich B2's rule is calibrated on),
+    and over three fingers' declarations on members 100-199 the heading error stayed within
+    2.4 of its spread (6.1 while the spread counted only the patches felt). The 5-degree
+    tolerance is then four spreads away; at B2's 1.5 degrees (3.3 spreads) as many poses
+    were declared and the worst was 3.9 degrees off, at 1.2 it was 2.4. (0.06 scales of
+    position spread was measured against the patch count and is kept.)"""
     return dataclasses.replace(ConvergenceRule(), max_position_sd=0.06,
-                               max_heading_sd=ConvergenceRule.max_heading_sd / 2)
+                               max_heading_sd=float(np.deg2rad(1.2)))
