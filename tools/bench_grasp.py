@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import shlex
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -194,7 +195,8 @@ def failed_runs(results: dict[tuple, list[dict[str, Any]]], max_steps: int,
         if kind != "gated":
             continue
         for o in outcomes:
-            where = (f"--hand {hand} --object {o['object']} --seed {o['seed']} --noise "
+            where = (f"--hand {_rerunnable(hand)} --object {_rerunnable(o['object'])} "
+                     f"--seed {o['seed']} --noise "
                      f"--max-steps {max_steps}") + (
                 "" if start_n is None else f" --start-quality {start_n:g}")
             if o["dropped"]:
@@ -204,6 +206,14 @@ def failed_runs(results: dict[tuple, list[dict[str, Any]]], max_steps: int,
                 lines.append(f"WRONG: {where} ({o['position_error'] * 1e3:.1f} mm, "
                              f"{o['heading_error_deg']:.1f} deg off)")
     return lines
+
+
+def _rerunnable(spec: str) -> str:
+    """A hand or object as a failure line names it: a file by its absolute path (quoted
+    for the shell where it needs it), so the line re-runs from any folder; a preset as
+    given. A held-out check's relative paths re-ran only from the folder it ran in."""
+    path = Path(spec)
+    return shlex.quote(str(path.resolve())) if path.is_file() else spec
 
 
 def _print(table: dict, summary: dict, hands, families, kinds) -> None:

@@ -91,6 +91,19 @@ def test_bench_grasp_refuses_a_start_weaker_than_the_threshold(capsys):
     assert "must be at least the threshold" in capsys.readouterr().err
 
 
+def test_a_failure_line_names_a_file_by_its_absolute_path(tmp_path, monkeypatch):
+    """A held-out check ran with relative paths: the printed line re-ran only from there."""
+    (tmp_path / "my hand.toml").write_text("")
+    (tmp_path / "part.csv").write_text("")
+    monkeypatch.chdir(tmp_path)
+    lines = failed_runs({("my hand.toml", "part.csv", "gated"): [
+        {"object": "part.csv", "seed": 3, "dropped": False, "wrong": True, "steps": 9,
+         "min_quality": 1.0, "position_error": 0.001, "heading_error_deg": 120.0}]}, 60)
+    assert lines == [f"WRONG: --hand '{tmp_path / 'my hand.toml'}' --object "
+                     f"{tmp_path / 'part.csv'} --seed 3 --noise --max-steps 60 "
+                     "(1.0 mm, 120.0 deg off)"]
+
+
 def test_a_failure_line_reruns_with_the_start_quality_it_had():
     lines = failed_runs({("three-finger", "blob", "gated"): [
         {"object": "blob:4", "seed": 4, "dropped": True, "wrong": False, "steps": 2,
