@@ -22,11 +22,10 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from tqdm import tqdm
 
 from service.errors import ConfigError, ServiceError
 from service.localization.surface import HeightMap
-from tools.bench_common import executor_for, fmt, percentile, write_json
+from tools.bench_common import executor_for, fmt, percentile, progress, write_json
 from tools.executor import Failed, add_executor_options
 
 OBJECTS = ("ellipse", "rounded", "blob", "keyed")
@@ -149,8 +148,7 @@ def run(args: argparse.Namespace) -> int:
     # a bad hand name or start quality fails here, not in a worker
     HandSettings(hand=hands[0], start_n=args.start_quality)
     outcomes: list[dict[str, Any] | None] = [None] * len(jobs)
-    with executor_for(args) as executor, tqdm(total=len(jobs), desc="B6 grasp", unit="run",
-                                              leave=False, disable=None) as bar:
+    with executor_for(args) as executor, progress(len(jobs), "B6 grasp") as bar:
         for index, outcome in executor.run([s for _, s in jobs], {}, task=episode):
             if isinstance(outcome, Failed):
                 raise ServiceError(f"an episode raised: --hand {outcome.settings.hand} "

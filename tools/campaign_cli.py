@@ -32,11 +32,10 @@ def register(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from tqdm import tqdm
-
     from service.errors import ConfigError
     from service.localization.map_check import check_map
     from service.localization.maps import load_map
+    from tools.bench_common import progress
     from tools.campaign import Store, load_campaign
     from tools.executor import Failed, make_executor
 
@@ -64,8 +63,8 @@ def run(args: argparse.Namespace) -> int:
           f"done, {len(todo)} to run on {executor.describe()}; results in {campaign.out}")
     settings = [dataclasses.replace(sc.settings, seed=seed) for sc, seed in todo]
     finished = False
-    with executor, tqdm(total=campaign.episodes, initial=campaign.episodes - len(todo),
-                        desc=campaign.name, unit="episode", disable=None) as bar:
+    with executor, progress(campaign.episodes, campaign.name, unit="episode",
+                            initial=campaign.episodes - len(todo)) as bar:
         try:
             for index, outcome in executor.run(settings, maps) if settings else ():
                 scenario, seed = todo[index]
