@@ -66,8 +66,8 @@ def progress(total: int, desc: str, unit: str = "run", initial: int = 0) -> tqdm
     minutes for the first word of `haptic bench grasp > log`)."""
     if sys.stderr.isatty():
         return tqdm(total=total, desc=desc, unit=unit, initial=initial, leave=False)
-    return tqdm(total=total, desc=desc, unit=unit, initial=initial, file=sys.stderr,
-                mininterval=LOG_EVERY_S, bar_format="{desc}: {n_fmt}/{total_fmt} " + unit
+    return tqdm(total=total, desc=desc, unit=unit, initial=initial, mininterval=LOG_EVERY_S,
+                bar_format="{desc}: {n_fmt}/{total_fmt} " + unit
                 + "s, {elapsed} elapsed, {remaining} left{postfix}\n")
 
 

@@ -74,7 +74,7 @@ def correlated_spread(field: ContactField, points: np.ndarray, radii: np.ndarray
     `error_sd` that readings `length` apart share (a Gaussian correlation): the sandwich
     A^-1 J^T W S W J A^-1 of `refine.correlated_spread`, for a contour. (keyed:124, seed
     124, three fingers: declared 3.6 degrees off at a spread of 0.75 degrees, where this
-    says 1.2.)"""
+    says 1.3.)"""
     _, j = _model(field, points, radii, np.asarray(pose, dtype=np.float64))
     weighed = j / np.asarray(sd)[:, np.newaxis] ** 2  # W J
     normal = j.T @ weighed  # A

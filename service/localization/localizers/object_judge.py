@@ -496,7 +496,7 @@ def _with_shared_error(ctx: ObjectContext, points: np.ndarray, radii: np.ndarray
     weakly (a near-circle, an ellipse near its round), readings in a few patches that err
     together turn the fit by degrees. Counting patches (`_widened`) missed it: keyed:124,
     seed 124, three fingers, declared 3.6 degrees off at a spread of 0.75 degrees; the
-    sandwich says 1.2. The world's noise is white noise smoothed by a Gaussian of sd
+    sandwich says 1.3. The world's noise is white noise smoothed by a Gaussian of sd
     `mismatch_length` along the outline, so readings d apart share exp(-d^2 / 4 L^2) of it."""
     if ctx.mismatch_length <= 0 or ctx.mismatch_sd <= 0 or len(points) < 3:
         return fit

@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import shapely
+from scipy.spatial.distance import pdist
 from shapely.geometry import LinearRing, Polygon
 from shapely.validation import explain_validity
 
@@ -65,8 +66,7 @@ class Contour:
         """Largest width across (the farthest two points of the outline), metres. (It was
         the diagonal of the bounding box: a held-out check's 72 x 50 mm egg was "88 mm
         across".)"""
-        hull = np.asarray(self.polygon.convex_hull.exterior.coords)[:-1]
-        return float(np.max(np.hypot(*(hull[:, None] - hull[None]).transpose(2, 0, 1))))
+        return float(pdist(np.asarray(self.polygon.convex_hull.exterior.coords)).max())
 
     def min_width(self) -> float:
         """Smallest width over all directions (the gap a pair of parallel jaws closes to)."""
