@@ -166,6 +166,8 @@ def run(args: argparse.Namespace) -> int:
              for hand in hands for family in families for kind in kinds}
     gated = [o for (h, f, k), v in results.items() if k == "gated" for o in v]
     summary = _summary(gated)
+    summary["quality_min_run"] = _least_quality_run(results, args.max_steps,
+                                                    args.start_quality)
     if "ablation" in kinds:
         summary["ablation_drops"] = int(sum(o["dropped"] for (_, _, k), v in results.items()
                                             if k == "ablation" for o in v))
@@ -186,17 +188,13 @@ def run(args: argparse.Namespace) -> int:
 def failed_runs(results: dict[tuple, list[dict[str, Any]]], max_steps: int,
                 start_n: float | None = None) -> list[str]:
     """A line for each gated run that dropped the object or declared a wrong pose (the
-    ablation's drops are what it is for), with the `haptic run` options that re-run it as
-    it ran (a helper re-ran one without `--noise` and saw it localize)."""
+    ablation's drops are what it is for), with the `haptic run` options that re-run it."""
     lines = []
     for (hand, _, kind), outcomes in results.items():
         if kind != "gated":
             continue
         for o in outcomes:
-            where = (f"--hand {_rerunnable(hand)} --object {_rerunnable(o['object'])} "
-                     f"--seed {o['seed']} --noise "
-                     f"--max-steps {max_steps}") + (
-                "" if start_n is None else f" --start-quality {start_n:g}")
+            where = _rerun_options(hand, o, max_steps, start_n)
             if o["dropped"]:
                 lines.append(f"DROPPED: {where} at step {o['steps']} (least quality "
                              f"{o['min_quality']:.2f} N)")
@@ -204,6 +202,27 @@ def failed_runs(results: dict[tuple, list[dict[str, Any]]], max_steps: int,
                 lines.append(f"WRONG: {where} ({o['position_error'] * 1e3:.1f} mm, "
                              f"{o['heading_error_deg']:.1f} deg off)")
     return lines
+
+
+def _least_quality_run(results: dict[tuple, list[dict[str, Any]]], max_steps: int,
+                       start_n: float | None) -> str | None:
+    """The `haptic run` options of the gated run whose grasp came nearest the margin: the
+    table's column says how near, this says which run to look at."""
+    runs = [(o["min_quality"], hand, o) for (hand, _, kind), outcomes in results.items()
+            if kind == "gated" for o in outcomes if math.isfinite(o["min_quality"])]
+    if not runs:
+        return None
+    _, hand, o = min(runs, key=lambda r: r[0])
+    return _rerun_options(hand, o, max_steps, start_n)
+
+
+def _rerun_options(hand: str, outcome: dict[str, Any], max_steps: int,
+                   start_n: float | None) -> str:
+    """The `haptic run` options that re-run a gated run as it ran (a helper re-ran one
+    without `--noise` and saw it localize)."""
+    return (f"--hand {_rerunnable(hand)} --object {_rerunnable(outcome['object'])} "
+            f"--seed {outcome['seed']} --noise --max-steps {max_steps}") + (
+        "" if start_n is None else f" --start-quality {start_n:g}")
 
 
 def _rerunnable(spec: str) -> str:
@@ -237,6 +256,8 @@ def _print(table: dict, summary: dict, hands, families, kinds) -> None:
           f"{summary['settles']} times, p99 {fmt(summary['settle_ms_p99'])} ms"
           + (f"; without the gate {summary['ablation_drops']} drops"
              if "ablation_drops" in summary else ""))
+    if summary.get("quality_min_run"):
+        print(f"least quality {fmt(summary['quality_min'])} N: {summary['quality_min_run']}")
 
 
 def grasp_figure(table: dict, hands, families, kinds, path: Path) -> None:

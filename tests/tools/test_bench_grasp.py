@@ -70,6 +70,14 @@ def test_bench_grasp_holds_an_object_of_ones_own_in_every_run(tmp_path, capsys):
         ("three-finger", str(outline), "gated"), ("three-finger", "blob:3", "gated")]
     assert [(o["object"], o["seed"]) for o in runs["three-finger/blob:3/gated"]] == [
         ("blob:3", 0), ("blob:3", 1)]
+    # the least quality's run is named, re-runnable (the column said how low, not where)
+    least = min((o for v in runs.values() for o in v), key=lambda o: o["min_quality"])
+    named = written["summary"]["quality_min_run"]
+    assert named.startswith("--hand three-finger --object ") and f"--seed {least['seed']} " in \
+        named and (str(outline) if least["object"] == str(outline) else "blob:3") in named
+    assert written["summary"]["quality_min"] == least["min_quality"]
+    assert f"least quality {written['summary']['quality_min']:.2f} N: {named}" in \
+        capsys.readouterr().out
 
 
 def test_bench_grasp_lists_each_gated_drop_and_wrong_declaration():
