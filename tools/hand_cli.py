@@ -139,6 +139,7 @@ def run_hand(args: argparse.Namespace) -> int:
                            snapshot_steps=(0,) if args.plot else (),
                            backend_factory=backend_factory)
     _print_summary(report, on_servos=backend_factory is not None)
+    failed = report.result.dropped or (report.truth_known and report.score.wrong_declaration)
     if args.json:
         import json
 
@@ -149,7 +150,7 @@ def run_hand(args: argparse.Namespace) -> int:
 
         hand_figure(report, args.plot)
         print(f"figure written to {args.plot}")
-    return 0
+    return 1 if failed else 0  # a wrong pose or a drop: a script must notice
 
 
 def _servo_hand(args: argparse.Namespace, settings):

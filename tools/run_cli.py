@@ -87,6 +87,7 @@ def run(args: argparse.Namespace) -> int:
                       snapshot_steps=FIGURE_STEPS if args.plot else (),
                       backend_factory=backend_factory)
     _print_summary(report)
+    failed = report.score.wrong_declaration
     if args.json:
         args.json.write_text(json.dumps(report.to_json(), indent=1))
         print(f"episode written to {args.json}")
@@ -95,7 +96,7 @@ def run(args: argparse.Namespace) -> int:
 
         episode_figure(report, args.plot)
         print(f"figure written to {args.plot}")
-    return 0
+    return 1 if failed else 0  # a script must notice a wrong pose
 
 
 def _check_outputs(args: argparse.Namespace) -> None:

@@ -135,3 +135,29 @@ def test_an_outline_file_says_where_its_poses_are_measured_from(tmp_path, capsys
         assert "poses are of its centroid, at (" in capsys.readouterr().out
         origins.append(json.loads(out.read_text())["object_origin"])
     assert np.allclose(np.subtract(origins[1], origins[0]), (0.2, 0.1))
+
+
+def test_a_run_that_drops_the_object_exits_with_status_1(capsys):
+    """A script running `haptic run` could not tell a drop from a success: both exited 0.
+    Two fingers on blob:0 without the gate (the ablation) drop it at step 7 (seed 2)."""
+    assert main(["run", "--object", "blob", "--hand", "two-finger", "--seed", "2", "--noise",
+                 "--no-gate", "--max-steps", "15", "--quiet"]) == 1
+    assert "DROPPED the object" in capsys.readouterr().out
+
+
+def test_a_finger_run_declared_wrong_exits_with_status_1(monkeypatch, capsys):
+    """The same for a wrong declaration: the run's pose scored against a truth a step away
+    (`simulate.score` judged against it) is WRONG, and the exit says so; scored against its
+    own truth the same run exits 0."""
+    import dataclasses
+
+    from service.episode import simulate
+
+    argv = ["run", "--seed", "0", "--quiet"]
+    assert main(argv) == 0
+    assert "localized in" in capsys.readouterr().out
+    scored = simulate.score
+    monkeypatch.setattr(simulate, "score", lambda estimate, truth, step: scored(
+        estimate, dataclasses.replace(truth, x=truth.x + step), step))
+    assert main(argv) == 1
+    assert "result    WRONG" in capsys.readouterr().out
