@@ -32,6 +32,7 @@ import itertools
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Literal
 
 import numba
 import numpy as np
@@ -41,6 +42,7 @@ from firmware_if.kinematics import Chain
 from firmware_if.registers import NEWTON_METRES_PER_AMP
 from service.errors import ConfigError
 from service.localization import chain_kernels
+from service.localization.objects import kinks
 from service.localization.objects.field import ContactField
 from service.localization.objects.rolling import contacts
 
@@ -346,14 +348,23 @@ def joint_torque(goal_current_a: float, model: str) -> float:
 
 def hand_quality(field: ContactField, poses: np.ndarray, centres: np.ndarray,
                  fingers: Sequence[Chain], joint_angles: Sequence[np.ndarray], torque: float,
-                 spec: GraspSpec, tilt: float = 0.0) -> np.ndarray:
+                 spec: GraspSpec, tilt: float = 0.0,
+                 kink: Literal["model", "best", "worst"] = "model") -> np.ndarray:
     """Quality (B,) of fingertips at `centres` (B, n, 2) holding the object under `poses`
     (B, 3), finger i at joint angles `joint_angles[i]` ((B, joints) or (joints,)).
 
     `tilt` > 0: the most the grasp could have in a world whose outline turns each contact's
     normal up to `tilt` radians from the model's - the best of the model's normals and of
     every finger's turned by -tilt or +tilt (2^n ways). What the model says of a grasp in
-    the world is only that good: the quality turns on where the normals point."""
+    the world is only that good: the quality turns on where the normals point.
+
+    `kink` "best" or "worst": where a tip lies beside a kink of the dilated contour (a
+    hollow narrower than the tip, `objects.kinks`), the world may rest it on either side
+    or bridging; the most or the least the grasp could have with that finger's normal any
+    of the three."""
+    if tilt > 0 and kink == "worst":
+        raise ValueError("a tilt gives the most the world could hold; a kink's worst is the "
+                         "least")
     radii = np.array([f.radius for f in fingers])
     points, normals = contacts(field, poses, centres, radii)
     angles = [np.asarray(q, dtype=np.float64) for q in joint_angles]
@@ -375,4 +386,30 @@ def hand_quality(field: ContactField, poses: np.ndarray, centres: np.ndarray,
     margins = quality(points, poses[:, :2], _forces(normals, jac, float(torque),
                                                      float(spec.mu)),
                       field.contour.max_radius, spec.load)
-    return margins.reshape(ways, -1).max(axis=0)
+    margins = margins.reshape(ways, -1).max(axis=0)
+    if kink != "model":
+        own = slice(0, len(margins))  # the model's own normals come first of a tilt's ways
+        _kink_doubt(field, poses[own], centres, points[own], normals[own], radii,
+                    jac[own] if jac.shape[0] > 1 else jac, torque, spec, margins,
+                    np.maximum if kink == "best" else np.minimum)
+    return margins
+
+
+def _kink_doubt(field: ContactField, poses: np.ndarray, centres: np.ndarray,
+                points: np.ndarray, normals: np.ndarray, radii: np.ndarray, jac: np.ndarray,
+                torque: float, spec: GraspSpec, margins: np.ndarray, pick: np.ufunc) -> None:
+    """`margins` (B,) taken by `pick` (np.maximum or np.minimum) with the quality of every
+    way a tip beside a kink may rest (`kinks.beside`), one finger at a time."""
+    rows, finger, alternatives = kinks.beside(field.contour, poses, centres, radii)
+    if len(rows) == 0:
+        return
+    rows, finger = np.repeat(rows, 3), np.repeat(finger, 3)
+    varied = normals[rows].copy()  # (3m, n, 2)
+    varied[np.arange(len(rows)), finger] = alternatives.reshape(-1, 2)
+    at = points[rows].copy()
+    at[np.arange(len(rows)), finger] = (centres[rows, finger]
+                                         - radii[finger, None] * alternatives.reshape(-1, 2))
+    q = quality(at, poses[rows, :2], _forces(varied, jac[rows] if jac.shape[0] > 1 else jac,
+                                             float(torque), float(spec.mu)),
+                field.contour.max_radius, spec.load)
+    pick.at(margins, rows, q)

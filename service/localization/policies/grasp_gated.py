@@ -22,7 +22,10 @@ bringing contour the fingers could not reach under them.
   leave gaps where an opposed grasp's quality changes fast, so the gate also holds for
   weightless cover poses in those gaps that the readings allow (`_with_cover`), and for
   each plausible mode's spread (`_with_spread`): no move may take one below the
-  threshold. With the gate off (the ablation), only reach limits moves.
+  threshold. Where a tip lies beside a kink of the dilated contour (a hollow narrower than
+  the tip, `objects/kinks.py`), the world may rest it on either side or bridging: a pose
+  counts as possible (it is held) by the most the grasp may hold there, and a move is
+  judged by the least. With the gate off (the ablation), only reach limits moves.
 * Manipulation: turns of the object about its centroid in place (`rolling.plan_turn` under
   the leading pose), each checked the same way at every substep of its rolling motion for
   every plausible pose (`rolling.carry`); the safe turn whose readings tell most, or that
@@ -49,7 +52,7 @@ from __future__ import annotations
 import dataclasses
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from typing import ClassVar
+from typing import ClassVar, Literal
 
 import numpy as np
 
@@ -59,7 +62,7 @@ from service.localization import chain_kernels
 from service.localization.grasp import GraspSpec, hand_quality
 from service.localization.localizers.base import Hypotheses
 from service.localization.localizers.convergence import distinct
-from service.localization.objects import rolling
+from service.localization.objects import kinks, rolling
 from service.localization.objects.field import ContactField
 from service.localization.policies.info_gain import information
 
@@ -221,7 +224,10 @@ class GraspGatedPolicy:
             poses, w = np.vstack([poses, cover]), np.concatenate([w, np.zeros(len(cover))])
             self._guard = np.concatenate([self._guard, np.ones(len(cover), dtype=bool)])
             poses, w, now, _ = self._held(view, poses, w, (now, start))
-        self._now = now
+        # what a move costs is judged against the least the grasp may hold now (a tip
+        # beside a kink: the filter above gave it the most)
+        self._now = (self._quality(view, poses, view.centres, view.joints, kink="worst")
+                     if kinks.any_kinks(view.field.contour, _radii(view)) else now)
         return poses, w / w.sum()
 
     def _held(self, view: HandView, poses: np.ndarray, w: np.ndarray,
@@ -252,15 +258,17 @@ class GraspGatedPolicy:
         return poses, w, now, start
 
     def _quality(self, view: HandView, poses: np.ndarray, centres: np.ndarray,
-                 joints: tuple[np.ndarray, ...], tilt: float = 0.0) -> np.ndarray:
-        """Quality under each pose of fingertips at `centres` settled onto it (at best, with
-        normals turned by up to `tilt`: `grasp.hand_quality`)."""
+                 joints: tuple[np.ndarray, ...], tilt: float = 0.0,
+                 kink: Literal["best", "worst"] = "best") -> np.ndarray:
+        """Quality under each pose of fingertips at `centres` settled onto it: at best (with
+        normals turned by up to `tilt`, a tip beside a kink resting where it holds most:
+        `grasp.hand_quality`), or at worst beside a kink."""
         n = len(view.fingers)
-        radii = np.array([f.radius for f in view.fingers])
+        radii = _radii(view)
         tips = rolling.settle(view.field, poses,
                               np.broadcast_to(centres, (len(poses), n, 2)).copy(), radii)
         return hand_quality(view.field, poses, tips, view.fingers, joints, view.torque,
-                            view.grasp, tilt)
+                            view.grasp, tilt, kink)
 
     # -- exploring -------------------------------------------------------------------------
     def _explore(self, view: HandView, poses: np.ndarray, weights: np.ndarray,
@@ -356,7 +364,7 @@ class GraspGatedPolicy:
         angles `angles` and the others where they are."""
         joints = tuple(angles if i == f else q for i, q in enumerate(view.joints))
         return hand_quality(view.field, poses, centres, view.fingers, joints, view.torque,
-                            view.grasp)
+                            view.grasp, kink="worst")
 
     def _safe(self, view: HandView, quality: np.ndarray, weights: np.ndarray,
               last_resort: bool = False) -> bool:
@@ -438,9 +446,11 @@ class GraspGatedPolicy:
 
     def _turn_quality(self, view: HandView, states: list[tuple[np.ndarray, np.ndarray]],
                       angles: list[np.ndarray]) -> np.ndarray:
-        """Least quality over every substep of a turn, per plausible pose."""
+        """Least quality over every substep of a turn, per plausible pose (at worst beside
+        a kink)."""
         return np.min([hand_quality(view.field, p, c, view.fingers,
-                                    tuple(q[i] for q in angles), view.torque, view.grasp)
+                                    tuple(q[i] for q in angles), view.torque, view.grasp,
+                                    kink="worst")
                        for i, (p, c) in enumerate(states)], axis=0)
 
     # -- felt contour ----------------------------------------------------------------------
@@ -454,6 +464,10 @@ class GraspGatedPolicy:
         local = _object_frame(centre, pose)[0]
         felt = np.asarray(self._felt)
         return float(np.min(np.hypot(*(felt - local).T)) > FELT)
+
+
+def _radii(view: HandView) -> np.ndarray:
+    return np.array([f.radius for f in view.fingers])
 
 
 def _with_spread(poses: np.ndarray, weights: np.ndarray, spread: tuple[float, float]
