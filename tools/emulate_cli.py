@@ -12,9 +12,10 @@ from __future__ import annotations
 
 import argparse
 import os
+import signal
 import sys
 import threading
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from typing import TextIO
 
 import numpy as np
@@ -108,7 +109,8 @@ def _bus(args: argparse.Namespace, servos, plant) -> ServoBus:
 
 
 def run(args: argparse.Namespace, *, ready: Callable[[str], None] | None = None,
-        stop: threading.Event | None = None, drills: TextIO | None = None) -> int:
+        stop: threading.Event | None = None,
+        drills: TextIO | Iterator[str] | None = None) -> int:
     bus, truth = start_emulator(args)
     stop = stop or threading.Event()
     try:
@@ -121,6 +123,12 @@ def run(args: argparse.Namespace, *, ready: Callable[[str], None] | None = None,
               "standard input ('help' lists them)", flush=True)
         if bus.scheduling is not None and bus.scheduling.note:
             print(f"note: {bus.scheduling.note}", file=sys.stderr, flush=True)
+        if drills is None and sys.stdin is not None and sys.stdin.isatty():
+            # started with `&` from an interactive shell, a read of the terminal would stop
+            # the whole emulator (SIGTTIN) and it would serve nothing; ignored, such a read
+            # fails instead, and the drills wait for the foreground (`_typed`)
+            signal.signal(signal.SIGTTIN, signal.SIG_IGN)
+            drills = _typed(sys.stdin, stop)
         threading.Thread(target=_drills, args=(bus, drills or sys.stdin), daemon=True).start()
         if ready:
             ready(bus.port)
@@ -134,7 +142,25 @@ def run(args: argparse.Namespace, *, ready: Callable[[str], None] | None = None,
     return 0
 
 
-def _drills(bus: ServoBus, lines: TextIO) -> None:
+def _typed(terminal: TextIO, stop: threading.Event) -> Iterator[str]:
+    """Lines typed at a terminal, read only while the emulator runs in its foreground (after
+    `fg`); in the background the emulator serves on without them."""
+    fd = terminal.fileno()
+    while not stop.is_set():
+        try:
+            if os.tcgetpgrp(fd) != os.getpgrp():
+                stop.wait(0.5)  # in the background: look again after a while
+                continue
+            line = terminal.readline()
+        except OSError:  # moved to the background while reading, or no terminal of ours
+            stop.wait(0.5)
+            continue
+        if not line:
+            return
+        yield line
+
+
+def _drills(bus: ServoBus, lines: TextIO | Iterator[str]) -> None:
     """Fault drills typed or piped in (`sim_backend.emulator.drills`), one answer a line,
     until the input ends (a closed or absent standard input ends nothing else)."""
     try:

@@ -5,7 +5,12 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shlex
+import shutil
+import subprocess
+import sys
 import threading
+from pathlib import Path
 
 import pytest
 
@@ -183,3 +188,28 @@ def test_emulate_says_when_its_priority_is_refused(monkeypatch, capsys):
     assert emulate_cli.run(args, stop=stop) == 0
     err = capsys.readouterr().err
     assert "note: SCHED_FIFO 30 refused (Operation not permitted): the emulated servos" in err
+
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+@pytest.mark.skipif(shutil.which("script") is None, reason="no script(1) for a terminal")
+def test_emulate_started_with_an_ampersand_in_an_interactive_shell_serves(tmp_path):
+    """The README starts the emulator with `&`. In an interactive shell its read of the
+    terminal for drills stopped it (SIGTTIN, "Stopped (tty input)") and `haptic bus scan`
+    found no servo on its port (a held-out check). A shell in a terminal of its own
+    (script(1)) starts it in the background, waits for its port, and scans it."""
+    link, haptic = tmp_path / "dxl", f"{shlex.quote(sys.executable)} -m tools.cli"
+    (tmp_path / "session.sh").write_text(f"""cd {shlex.quote(str(ROOT))}
+{haptic} emulate --hand two-finger --object keyed --seed 2 --link {link} > /dev/null &
+for i in $(seq 200); do [ -e {link} ] && break; sleep 0.1; done
+{haptic} bus scan --port {link} 2>&1
+kill %1; kill -CONT %1 2>/dev/null
+wait
+exit
+""")
+    done = subprocess.run(["script", "-qfec", f"bash --norc -i {tmp_path / 'session.sh'}",
+                           "/dev/null"], capture_output=True, text=True, timeout=120,
+                          stdin=subprocess.DEVNULL, env={**os.environ, "PYTHONPATH": str(ROOT)})
+    assert "Stopped" not in done.stdout, done.stdout
+    assert "id   1:" in done.stdout and "id   6:" in done.stdout, done.stdout
