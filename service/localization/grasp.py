@@ -349,7 +349,8 @@ def joint_torque(goal_current_a: float, model: str) -> float:
 def hand_quality(field: ContactField, poses: np.ndarray, centres: np.ndarray,
                  fingers: Sequence[Chain], joint_angles: Sequence[np.ndarray], torque: float,
                  spec: GraspSpec, tilt: float = 0.0,
-                 kink: Literal["model", "best", "worst"] = "model") -> np.ndarray:
+                 kink: Literal["model", "best", "worst"] = "model",
+                 kink_fingers: Sequence[int] | None = None) -> np.ndarray:
     """Quality (B,) of fingertips at `centres` (B, n, 2) holding the object under `poses`
     (B, 3), finger i at joint angles `joint_angles[i]` ((B, joints) or (joints,)).
 
@@ -361,7 +362,7 @@ def hand_quality(field: ContactField, poses: np.ndarray, centres: np.ndarray,
     `kink` "best" or "worst": where a tip lies beside a kink of the dilated contour (a
     hollow narrower than the tip, `objects.kinks`), the world may rest it on either side
     or bridging; the most or the least the grasp could have with that finger's normal any
-    of the three."""
+    of the three (only `kink_fingers`' tips, when given: those a move puts somewhere new)."""
     if tilt > 0 and kink == "worst":
         raise ValueError("a tilt gives the most the world could hold; a kink's worst is the "
                          "least")
@@ -391,16 +392,20 @@ def hand_quality(field: ContactField, poses: np.ndarray, centres: np.ndarray,
         own = slice(0, len(margins))  # the model's own normals come first of a tilt's ways
         _kink_doubt(field, poses[own], centres, points[own], normals[own], radii,
                     jac[own] if jac.shape[0] > 1 else jac, torque, spec, margins,
-                    np.maximum if kink == "best" else np.minimum)
+                    np.maximum if kink == "best" else np.minimum, kink_fingers)
     return margins
 
 
 def _kink_doubt(field: ContactField, poses: np.ndarray, centres: np.ndarray,
                 points: np.ndarray, normals: np.ndarray, radii: np.ndarray, jac: np.ndarray,
-                torque: float, spec: GraspSpec, margins: np.ndarray, pick: np.ufunc) -> None:
+                torque: float, spec: GraspSpec, margins: np.ndarray, pick: np.ufunc,
+                only: Sequence[int] | None) -> None:
     """`margins` (B,) taken by `pick` (np.maximum or np.minimum) with the quality of every
-    way a tip beside a kink may rest (`kinks.beside`), one finger at a time."""
+    way a tip beside a kink may rest (`kinks.beside`), one finger at a time (of `only`)."""
     rows, finger, alternatives = kinks.beside(field.contour, poses, centres, radii)
+    if only is not None:
+        keep = np.isin(finger, only)
+        rows, finger, alternatives = rows[keep], finger[keep], alternatives[keep]
     if len(rows) == 0:
         return
     rows, finger = np.repeat(rows, 3), np.repeat(finger, 3)

@@ -54,7 +54,7 @@ def test_a_knob_s_valleys_are_kinks_and_their_sides_differ_by_the_turn():
 @pytest.mark.parametrize("name", ["ellipse:3", "rounded:3", "keyed:3"])
 def test_convex_presets_have_no_kinks(name):
     contour = preset_object(name)
-    assert not kinks.any_kinks(contour, np.array([0.008]))
+    assert kinks.kinks(contour, 0.008).tree is None
 
 
 @settings(max_examples=25, deadline=None)
@@ -114,6 +114,13 @@ def test_beside_a_kink_the_quality_is_bounded_by_every_way_the_tip_may_rest():
     best, worst = hand_quality(*args, kink="best")[0], hand_quality(*args, kink="worst")[0]
     assert worst < model <= best or worst <= model < best
     assert best - worst > 0.5  # a 60-degree corner: far apart
+    # only the fingers named are doubted: the one in the valley, or the other
+    radii = np.array([f.radius for f in hand.fingers])
+    _, beside, _ = kinks.beside(field.contour, pose[None], centres, radii)
+    assert len(beside) == 1
+    valley = int(beside[0])
+    assert hand_quality(*args, kink="worst", kink_fingers=(valley,))[0] == worst
+    assert hand_quality(*args, kink="worst", kink_fingers=(1 - valley,))[0] == model
     # away from any kink the three agree
     shifted = pose + np.array([0.0, 0.0, np.deg2rad(20)])
     far = (field, shifted[None], centres, hand.fingers, joints, torque, GraspSpec())

@@ -79,11 +79,6 @@ def _outward(edges: np.ndarray) -> np.ndarray:
     return n / np.linalg.norm(n, axis=1, keepdims=True)
 
 
-def any_kinks(contour: Contour, radii: np.ndarray) -> bool:
-    """Whether the contour dilated by any of `radii` has a kink."""
-    return any(kinks(contour, float(r)).tree is not None for r in radii)
-
-
 def beside(contour: Contour, poses: np.ndarray, centres: np.ndarray, radii: np.ndarray,
            reach: float = REACH) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The tips within `reach` of a kink under each pose: (rows, fingers) indices (m,) into

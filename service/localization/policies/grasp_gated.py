@@ -24,8 +24,11 @@ bringing contour the fingers could not reach under them.
   each plausible mode's spread (`_with_spread`): no move may take one below the
   threshold. Where a tip lies beside a kink of the dilated contour (a hollow narrower than
   the tip, `objects/kinks.py`), the world may rest it on either side or bridging: a pose
-  counts as possible (it is held) by the most the grasp may hold there, and a move is
-  judged by the least. With the gate off (the ablation), only reach limits moves.
+  counts as possible (it is held) by the most the grasp may hold there, and a move by the
+  least where the move puts a tip (the rolling finger's, or every finger's in a turn). A
+  tip that holds still keeps whatever it rests on in the world, before the move and
+  after: judged there at its worst, a gear's every gap (14 of them) forbade nearly every
+  roll. With the gate off (the ablation), only reach limits moves.
 * Manipulation: turns of the object about its centroid in place (`rolling.plan_turn` under
   the leading pose), each checked the same way at every substep of its rolling motion for
   every plausible pose (`rolling.carry`); the safe turn whose readings tell most, or that
@@ -62,7 +65,7 @@ from service.localization import chain_kernels
 from service.localization.grasp import GraspSpec, hand_quality
 from service.localization.localizers.base import Hypotheses
 from service.localization.localizers.convergence import distinct
-from service.localization.objects import kinks, rolling
+from service.localization.objects import rolling
 from service.localization.objects.field import ContactField
 from service.localization.policies.info_gain import information
 
@@ -224,10 +227,7 @@ class GraspGatedPolicy:
             poses, w = np.vstack([poses, cover]), np.concatenate([w, np.zeros(len(cover))])
             self._guard = np.concatenate([self._guard, np.ones(len(cover), dtype=bool)])
             poses, w, now, _ = self._held(view, poses, w, (now, start))
-        # what a move costs is judged against the least the grasp may hold now (a tip
-        # beside a kink: the filter above gave it the most)
-        self._now = (self._quality(view, poses, view.centres, view.joints, kink="worst")
-                     if kinks.any_kinks(view.field.contour, _radii(view)) else now)
+        self._now = now
         return poses, w / w.sum()
 
     def _held(self, view: HandView, poses: np.ndarray, w: np.ndarray,
@@ -264,7 +264,7 @@ class GraspGatedPolicy:
         normals turned by up to `tilt`, a tip beside a kink resting where it holds most:
         `grasp.hand_quality`), or at worst beside a kink."""
         n = len(view.fingers)
-        radii = _radii(view)
+        radii = np.array([f.radius for f in view.fingers])
         tips = rolling.settle(view.field, poses,
                               np.broadcast_to(centres, (len(poses), n, 2)).copy(), radii)
         return hand_quality(view.field, poses, tips, view.fingers, joints, view.torque,
@@ -364,7 +364,7 @@ class GraspGatedPolicy:
         angles `angles` and the others where they are."""
         joints = tuple(angles if i == f else q for i, q in enumerate(view.joints))
         return hand_quality(view.field, poses, centres, view.fingers, joints, view.torque,
-                            view.grasp, kink="worst")
+                            view.grasp, kink="worst", kink_fingers=(f,))
 
     def _safe(self, view: HandView, quality: np.ndarray, weights: np.ndarray,
               last_resort: bool = False) -> bool:
@@ -464,10 +464,6 @@ class GraspGatedPolicy:
         local = _object_frame(centre, pose)[0]
         felt = np.asarray(self._felt)
         return float(np.min(np.hypot(*(felt - local).T)) > FELT)
-
-
-def _radii(view: HandView) -> np.ndarray:
-    return np.array([f.radius for f in view.fingers])
 
 
 def _with_spread(poses: np.ndarray, weights: np.ndarray, spread: tuple[float, float]
