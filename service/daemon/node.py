@@ -242,6 +242,10 @@ class Node(CommandHandlers):
         rc = self.reconf
         stage = rc.step(replies)
         if stage is Stage.FAILED:
+            if rc.reopen_error is not None:  # else the next read says only "not open"
+                self._fault(f"the bus did not open again after the configure failed: "
+                            f"{rc.reopen_error}; once the bus answers, send reset or "
+                            "configure")
             self._end_reconfigure(rc.error)
         elif stage is Stage.READY:
             if self.faults != rc.fault_count:

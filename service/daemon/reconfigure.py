@@ -72,6 +72,9 @@ class Reconfiguration:
         self.warnings: list[str] = []
         """The map check's warnings on the new scenario's map."""
         self._thread: threading.Thread | None = None
+        self.reopen_error: Exception | None = None
+        """Why the old backend, released for the new one, did not open again after the new
+        one failed: the daemon is left without a bus, a fault it must name."""
         self.req = link.send("setup", settings=asdict(settings), backend=new.backend.name,
                              scenario="hand" if isinstance(settings, HandSettings) else "finger",
                              cloud_points=new.loop.cloud_points)
@@ -126,8 +129,10 @@ class Reconfiguration:
         except Exception as exc:  # reported to the client; the old backend stays
             self.error = exc
             if self.release is not None:
-                with contextlib.suppress(Exception):  # a failure here latches at the next read
+                try:
                     self.release.open()
+                except Exception as again:  # the daemon latches it as a fault, named
+                    self.reopen_error = again
 
     def _fail(self, error: Exception) -> None:
         self.error = error

@@ -172,3 +172,39 @@ def test_a_daemon_started_before_its_bus_says_why_and_configures_later(tmp_path:
     finally:
         if bus is not None:
             bus.stop()
+
+
+def test_a_bus_that_does_not_open_again_after_a_failed_configure_is_a_named_fault(
+        rig, monkeypatch) -> None:
+    """A fault campaign's finding: a configure whose new backend failed to open, its servo
+    going quiet, released the port and could not open the old backend again either; the
+    daemon then latched "read failed: Dynamixel finger is not open: call open() first",
+    which names neither the bus nor what to do."""
+    from firmware_if.errors import FirmwareError
+    from service.daemon import reconfigure
+
+    node, sub, ctl, buses, link = rig
+    assert sub.wait_for(lambda m: m.topic == "state" and m["state"] == "inactive", 10.0)
+
+    class Quiet:
+        def open(self) -> None:
+            raise FirmwareError("servo 5 does not answer a ping")
+
+        def close(self) -> None:
+            pass
+
+    def quiet(*_args) -> None:
+        raise FirmwareError("servo 5 does not answer a ping")
+
+    monkeypatch.setattr(reconfigure, "make_backend", lambda *args: Quiet())
+    monkeypatch.setattr(node.backend, "open", quiet)  # the released old one, too
+    with pytest.raises(Exception) as err:
+        ctl.call("configure", changes={"backend": {"options": {**options(str(link)),
+                                                               "cycle_budget_s": 0.04}}})
+    assert "servo 5 does not answer" in str(err.value)
+    fault = sub.wait_for(lambda m: m.topic == "event" and m["event"] == "fault", 10.0)
+    assert fault is not None
+    assert fault["reason"].startswith("the bus did not open again after the configure "
+                                      "failed: servo 5 does not answer a ping; once the bus "
+                                      "answers, send reset or configure")
+    assert ctl.status()["fault"] == fault["reason"]
