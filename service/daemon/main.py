@@ -19,14 +19,10 @@ import sys
 
 from firmware_if.errors import FirmwareError
 from service.daemon.config import DaemonConfig, load_config
-from service.daemon.node import Node, json_line
+from service.daemon.json_log import JsonFormatter
+from service.daemon.node import Node
 from service.errors import InputError
 from service.wire.client import ENDPOINT_ENV
-
-
-class JsonFormatter(logging.Formatter):
-    def format(self, record: logging.LogRecord) -> str:
-        return json_line(record)
 
 
 def build_parser() -> argparse.ArgumentParser:

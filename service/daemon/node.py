@@ -16,7 +16,6 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import gc
-import json
 import logging
 import threading
 import time
@@ -455,10 +454,3 @@ def _preload() -> None:
 def _log(event: str, level: int = logging.INFO, **fields: Any) -> None:
     """One structured log record; the daemon's formatter prints it as a JSON line."""
     log.log(level, event, extra={"fields": fields})
-
-
-def json_line(record: logging.LogRecord) -> str:
-    out = {"t": time.strftime("%Y-%m-%dT%H:%M:%S", time.gmtime(record.created)),
-           "level": record.levelname.lower(), "event": record.getMessage()}
-    out.update(getattr(record, "fields", {}) or {})
-    return json.dumps(out, default=str)

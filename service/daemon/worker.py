@@ -40,6 +40,7 @@ from multiprocessing.connection import Connection
 from pathlib import Path
 from typing import Any
 
+from service.daemon.json_log import JsonFormatter
 from service.errors import InputError
 from service.wire import envelope as wire
 
@@ -189,7 +190,7 @@ def main(argv: list[str]) -> int:
     import sys
 
     handler = logging.StreamHandler(sys.stderr)
-    handler.setFormatter(logging.Formatter('{"event": "worker", "message": %(message)r}'))
+    handler.setFormatter(JsonFormatter(process="worker"))
     log.addHandler(handler)
     log.propagate = False
     serve(Connection(int(argv[0])))
