@@ -104,3 +104,23 @@ def test_the_hand_under_hapticd_section_works_as_written(tmp_path):
     assert "finger 0 rolls" in done.stdout and "result    localized in" in done.stdout
     assert "fingers 0: (" in done.stdout and "; 2: (" in done.stdout  # all three fingers
     assert '"event": "shutdown"' in log
+
+
+def test_the_hand_file_example_loads_and_a_misspelt_key_is_named(tmp_path):
+    """A held-out client's writer found the hand file undocumented and copied a preset; the
+    README's example is a hand file as written."""
+    from firmware_if.errors import HandConfigError
+    from firmware_if.hand import load_hand
+
+    section = (ROOT / "README.md").read_text().split("**Your own hand file**", 1)[1]
+    example = section.split("```toml\n", 1)[1].split("```", 1)[0]
+    (tmp_path / "my-hand.toml").write_text(example)
+    hand = load_hand(str(tmp_path / "my-hand.toml"))
+    assert hand.name == "my-hand" and hand.ids == (1, 2, 3) and hand.fingers[0].planar
+    (tmp_path / "bad.toml").write_text(example.replace("limits = [0.1", "limit = [0.1"))
+    try:
+        load_hand(str(tmp_path / "bad.toml"))
+    except HandConfigError as exc:
+        assert "finger 'left'" in str(exc) and "'limit'" in str(exc)
+    else:
+        raise AssertionError("a misspelt key loaded")
