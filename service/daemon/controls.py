@@ -50,6 +50,7 @@ class CommandHandlers:
                       "remaining_s": self.lease.remaining_s()},
             "timing": timing, "published": dict(self.pub.sent),
             "commands": {"handled": self.cmd.handled, "errors": self.cmd.errors},
+            "torque_on": bool(self.last_state and self.last_state.fingers[0].torque_on),
             "backend": self.config.backend.name, "map": self.config.scenario.map,
             "map_warnings": list(self.map_warnings),
             "backend_warnings": list(getattr(self.backend, "warnings", [])),

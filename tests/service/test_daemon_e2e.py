@@ -139,6 +139,7 @@ def test_controller_dies_lease_expires_finger_holds_then_stops(how: str) -> None
         assert after["steps_done"] <= steps_at_hold + 1  # at most the step under way finished
         status = observer.status()
         assert status["state"] == "inactive" and status["lease"]["holder"] is None
+        assert status["torque_on"] is False  # as the stream says (a client asked status)
         assert observer.call("activate")["state"] == "active"  # the lease is free for others
 
 
