@@ -18,14 +18,14 @@ from __future__ import annotations
 import contextlib
 import functools
 import os
-import select
 import termios
 import time
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass
 from typing import Any, TypeVar
 
 from dynamixel_sdk.group_sync_write import GroupSyncWrite
+from dynamixel_sdk.protocol2_packet_handler import PKT_ID
 from dynamixel_sdk.robotis_def import BROADCAST_ID, COMM_SUCCESS
 
 from firmware_if.errors import (
@@ -36,7 +36,7 @@ from firmware_if.errors import (
     NotReadyError,
     PortLost,
 )
-from firmware_if.packets import PacketError, first_damaged, split_fast_read
+from firmware_if.packets import INST_PING, PacketError, first_damaged, packet, split_fast_read
 from firmware_if.registers import (
     ALERT_BIT,
     REG,
@@ -45,7 +45,7 @@ from firmware_if.registers import (
     describe_hardware_error,
     describe_status_error,
 )
-from firmware_if.sdk_fixes import FixedPacketHandler, PacedPortHandler, PortBusy
+from firmware_if.sdk_fixes import FixedPacketHandler, PacedPortHandler, PortBusy, answers
 
 FAST_READ_MIN_FIRMWARE = 45
 SETUP_TIMEOUT_MS = 34.0
@@ -59,6 +59,12 @@ TORQUE_CHECK_CYCLES = 20
 """Control cycles between reads of every servo's Torque Enable while torque should be on: a
 servo that restarts (a brown-out) answers as before, with its torque off and its RAM at
 defaults, and only this read tells (a fifth of a second at 100 Hz)."""
+LATE_LIMIT_S = 0.6
+"""How long a fault's diagnosis waits for a ping's answer, and for a line busy with late
+replies to fall quiet: a servo answering later is called silent (the emulator's `late`
+drills go to 0.5 s; a real adapter's latency is 16 ms at worst)."""
+LATE_CAP_S = 5.0
+"""The most one wait of the diagnosis lasts while replies keep coming (a babbling line)."""
 PORT_ERRORS = (OSError, termios.error)
 """What a failing serial port raises (pyserial's SerialException is an OSError)."""
 
@@ -217,17 +223,16 @@ class DxlBus:
         """One exchange outside the control cycle (`call(port, *args)`, which returns its
         result code second to last), tried up to `SETUP_ATTEMPTS` times while it times
         out. A late reply to an attempt given up on is drained before anything else is
-        sent, and so is one after a retry that answered (it may have been the late reply,
-        its own still coming): the SDK takes any reply from the same servo as the answer,
-        and on a loaded host a write's late status was read back as a register's value
-        ("return_delay_time reads 161 after writing 0", its CRC byte)."""
+        sent (the port settles after a miss), and so is one after a retry that answered: it
+        may have been the late reply, of the same shape, its own still coming (on a loaded
+        host a write's late status was read back as a register's value, "return_delay_time
+        reads 161 after writing 0", its CRC byte)."""
         for attempt in range(SETUP_ATTEMPTS):
             out = self._sdk(what, call, self._require(), *args)
             if out[-2] not in _TIMEOUT_RESULTS:
                 if attempt:  # that answer may have been an earlier attempt's: this one's next
                     self._drain()
                 break
-            self._drain()  # its reply may yet come, into the next exchange
         return out
 
     def read(self, servo_id: int, name: str) -> int:
@@ -317,19 +322,16 @@ class DxlBus:
         if self.fault:
             raise HardwareFault(f"bus faulted: {self.fault}; reset first")
         t0 = time.monotonic_ns()
-        port = self._require()
-        port.budget_ms = self.cycle_budget_s * 1e3 / 2
         try:
-            readings = self._fast_sync_read() if self.stats.fast_read else self._sync_read()
+            with self._cycle_timing():
+                readings = self._fast_sync_read() if self.stats.fast_read else self._sync_read()
         except CommunicationError as exc:
-            port.budget_ms = SETUP_TIMEOUT_MS
             self.stats.failures += 1
             self.stats.consecutive_failures += 1
             if self.stats.consecutive_failures >= self.failure_tolerance:
                 self._latch(f"{self.stats.consecutive_failures} consecutive failed cycles "
                             f"(last: {exc})", explain=functools.partial(self._silent_servos, exc))
             raise
-        port.budget_ms = SETUP_TIMEOUT_MS
         self.stats.consecutive_failures = 0
         alerts = [sid for sid, r in readings.items() if r.error & ALERT_BIT]
         if alerts:
@@ -401,53 +403,65 @@ class DxlBus:
         Enable). A read that fails says nothing: the control cycle's own read counts those.
         `patient`: each reply may take the setup's timeout, not half a cycle (once, where
         the answer decides between a fault and a drop)."""
-        port = self._require()
         address, ids = REG["torque_enable"].address, list(self.ids)
-        port.budget_ms = SETUP_TIMEOUT_MS if patient else self.cycle_budget_s * 1e3 / 2
         try:
-            if self._sdk("torque check", self._ph.syncReadTx, port, address, 1, ids, len(ids),
-                         False) != COMM_SUCCESS:
-                return
-            off = []
-            for sid in ids:
-                data, result, _ = self._sdk("torque check", self._ph.readRx, port, sid, 1)
-                if result != COMM_SUCCESS:
-                    return
-                if not data[0]:
-                    off.append(sid)
+            with self._cycle_timing(patient=patient) as port:
+                off = self._torque_off(port, address, ids)
         except CommunicationError:
             return
-        finally:
-            port.budget_ms = SETUP_TIMEOUT_MS
         if off:
             self._latch(f"servo {', '.join(map(str, off))} lost torque by itself (it "
                         "restarted: a brown-out? check its power supply and cable)")
 
+    def _torque_off(self, port: PacedPortHandler, address: int, ids: list[int]) -> list[int]:
+        """Servos whose Torque Enable reads 0 (one Sync Read); [] when a reply is missing."""
+        if self._sdk("torque check", self._ph.syncReadTx, port, address, 1, ids, len(ids),
+                     False) != COMM_SUCCESS:
+            return []
+        off = []
+        for sid in ids:
+            data, result, _ = self._sdk("torque check", self._ph.readRx, port, sid, 1)
+            if result != COMM_SUCCESS:
+                return []
+            if not data[0]:
+                off.append(sid)
+        return off
+
+    @contextlib.contextmanager
+    def _cycle_timing(self, *, patient: bool = False) -> Iterator[PacedPortHandler]:
+        """The port timed for the control cycle: each reply waits half the cycle's budget
+        (`patient`: the setup's timeout), and a miss is not settled (it cannot wait for a
+        late reply); the setup's timing and settling again after."""
+        port = self._require()
+        port.budget_ms = SETUP_TIMEOUT_MS if patient else self.cycle_budget_s * 1e3 / 2
+        port.settles = False
+        try:
+            yield port
+        finally:
+            port.budget_ms, port.settles = SETUP_TIMEOUT_MS, True
+
     def _silent_servos(self, last: CommunicationError) -> str:
         """Which servos do not answer a ping, or answer it late, as words for a fault (one
-        silent servo spoils a sync read of all: the read alone cannot say which). Each ping
-        waits the setup's timeout and is timed: cut at a cycle's budget, a late servo's
-        reply landed in the next servo's ping and spoiled it, and the fault named servos
-        that were fine (`late 2 0.02`: "servos 3, ..., 9 answer only after 33 ms"). Every
-        servo answering in time says the host, not the bus, missed the cycles. It runs
-        once, in the tick that latches the fault, after torque off has gone out."""
+        silent servo spoils a sync read of all: the read alone cannot say which). A late
+        servo's replies may still be on the bus, and a ping waits behind them (a half-duplex
+        line, or the emulator, answers one request at a time): cut short, it blamed healthy
+        servos ("no servo answers" for `late 2 0.5`). So every ping's answer is waited for
+        up to `LATE_LIMIT_S`, and a servo that answered late is pinged again once the line
+        is clear, to time its own answer. Every servo answering in time says the host, not
+        the bus, missed the cycles. It runs once, in the tick that latches the fault, after
+        torque off has gone out."""
         port = self._require()
-        late: dict[int, float] = {}
-        silent: list[int] = []
         try:
             port.budget_ms = SETUP_TIMEOUT_MS
-            self._drain()  # the failed cycles' late replies, still coming
-            for sid in self.ids:
-                t0 = time.monotonic_ns()
-                answered = self.ping(sid) is not None
-                ms = (time.monotonic_ns() - t0) / 1e6
-                if not answered:
-                    silent.append(sid)
-                    self._drain()  # its reply may yet come, into the next ping
-                elif ms > self.cycle_budget_s * 1e3 / 2:  # a cycle's read waits half of it
-                    late[sid] = ms
+            self._drain()  # the failed cycles' replies, already coming
+            answered = self._ping_times(self.ids)
+            half_cycle_ms = self.cycle_budget_s * 1e3 / 2  # what a cycle's read waits
+            for sid in [s for s, ms in answered.items() if ms > half_cycle_ms]:
+                answered.update(self._ping_times((sid,)))  # alone, on a quiet line
         except (FirmwareError, *PORT_ERRORS, ValueError):
             return ""  # the port itself: its own error says so
+        late = {sid: ms for sid, ms in answered.items() if ms > half_cycle_ms}
+        silent = [sid for sid in self.ids if sid not in answered]
         if not late and not silent and isinstance(last, BusTimeoutError):
             return ("; every servo answers a ping in time now: the host missed the cycles "
                     "(a loaded machine? the loop's scheduling is in `haptic ctl status`)")
@@ -460,16 +474,46 @@ class DxlBus:
         return (_late_words(late, self.cycle_budget_s)
                 + _silent_words(silent, len(self.ids), self.baud))
 
+    def _ping_times(self, ids: Sequence[int]) -> dict[int, float]:
+        """Ping `ids`: {id: ms from its ping to its answer} for those that answer. Each ping
+        gets the setup's timeout (or its answer) before the next goes out; answers that come
+        later still count, told apart by id and shape, until all have come or the line has
+        been quiet for `LATE_LIMIT_S` (a reply later than that is none)."""
+        port = self._require()
+        sent: dict[int, int] = {}
+        got: dict[int, float] = {}
+        for sid in ids:
+            port.writePort(list(packet(sid, INST_PING)))  # not txPacket: it would settle,
+            sent[sid] = time.monotonic_ns()  # dropping the answers still awaited
+            self._take_answers(sent, got, SETUP_TIMEOUT_MS, until=sid)
+        self._take_answers(sent, got, LATE_LIMIT_S * 1e3)
+        return got
+
+    def _take_answers(self, sent: dict[int, int], got: dict[int, float], wait_ms: float,
+                      until: int | None = None) -> None:
+        """Read status packets into `got` (answers to the pings `sent`) until `until` has
+        answered within `wait_ms` of its ping, or (no `until`) every ping has answered or no
+        status has come for `wait_ms`, at most `LATE_CAP_S`."""
+        port = self._require()
+        cap = time.monotonic_ns() + LATE_CAP_S * 1e9
+        while not (until in got if until is not None else got.keys() >= sent.keys()):
+            left = (wait_ms if until is None
+                    else wait_ms - (time.monotonic_ns() - sent[until]) / 1e6)
+            left = min(left, (cap - time.monotonic_ns()) / 1e6)
+            if left <= 0:
+                return
+            port.setPacketTimeoutMillis(left)
+            rx, result = self._sdk("ping", self._ph.rxPacket, port, False)
+            if result in _TIMEOUT_RESULTS:
+                return
+            if result == COMM_SUCCESS and rx[PKT_ID] in sent and rx[PKT_ID] not in got \
+                    and answers(rx, rx[PKT_ID], 3):
+                got[rx[PKT_ID]] = (time.monotonic_ns() - sent[rx[PKT_ID]]) / 1e6
+
     def _drain(self, quiet_s: float = SETUP_TIMEOUT_MS / 1e3, cap_s: float = 0.25) -> None:
         """Read and drop what arrives until the line has been quiet for `quiet_s` (at most
         `cap_s`): replies to requests given up on, which would land in the next one's."""
-        ser = self._require().ser
-        end = time.monotonic() + cap_s
-        while time.monotonic() < end:
-            ready, _, _ = select.select([ser.fileno()], [], [], quiet_s)
-            if not ready:
-                return
-            ser.read(max(ser.in_waiting, 1))
+        self._require().settle(quiet_s * 1e3, cap_s * 1e3)
 
     def _latch(self, reason: str, explain: Callable[[], str] | None = None) -> None:
         """Latch `reason` as the fault and send torque off, then add what `explain` (which

@@ -20,6 +20,15 @@ Each defect has a test in tests/firmware_if/test_sdk_fixes.py that fails on the 
    `haptic bus` beside a running daemon) can share one bus: each takes the other's replies
    and both fault on "Incorrect status packet". Fix: open it with pyserial's `exclusive`
    lock, so the second open fails at once (`PortBusy`).
+6. A reply is whatever status comes next from the id asked. `txRxPacket` and `readRx` take
+   the first status packet with that id, whatever it answers, and `clearPort` drops only
+   what has already arrived, so a reply given up on (a late servo) lands in the next
+   exchange: a ping's late answer (model 1020, low byte 0xFC) was read as Hardware Error
+   Status ("overheating, encoder, shock, overload") and a healthy servo was rebooted. Fix: an
+   answer must come from the id asked and have the shape of the answer to what was asked
+   (`answers`); anything else is skipped, and after an exchange that missed its answer or met
+   a stray one, the next that expects a reply first lets the line fall quiet (`settle`;
+   outside the control cycle, which cannot wait: `settles`).
 """
 
 from __future__ import annotations
@@ -29,14 +38,104 @@ import time
 
 import serial
 from dynamixel_sdk.port_handler import PortHandler
-from dynamixel_sdk.protocol2_packet_handler import Protocol2PacketHandler
-from dynamixel_sdk.robotis_def import COMM_RX_CORRUPT, COMM_SUCCESS
+from dynamixel_sdk.protocol2_packet_handler import (
+    PKT_ERROR,
+    PKT_ID,
+    PKT_INSTRUCTION,
+    PKT_LENGTH_H,
+    PKT_LENGTH_L,
+    PKT_PARAMETER0,
+    Protocol2PacketHandler,
+)
+from dynamixel_sdk.robotis_def import (
+    BROADCAST_ID,
+    COMM_RX_CORRUPT,
+    COMM_SUCCESS,
+    INST_ACTION,
+    INST_BULK_READ,
+    INST_PING,
+    INST_READ,
+    INST_SYNC_READ,
+)
 
 from firmware_if import packets
 
+SETTLE_CAP = 8
+"""A settle stops after this many quiet windows even while bytes still come (a babbling
+line): it bounds the wait; the answer's id and shape still keep a stray out."""
+_REPLIES_WHEN_BROADCAST = (INST_PING, INST_SYNC_READ, INST_BULK_READ, packets.INST_FAST_SYNC_READ,
+                           packets.INST_FAST_BULK_READ)
+
+
+def wants_reply(txpacket: list[int]) -> bool:
+    """Whether a servo answers this instruction packet (status return level 2)."""
+    if txpacket[PKT_INSTRUCTION] in _REPLIES_WHEN_BROADCAST:
+        return True
+    return txpacket[PKT_ID] != BROADCAST_ID and txpacket[PKT_INSTRUCTION] != INST_ACTION
+
+
+def answer_length(txpacket: list[int]) -> int:
+    """Parameters of the status that answers a single-servo instruction packet: a ping's
+    model and firmware, a read's data, nothing for a write, reboot or clear."""
+    if txpacket[PKT_INSTRUCTION] == INST_PING:
+        return 3
+    if txpacket[PKT_INSTRUCTION] == INST_READ:
+        return txpacket[PKT_PARAMETER0 + 2] | txpacket[PKT_PARAMETER0 + 3] << 8
+    return 0
+
+
+def answers(rxpacket: list[int], servo_id: int, length: int) -> bool:
+    """Whether a (destuffed) status packet is `servo_id`'s answer with `length` parameters;
+    a status with an error and no parameters answers anything (a servo refusing)."""
+    params = (rxpacket[PKT_LENGTH_L] | rxpacket[PKT_LENGTH_H] << 8) - 4
+    return rxpacket[PKT_ID] == servo_id and (
+        params == length or (params == 0 and bool(rxpacket[PKT_ERROR] & 0x7F)))
+
 
 class FixedPacketHandler(Protocol2PacketHandler):
-    """Protocol 2.0 packet handler with defects 1-3 fixed."""
+    """Protocol 2.0 packet handler with defects 1-3 and 6 fixed."""
+
+    def txPacket(self, port: PortHandler, txpacket: list[int]) -> int:  # noqa: N802
+        if isinstance(port, PacedPortHandler) and port.unsettled and port.settles \
+                and wants_reply(txpacket):
+            port.settle()  # a write no servo answers (torque off) goes at once
+        return super().txPacket(port, txpacket)
+
+    def txRxPacket(self, port: PortHandler, txpacket: list[int]  # noqa: N802
+                   ) -> tuple[list[int] | None, int, int]:
+        servo_id, length = txpacket[PKT_ID], answer_length(txpacket)
+        if servo_id == BROADCAST_ID or txpacket[PKT_INSTRUCTION] in (
+                INST_ACTION, INST_SYNC_READ, INST_BULK_READ):
+            rxpacket, result, error = super().txRxPacket(port, txpacket)  # no single answer
+            return rxpacket, result, error
+        result = self.txPacket(port, txpacket)
+        if result != COMM_SUCCESS:
+            return None, result, 0
+        port.setPacketTimeout(length + 11)  # as the SDK: a status of that many parameters
+        rxpacket = self._answer(port, servo_id, length)
+        if isinstance(rxpacket, int):
+            return None, rxpacket, 0
+        return rxpacket, COMM_SUCCESS, rxpacket[PKT_ERROR]
+
+    def readRx(self, port: PortHandler, dxl_id: int, length: int  # noqa: N802
+               ) -> tuple[list[int], int, int]:
+        rxpacket = self._answer(port, dxl_id, length)
+        if isinstance(rxpacket, int):
+            return [], rxpacket, 0
+        data = rxpacket[PKT_PARAMETER0 + 1:PKT_PARAMETER0 + 1 + length]
+        return data, COMM_SUCCESS, rxpacket[PKT_ERROR]
+
+    def _answer(self, port: PortHandler, servo_id: int, length: int) -> list[int] | int:
+        """The first status that `answers` (skipping strays until the packet timeout), or the
+        result code of the failure."""
+        while True:
+            rxpacket, result = self.rxPacket(port, False)
+            if result != COMM_SUCCESS:
+                return result
+            if answers(rxpacket, servo_id, length):
+                return rxpacket
+            if isinstance(port, PacedPortHandler):
+                port.unsettled = True  # a backlog of late replies: let it pass first
 
     def addStuffing(self, packet: list[int]) -> list[int]:  # noqa: N802 (SDK name)
         stuffed = super().addStuffing(list(packet))
@@ -80,6 +179,13 @@ class PacedPortHandler(PortHandler):
     def __init__(self, port_name: str, budget_ms: float = 34.0) -> None:
         super().__init__(port_name)
         self.budget_ms = budget_ms
+        self.unsettled = False
+        """An answer was missed or a stray status met: replies may still be coming."""
+        self.settles = True
+        """Whether an exchange after a miss settles first. The control cycle clears it: it
+        cannot wait for a late reply, and a settle only moved a late Fast Sync Read's reply
+        (the shape of the next one's answer) into the next cycle's window: a late servo's
+        cycles failed every other time and never latched a fault."""
 
     def setupPort(self, cflag_baud: int) -> bool:  # noqa: N802
         if self.is_open:
@@ -105,6 +211,25 @@ class PacedPortHandler(PortHandler):
         super().setPacketTimeout(packet_length)
         transfer = self.tx_time_per_byte * packet_length
         self.packet_timeout = min(self.packet_timeout, transfer + self.budget_ms)
+
+    def isPacketTimeout(self) -> bool:  # noqa: N802
+        if super().isPacketTimeout():
+            self.unsettled = True  # the answer given up on may yet come
+            return True
+        return False
+
+    def settle(self, quiet_ms: float | None = None, cap_ms: float | None = None) -> None:
+        """Read and drop what arrives until no byte has come for `quiet_ms` (the packet
+        budget: as long as an answer is waited for), at most `cap_ms` (`SETTLE_CAP` quiet
+        windows): late replies to exchanges given up on, which would land in the next."""
+        quiet = self.budget_ms if quiet_ms is None else quiet_ms
+        end = self.getCurrentTime() + (SETTLE_CAP * quiet if cap_ms is None else cap_ms)
+        while (left := end - self.getCurrentTime()) > 0:
+            wait = min(quiet, left)
+            if not select.select([self.ser.fileno()], [], [], wait / 1e3)[0]:
+                self.unsettled = wait < quiet  # cut by the cap: not known to be quiet
+                return
+            self.ser.read(max(self.ser.in_waiting, 1))
 
     def readPort(self, length: int) -> bytes:  # noqa: N802
         if self.ser.in_waiting == 0 and length > 0:

@@ -214,3 +214,37 @@ def test_a_setup_exchange_retried_after_a_late_reply_reads_its_own_answer(emulat
     emulator.fault(1).late_s = 0.0
     assert bus.read(1, "goal_current") == 123  # the write landed; the read gets its own
     assert bus.read(1, "return_delay_time") == 0
+
+
+@pytest.mark.parametrize("late_s", [0.05, 0.1, 0.5])
+def test_one_late_servo_is_the_only_one_the_fault_names(late_s):
+    """A held-out fault campaign's finding: with servo 2 late by 0.05 s the fault said
+    "servos 1, 2 do not answer a ping", at 0.1 s "servos 1, 2, 3, 4", at 0.5 s "no servo
+    answers": each ping waited behind the late replies still on the bus (the emulator, like
+    a half-duplex line, answers one request at a time), and the next was cut short."""
+    ids = (1, 2, 3, 4)
+    with ServoBus([EmulatedServo(i) for i in ids]) as emulator, \
+            DxlBus(emulator.port, ids, cycle_budget_s=0.02) as bus:  # late: past 10 ms
+        bus.detect_fast_read()
+        bus.torque(True)
+        emulator.fault(2).late_s = late_s
+        words = str(latched_on_the_third_failed_cycle(bus, "3 consecutive failed cycles").value)
+        named = re.search(r"; servo 2 answers a ping only after (\d+) ms \(a cycle's read waits "
+                          r"10 ms\)", words)
+        assert named, words
+        assert late_s * 1e3 <= int(named[1]) < late_s * 1e3 + 200, words
+        assert not re.search(r"servos|servo [134]|no servo", words), words
+
+
+def test_a_reset_after_a_late_servo_is_cleared_reboots_nothing(emulator, bus):
+    """A held-out fault campaign's finding: after `late 2 0.5` and `clear 2`, a reset said
+    "servo 3 reported overheating error, motor encoder error, electrical shock error,
+    overload error: rebooted it": a ping's late answer (model 1020, low byte 0xFC) was taken
+    as the reset's read of Hardware Error Status, and a healthy servo was rebooted."""
+    bus.write(1, "goal_current", 123)  # RAM: a reboot would return it to its default
+    emulator.fault(1).late_s = 0.05  # past a ping's 34 ms: its answer comes in the reset's read
+    assert bus.ping(1) is None  # given up on, as a fault's diagnosis does
+    emulator.fault(1).late_s = 0.0  # `clear 1`
+    assert bus.reset() == []
+    assert [emulator.servos[i].get("hardware_error_status") for i in IDS] == [0, 0, 0]
+    assert emulator.servos[1].get("goal_current") == 123  # not rebooted

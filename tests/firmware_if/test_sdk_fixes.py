@@ -176,3 +176,20 @@ def test_a_second_process_cannot_open_a_port_in_use(emulator, port_cls, shared):
     again = port_cls(emulator.port)
     assert again.openPort()  # free again once the first closes
     again.closePort()
+
+
+# -- 6. a late reply taken as the next exchange's answer -------------------------------------
+@pytest.mark.parametrize(("handler", "works"), [(Protocol2PacketHandler, False),
+                                                (FixedPacketHandler, True)])
+def test_a_late_ping_answer_is_not_a_read_s_answer(emulator, handler, works):
+    """A ping given up on answers during the next read of the same servo: the stock SDK
+    takes model 1020's low byte (0xFC) as Hardware Error Status."""
+    ph = handler()
+    port = _open(PacedPortHandler(emulator.port), ph)
+    emulator.fault(1).late_s = 0.05  # past the ping's 34 ms, inside the read's window
+    assert ph.ping(port, 1)[1] != COMM_SUCCESS
+    emulator.fault(1).late_s = 0.0
+    data, result, _ = ph.readTxRx(port, 1, 70, 1)  # Hardware Error Status
+    port.closePort()
+    assert result == COMM_SUCCESS
+    assert (data == [0]) is works, data
