@@ -113,7 +113,8 @@ class StepPrinter:
         self.z = 0.0
         print("dz: this step's height change (z: relative to the start). spread: sd of the "
               "estimate's position / heading\n(over all hypotheses until one pose fits the "
-              "readings). leading mode: the probability of the best pose.")
+              "readings; unbounded: the readings so far, on a plain, let that pose slide). "
+              "leading mode: the probability of the best pose.")
 
     def __call__(self, step: StepRecord) -> None:
         move = MOVE_NAMES[step.move] + (" (blocked)" if step.blocked else "")

@@ -46,7 +46,7 @@ def belief_text(position_sd: float | None, heading_sd: float | None,
     """How sure the localizer is: the spread of its hypotheses and its leading mode's
     probability (comparable across localizers, unlike a count of hypotheses)."""
     if position_sd is None or not math.isfinite(position_sd):
-        spread = "spread ?"
+        spread = "spread unbounded"  # the fit may slide: its readings lie on a plain
     else:  # a direction the readings do not see yet has a spread of no meaning in numbers
         # (a helper read "spread 514850229.0 mm / 74956147.2 deg")
         spread = ("spread over 1 m" if position_sd > 1.0 else f"spread {mm(position_sd)}")

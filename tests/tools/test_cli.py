@@ -74,6 +74,16 @@ def test_no_help_shows_a_default_of_none() -> None:
         assert "default: None" not in text, f"haptic {name} --help shows 'default: None'"
 
 
+def test_a_benchmark_that_always_has_noise_says_so_of_its_noise_option() -> None:
+    """`haptic bench realistic --help` said --noise would "turn on" B2's noise, which those
+    benchmarks always run with (a held-out check ran both and got the same numbers)."""
+    helps = {name: " ".join(text.split()) for name, text in _all_helps().items()}
+    for name in ("bench realistic", "bench scale", "bench objects", "bench profile"):
+        assert "--noise always on here" in helps[name], name
+    for name in ("run", "bench paper"):
+        assert "--noise turn on BENCHMARKS.md B2's noise" in helps[name], name
+
+
 def test_ctl_help_lists_the_commands_and_their_arguments(capsys) -> None:
     with pytest.raises(SystemExit):
         main(["ctl", "--help"])

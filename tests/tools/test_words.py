@@ -13,7 +13,7 @@ def test_a_spread_no_reading_bounds_reads_in_words():
     assert belief_text(0.00046, math.radians(0.43), 1.0) == \
         "spread 0.5 mm / 0.4 deg, leading mode 100 %"
     assert belief_text(0.2505, math.radians(476.2), None) == "spread 250.5 mm / over 180 deg"
-    assert belief_text(float("inf"), None, None) == "spread ?"
+    assert belief_text(float("inf"), None, None) == "spread unbounded"
 
 
 def test_a_rival_of_no_weight_is_not_called_an_ambiguity():
