@@ -32,7 +32,6 @@ import itertools
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Literal
 
 import numba
 import numpy as np
@@ -348,9 +347,7 @@ def joint_torque(goal_current_a: float, model: str) -> float:
 
 def hand_quality(field: ContactField, poses: np.ndarray, centres: np.ndarray,
                  fingers: Sequence[Chain], joint_angles: Sequence[np.ndarray], torque: float,
-                 spec: GraspSpec, tilt: float = 0.0,
-                 kink: Literal["model", "best", "worst"] = "model",
-                 kink_fingers: Sequence[int] | None = None) -> np.ndarray:
+                 spec: GraspSpec, tilt: float = 0.0, kinks: bool = False) -> np.ndarray:
     """Quality (B,) of fingertips at `centres` (B, n, 2) holding the object under `poses`
     (B, 3), finger i at joint angles `joint_angles[i]` ((B, joints) or (joints,)).
 
@@ -359,13 +356,9 @@ def hand_quality(field: ContactField, poses: np.ndarray, centres: np.ndarray,
     every finger's turned by -tilt or +tilt (2^n ways). What the model says of a grasp in
     the world is only that good: the quality turns on where the normals point.
 
-    `kink` "best" or "worst": where a tip lies beside a kink of the dilated contour (a
-    hollow narrower than the tip, `objects.kinks`), the world may rest it on either side
-    or bridging; the most or the least the grasp could have with that finger's normal any
-    of the three (only `kink_fingers`' tips, when given: those a move puts somewhere new)."""
-    if tilt > 0 and kink == "worst":
-        raise ValueError("a tilt gives the most the world could hold; a kink's worst is the "
-                         "least")
+    `kinks`: where a tip lies beside a kink of the dilated contour (a hollow narrower than
+    the tip, `objects.kinks`), the world may rest it on either side or bridging: the most
+    the grasp could have with that finger's normal any of the three, as well."""
     radii = np.array([f.radius for f in fingers])
     points, normals = contacts(field, poses, centres, radii)
     angles = [np.asarray(q, dtype=np.float64) for q in joint_angles]
@@ -388,24 +381,19 @@ def hand_quality(field: ContactField, poses: np.ndarray, centres: np.ndarray,
                                                      float(spec.mu)),
                       field.contour.max_radius, spec.load)
     margins = margins.reshape(ways, -1).max(axis=0)
-    if kink != "model":
+    if kinks:
         own = slice(0, len(margins))  # the model's own normals come first of a tilt's ways
-        _kink_doubt(field, poses[own], centres, points[own], normals[own], radii,
-                    jac[own] if jac.shape[0] > 1 else jac, torque, spec, margins,
-                    np.maximum if kink == "best" else np.minimum, kink_fingers)
+        _beside_kinks(field, poses[own], centres, points[own], normals[own], radii,
+                      jac[own] if jac.shape[0] > 1 else jac, torque, spec, margins)
     return margins
 
 
-def _kink_doubt(field: ContactField, poses: np.ndarray, centres: np.ndarray,
-                points: np.ndarray, normals: np.ndarray, radii: np.ndarray, jac: np.ndarray,
-                torque: float, spec: GraspSpec, margins: np.ndarray, pick: np.ufunc,
-                only: Sequence[int] | None) -> None:
-    """`margins` (B,) taken by `pick` (np.maximum or np.minimum) with the quality of every
-    way a tip beside a kink may rest (`kinks.beside`), one finger at a time (of `only`)."""
+def _beside_kinks(field: ContactField, poses: np.ndarray, centres: np.ndarray,
+                  points: np.ndarray, normals: np.ndarray, radii: np.ndarray, jac: np.ndarray,
+                  torque: float, spec: GraspSpec, margins: np.ndarray) -> None:
+    """`margins` (B,) raised to the quality of every way a tip beside a kink may rest
+    (`kinks.beside`), one finger at a time."""
     rows, finger, alternatives = kinks.beside(field.contour, poses, centres, radii)
-    if only is not None:
-        keep = np.isin(finger, only)
-        rows, finger, alternatives = rows[keep], finger[keep], alternatives[keep]
     if len(rows) == 0:
         return
     rows, finger = np.repeat(rows, 3), np.repeat(finger, 3)
@@ -417,4 +405,4 @@ def _kink_doubt(field: ContactField, poses: np.ndarray, centres: np.ndarray,
     q = quality(at, poses[rows, :2], _forces(varied, jac[rows] if jac.shape[0] > 1 else jac,
                                              float(torque), float(spec.mu)),
                 field.contour.max_radius, spec.load)
-    pick.at(margins, rows, q)
+    np.maximum.at(margins, rows, q)

@@ -15,7 +15,8 @@ field's gradient gives on the kink). Two fingers on a knob, one tip in a valley:
 held 6 N in the world, and -0.36 N under the model at the true pose (its tip settled on one
 side), so the gate took every pose near the truth for one that could not hold the object,
 trusted the one pose left (1 % of the weight, 101 degrees off), and the first roll dropped
-the object (a five-lobed knob of a held-out check, seed 28).
+the object (a five-lobed knob of a held-out check, seed 28). The gate now counts a pose as
+one the world may be in by the most the grasp could hold there (`grasp.hand_quality`).
 """
 
 from __future__ import annotations
