@@ -24,10 +24,12 @@ bringing contour the fingers could not reach under them.
   each plausible mode's spread (`_with_spread`): no move may take one below the
   threshold. Where a tip lies beside a kink of the dilated contour (a hollow narrower than
   the tip, `objects/kinks.py`), the world may rest it on either side or bridging: a pose
-  counts as possible (it is held) by the most the grasp may hold there. (Judging moves by
-  the least there too was tried: three fingers on blob localized 81 of members 0-99
-  instead of 99, and on a held-out hexagon with one chamfered corner the changed path
-  dropped the object.) With the gate off (the ablation), only reach limits moves.
+  counts as possible (it is held) by the most the grasp may hold there, if the model finds
+  it too weak; its moves are weighed against the model's quality, as every pose's are.
+  (Judging moves by the least there too was tried: three fingers on blob localized 81 of
+  members 0-99 instead of 99, and on a held-out hexagon with one chamfered corner the
+  changed path dropped the object. Weighing moves against the most there: 86.) With the
+  gate off (the ablation), only reach limits moves.
 * Manipulation: turns of the object about its centroid in place (`rolling.plan_turn` under
   the leading pose), each checked the same way at every substep of its rolling motion for
   every plausible pose (`rolling.carry`); the safe turn whose readings tell most, or that
@@ -242,31 +244,38 @@ class GraspGatedPolicy:
         rest = poses[first:]
         now = np.concatenate([known[0], self._quality(view, rest, view.centres, view.joints)])
         start = np.concatenate([known[1], self._quality(view, rest, *self._certified)])
-        if not self._turned and view.slope_sd > 0:  # the start's promise is the world's
-            weak = first + np.flatnonzero((start[first:] < view.grasp.start_quality_n)
-                                          & (w[first:] > 0))
-            start[weak] = self._quality(view, poses[weak], *self._certified,
-                                        tilt=TILT * view.slope_sd)
         # a turn's end was gated on the model to keep the threshold
         known_start = view.grasp.threshold_n if self._turned else view.grasp.start_quality_n
-        for keep in ((now >= view.grasp.margin_n) & (start >= known_start),
-                     now >= view.grasp.margin_n):
+        # a weighed pose the model finds too weak may be the world's, whose outline turns
+        # the normals (the start's promise is the world's: `TILT`) and rests a tip beside a
+        # kink anywhere on it: judged by the most it could hold (the policy's moves are
+        # still weighed against the model's `now`)
+        weighed = w[first:] > 0
+        weak = first + np.flatnonzero((start[first:] < known_start) & weighed)
+        tilt = TILT * view.slope_sd if not self._turned else 0.0
+        start[weak] = self._quality(view, poses[weak], *self._certified, tilt=tilt, kinks=True)
+        held = np.concatenate([np.full(first, np.inf), now[first:]])  # the first held already
+        weak = first + np.flatnonzero((now[first:] < view.grasp.margin_n) & weighed)
+        held[weak] = self._quality(view, poses[weak], view.centres, view.joints, kinks=True)
+        for keep in ((held >= view.grasp.margin_n) & (start >= known_start),
+                     held >= view.grasp.margin_n):
             if keep.any() and w[keep].sum() > 0:
                 self._guard = self._guard[keep]
                 return poses[keep], w[keep], now[keep], start[keep]
         return poses, w, now, start
 
     def _quality(self, view: HandView, poses: np.ndarray, centres: np.ndarray,
-                 joints: tuple[np.ndarray, ...], tilt: float = 0.0) -> np.ndarray:
-        """Quality under each pose of fingertips at `centres` settled onto it, at best (with
-        normals turned by up to `tilt`, a tip beside a kink resting where it holds most:
-        `grasp.hand_quality`): what decides whether the pose may be the world's."""
+                 joints: tuple[np.ndarray, ...], tilt: float = 0.0,
+                 kinks: bool = False) -> np.ndarray:
+        """Quality under each pose of fingertips at `centres` settled onto it (at best, with
+        normals turned by up to `tilt` and, with `kinks`, a tip beside a kink resting where
+        it holds most: `grasp.hand_quality`)."""
         n = len(view.fingers)
         radii = np.array([f.radius for f in view.fingers])
         tips = rolling.settle(view.field, poses,
                               np.broadcast_to(centres, (len(poses), n, 2)).copy(), radii)
         return hand_quality(view.field, poses, tips, view.fingers, joints, view.torque,
-                            view.grasp, tilt, kinks=True)
+                            view.grasp, tilt, kinks)
 
     # -- exploring -------------------------------------------------------------------------
     def _explore(self, view: HandView, poses: np.ndarray, weights: np.ndarray,
