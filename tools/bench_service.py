@@ -187,7 +187,9 @@ def measure(subscribers: int, args: argparse.Namespace) -> dict[str, Any]:
         "tick_work_ms": {"p50": t["work_p50_ms"], "p99": t["work_p99_ms"],
                          "max": t["work_max_ms"]},
         "localizer_update_ms": {"p99": t["localizer_p99_ms"], "max": t["localizer_max_ms"]},
-        "episodes_started": (status["estimate"] or {}).get("episode", 0),
+        # the status's own count: its estimate is nil from an episode's start to its first
+        # belief, and a run that asked just then counted 0 episodes (a `make test`)
+        "episodes_started": status["episode"],
         "published": status["published"],
         "reader_received": {"min": min(received, default=0), "max": max(received, default=0)},
         "reader_gaps": {"min": min(gaps, default=0), "max": max(gaps, default=0)},

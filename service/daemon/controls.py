@@ -44,6 +44,7 @@ class CommandHandlers:
         return {
             "state": self.lifecycle.state.value, "fault": self.lifecycle.fault,
             "exploring": bool(ex and ex.running), "phase": ex.phase.value if ex else "idle",
+            "episode": ex.episode if ex else 0,
             "configuring": self.reconf is not None, "configure_error": self.configure_error,
             "estimate": ex.estimate_fields() if ex and ex.estimate else None,
             "lease": {"holder": self.lease.holder_name,
