@@ -317,9 +317,9 @@ def _reported_instead(ctx: ObjectContext, points: np.ndarray, radii: np.ndarray,
     """The verdict when the final weighing (the readings' shared offset counted) puts a rival
     or image above the leader the tracks chose, or the whole-object check finds a pose that
     outweighs it: the heavier is reported, the leader is its runner-up, and nothing is
-    declared until they agree. An ellipse on the
-    emulated servos (three fingers, seed 2, no noise): the estimate was shown at 7 % beside
-    its mirror image at 93 %, which the encoders' rounding favoured."""
+    declared until they agree. An ellipse on the emulated servos (three fingers, seed 2, no
+    noise): the estimate was shown at 7 % beside its mirror image at 93 %, which the
+    encoders' rounding favoured."""
     fit = _floored(ctx, points, radii, assess(ctx.field, points, radii, np.asarray(heavier),
                                               ctx.sigma))
     return ObjectVerdict(fit, heavier_mass, leader, leader_mass, False,
