@@ -250,7 +250,12 @@ def profile_symmetries(row: np.ndarray, spacing: float, threshold: float = 0.97,
 
 def profile_symmetry_matches(row: np.ndarray, spacing: float, threshold: float = 0.97,
                              min_overlap: float = 0.3) -> np.ndarray:
-    """(S, 5) `profile_symmetries` with each one's correlation and overlap share."""
+    """(S, 5) `profile_symmetries` with each one's correlation and overlap share. A profile
+    flatter than `FEATURE_TOLERANCE` has none, as a flat map has none (`symmetry._masked_ncc`):
+    its rounding error correlated with itself at every shift, and a flat profile 20 mm up
+    listed 1,961 motions where a flat map listed none (a held-out check)."""
+    if np.ptp(row) < FEATURE_TOLERANCE:
+        return np.empty((0, 5))
     a = row - row.mean()
     n = len(a)
     found = []

@@ -84,6 +84,19 @@ def test_symmetries_of_surfaces_and_profiles():
     assert len(profile_symmetries(rough, 0.001)) == 0
 
 
+def test_a_flat_profile_like_a_flat_map_has_no_symmetry():
+    """A held-out check: a flat profile listed hundreds of motions (its rounding error
+    correlated with itself) where a flat map listed none; the plains line says what
+    matters."""
+    for heights in (np.full((1, 701), 0.02), np.full((80, 80), 0.02)):
+        report = check_map(HeightMap(heights, 0.001, name="flat"), 0.008)
+        assert len(report.symmetries) == 0
+        text = "\n".join(report.lines())
+        assert "symmetries none found" in text and "plains     100.0% of the area" in text
+    assert len(profile_symmetries(np.full(701, 0.02) + 3e-4 * (np.arange(701) == 350),
+                                  0.001)) >= 1  # a bump 0.3 mm tall on it: a reversal
+
+
 def test_report_lines_and_json_say_everything():
     report = check_map(load_map("pattern:20:3"), 0.008)
     text = "\n".join(report.lines())
