@@ -62,7 +62,7 @@ defaults, and only this read tells (a fifth of a second at 100 Hz)."""
 LATE_LIMIT_S = 0.6
 """How long a fault's diagnosis waits for a ping's answer, and for a line busy with late
 replies to fall quiet: a servo answering later is called silent (the emulator's `late`
-drills go to 0.5 s; a real adapter's latency is 16 ms at worst)."""
+drills go to 0.5 s; a USB adapter's latency timer is 16 ms by default)."""
 LATE_CAP_S = 5.0
 """The most one wait of the diagnosis lasts while replies keep coming (a babbling line)."""
 PORT_ERRORS = (OSError, termios.error)

@@ -106,8 +106,7 @@ class FixedPacketHandler(Protocol2PacketHandler):
         servo_id, length = txpacket[PKT_ID], answer_length(txpacket)
         if servo_id == BROADCAST_ID or txpacket[PKT_INSTRUCTION] in (
                 INST_ACTION, INST_SYNC_READ, INST_BULK_READ):
-            rxpacket, result, error = super().txRxPacket(port, txpacket)  # no single answer
-            return rxpacket, result, error
+            return super().txRxPacket(port, txpacket)  # no single answer to check
         result = self.txPacket(port, txpacket)
         if result != COMM_SUCCESS:
             return None, result, 0

@@ -12,7 +12,13 @@ import numpy as np
 
 from service.localization.localizers.base import wrap_angle
 from service.localization.localizers.fitting import log_likelihood
-from service.localization.localizers.refine import Fit, _covariance, _inverse, _sd, shared_error
+from service.localization.localizers.refine import (
+    Fit,
+    _covariance,
+    _sd,
+    sandwich,
+    shared_error,
+)
 from service.localization.objects import kernels
 from service.localization.objects.field import ContactField
 
@@ -76,11 +82,7 @@ def correlated_spread(field: ContactField, points: np.ndarray, radii: np.ndarray
     124, three fingers: declared 3.6 degrees off at a spread of 0.75 degrees, where this
     says 1.3.)"""
     _, j = _model(field, points, radii, np.asarray(pose, dtype=np.float64))
-    weighed = j / np.asarray(sd)[:, np.newaxis] ** 2  # W J
-    normal = j.T @ weighed  # A
-    inner = normal + weighed.T @ shared_error(points, error_sd, length) @ weighed
-    bread = _inverse(normal)
-    cov = bread @ inner @ bread if np.all(np.isfinite(bread)) else bread
+    cov = sandwich(j, sd, shared_error(points, error_sd, length))
     return _sd(cov[0, 0] + cov[1, 1]), _sd(cov[2, 2])
 
 

@@ -178,14 +178,22 @@ def correlated_spread(surface: ContactSurface, history: np.ndarray, pose: np.nda
     with a claimed sd of 0.6 mm). The estimator is unchanged; its covariance is the
     sandwich A^-1 J^T W S W J A^-1, S the readings' covariance, A = J^T W J."""
     _, jac = heights_and_jacobian(surface, np.asarray(pose, dtype=np.float64), history)
-    j = _design(surface, jac)
-    weighed = j / _slope_sigmas(jac, sigma, position_sigma)[:, np.newaxis] ** 2  # W J
-    shared = shared_error(history, error_sd, length)
-    normal = j.T @ weighed  # A
-    inner = normal + weighed.T @ shared @ weighed  # J^T W (diag(sigma^2) + shared) W J
-    bread = _inverse(normal)
-    cov = _over_all(surface, bread @ inner @ bread if np.all(np.isfinite(bread)) else bread)
+    cov = _over_all(surface, sandwich(_design(surface, jac),
+                                      _slope_sigmas(jac, sigma, position_sigma),
+                                      shared_error(history, error_sd, length)))
     return _sd(cov[0, 0] + cov[1, 1]), _sd(cov[2, 2])
+
+
+def sandwich(j: np.ndarray, sd: np.ndarray, shared: np.ndarray) -> np.ndarray:
+    """Covariance A^-1 J^T W (diag(sd^2) + shared) W J A^-1 of the least-squares estimate
+    with design `j` (K, P), readings weighed by their own `sd` (K,), when they also share
+    the error of covariance `shared` (K, K); A = J^T W J, W = diag(sd^-2). Unbounded where
+    A is (`_inverse`)."""
+    weighed = j / np.asarray(sd)[:, np.newaxis] ** 2  # W J
+    normal = j.T @ weighed  # A
+    inner = normal + weighed.T @ shared @ weighed
+    bread = _inverse(normal)
+    return bread @ inner @ bread if np.all(np.isfinite(bread)) else bread
 
 
 def worst_over_whole_error(surface: ContactSurface, history: np.ndarray, pose: np.ndarray,

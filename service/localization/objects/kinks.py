@@ -35,7 +35,8 @@ ANGLE = np.deg2rad(6.0)
 corners turn it by a degree or two."""
 REACH = 0.001
 """Metres from a kink within which a tip the model puts beside it may rest anywhere on it in
-the world: three sds of B2's outline mismatch (0.2 mm) and two of the sensor's noise."""
+the world: three sds of B2's outline mismatch (0.2 mm) and two of its reading noise
+(0.1 mm) make 0.8 mm, taken up to 1 mm."""
 _QUAD_SEGMENTS = 16
 
 
@@ -78,6 +79,12 @@ def _outward(edges: np.ndarray) -> np.ndarray:
     """Unit outward normals of a counter-clockwise ring's edges (their right-hand side)."""
     n = np.column_stack([edges[:, 1], -edges[:, 0]])
     return n / np.linalg.norm(n, axis=1, keepdims=True)
+
+
+def any_kinks(contour: Contour, radii: np.ndarray) -> bool:
+    """Whether the contour dilated by any of `radii` has a kink (else a tip is never beside
+    one, and judging it so would repeat the model's quality)."""
+    return any(kinks(contour, float(r)).tree is not None for r in radii)
 
 
 def beside(contour: Contour, poses: np.ndarray, centres: np.ndarray, radii: np.ndarray,

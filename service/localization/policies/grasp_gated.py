@@ -66,7 +66,7 @@ from service.localization import chain_kernels
 from service.localization.grasp import GraspSpec, hand_quality
 from service.localization.localizers.base import Hypotheses
 from service.localization.localizers.convergence import distinct
-from service.localization.objects import rolling
+from service.localization.objects import kinks, rolling
 from service.localization.objects.field import ContactField
 from service.localization.policies.info_gain import information
 
@@ -251,12 +251,16 @@ class GraspGatedPolicy:
         # kink anywhere on it: judged by the most it could hold (the policy's moves are
         # still weighed against the model's `now`)
         weighed = w[first:] > 0
-        weak = first + np.flatnonzero((start[first:] < known_start) & weighed)
+        kinked = kinks.any_kinks(view.field.contour, np.array([f.radius for f in view.fingers]))
         tilt = TILT * view.slope_sd if not self._turned else 0.0
-        start[weak] = self._quality(view, poses[weak], *self._certified, tilt=tilt, kinks=True)
+        if tilt > 0 or kinked:  # else the most is the model's: nothing to judge again
+            weak = first + np.flatnonzero((start[first:] < known_start) & weighed)
+            start[weak] = self._quality(view, poses[weak], *self._certified, tilt=tilt,
+                                        kinks=kinked)
         held = np.concatenate([np.full(first, np.inf), now[first:]])  # the first held already
-        weak = first + np.flatnonzero((now[first:] < view.grasp.margin_n) & weighed)
-        held[weak] = self._quality(view, poses[weak], view.centres, view.joints, kinks=True)
+        if kinked:
+            weak = first + np.flatnonzero((now[first:] < view.grasp.margin_n) & weighed)
+            held[weak] = self._quality(view, poses[weak], view.centres, view.joints, kinks=True)
         for keep in ((held >= view.grasp.margin_n) & (start >= known_start),
                      held >= view.grasp.margin_n):
             if keep.any() and w[keep].sum() > 0:
