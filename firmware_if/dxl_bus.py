@@ -45,7 +45,13 @@ from firmware_if.registers import (
     describe_hardware_error,
     describe_status_error,
 )
-from firmware_if.sdk_fixes import FixedPacketHandler, PacedPortHandler, PortBusy, answers
+from firmware_if.sdk_fixes import (
+    PING_ANSWER_LENGTH,
+    FixedPacketHandler,
+    PacedPortHandler,
+    PortBusy,
+    answers,
+)
 
 FAST_READ_MIN_FIRMWARE = 45
 SETUP_TIMEOUT_MS = 34.0
@@ -507,7 +513,7 @@ class DxlBus:
             if result in _TIMEOUT_RESULTS:
                 return
             if result == COMM_SUCCESS and rx[PKT_ID] in sent and rx[PKT_ID] not in got \
-                    and answers(rx, rx[PKT_ID], 3):
+                    and answers(rx, rx[PKT_ID], PING_ANSWER_LENGTH):
                 got[rx[PKT_ID]] = (time.monotonic_ns() - sent[rx[PKT_ID]]) / 1e6
 
     def _drain(self, quiet_s: float = SETUP_TIMEOUT_MS / 1e3, cap_s: float = 0.25) -> None:

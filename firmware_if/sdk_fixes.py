@@ -74,11 +74,15 @@ def wants_reply(txpacket: list[int]) -> bool:
     return txpacket[PKT_ID] != BROADCAST_ID and txpacket[PKT_INSTRUCTION] != INST_ACTION
 
 
+PING_ANSWER_LENGTH = 3
+"""Parameters of a ping's answer: the model number (2 bytes) and the firmware version."""
+
+
 def answer_length(txpacket: list[int]) -> int:
     """Parameters of the status that answers a single-servo instruction packet: a ping's
     model and firmware, a read's data, nothing for a write, reboot or clear."""
     if txpacket[PKT_INSTRUCTION] == INST_PING:
-        return 3
+        return PING_ANSWER_LENGTH
     if txpacket[PKT_INSTRUCTION] == INST_READ:
         return txpacket[PKT_PARAMETER0 + 2] | txpacket[PKT_PARAMETER0 + 3] << 8
     return 0

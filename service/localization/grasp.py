@@ -347,7 +347,7 @@ def joint_torque(goal_current_a: float, model: str) -> float:
 
 def hand_quality(field: ContactField, poses: np.ndarray, centres: np.ndarray,
                  fingers: Sequence[Chain], joint_angles: Sequence[np.ndarray], torque: float,
-                 spec: GraspSpec, tilt: float = 0.0, kinks: bool = False) -> np.ndarray:
+                 spec: GraspSpec, tilt: float = 0.0, beside_kinks: bool = False) -> np.ndarray:
     """Quality (B,) of fingertips at `centres` (B, n, 2) holding the object under `poses`
     (B, 3), finger i at joint angles `joint_angles[i]` ((B, joints) or (joints,)).
 
@@ -356,7 +356,7 @@ def hand_quality(field: ContactField, poses: np.ndarray, centres: np.ndarray,
     every finger's turned by -tilt or +tilt (2^n ways). What the model says of a grasp in
     the world is only that good: the quality turns on where the normals point.
 
-    `kinks`: where a tip lies beside a kink of the dilated contour (a hollow narrower than
+    `beside_kinks`: where a tip lies beside a kink of the dilated contour (a hollow narrower than
     the tip, `objects.kinks`), the world may rest it on either side or bridging: the most
     the grasp could have with that finger's normal any of the three, as well."""
     radii = np.array([f.radius for f in fingers])
@@ -381,7 +381,7 @@ def hand_quality(field: ContactField, poses: np.ndarray, centres: np.ndarray,
                                                      float(spec.mu)),
                       field.contour.max_radius, spec.load)
     margins = margins.reshape(ways, -1).max(axis=0)
-    if kinks:
+    if beside_kinks:
         own = slice(0, len(margins))  # the model's own normals come first of a tilt's ways
         _beside_kinks(field, poses[own], centres, points[own], normals[own], radii,
                       jac[own] if jac.shape[0] > 1 else jac, torque, spec, margins)

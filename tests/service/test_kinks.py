@@ -110,7 +110,7 @@ def test_beside_a_kink_the_quality_may_be_the_best_of_every_way_the_tip_may_rest
     hand, field, pose, centres, joints = _two_fingers_in_a_valley()
     torque = joint_torque(hand.goal_current_a, hand.fingers[0].joints[0].model)
     args = (field, pose[None], centres, hand.fingers, joints, torque, GraspSpec())
-    model, best = hand_quality(*args)[0], hand_quality(*args, kinks=True)[0]
+    model, best = hand_quality(*args)[0], hand_quality(*args, beside_kinks=True)[0]
     radii = np.array([f.radius for f in hand.fingers])
     _, beside, normals = kinks.beside(field.contour, pose[None], centres, radii)
     assert len(beside) == 1  # the tip in the valley
@@ -125,7 +125,7 @@ def test_beside_a_kink_the_quality_may_be_the_best_of_every_way_the_tip_may_rest
     # away from any kink it is the model's
     shifted = pose + np.array([0.0, 0.0, np.deg2rad(20)])
     far = (field, shifted[None], centres, hand.fingers, joints, torque, GraspSpec())
-    assert hand_quality(*far, kinks=True)[0] == hand_quality(*far)[0]
+    assert hand_quality(*far, beside_kinks=True)[0] == hand_quality(*far)[0]
 
 
 def _quality_with(field, pose, centres, hand, joints, torque, f, normal, contact):

@@ -256,11 +256,12 @@ class GraspGatedPolicy:
         if tilt > 0 or kinked:  # else the most is the model's: nothing to judge again
             weak = first + np.flatnonzero((start[first:] < known_start) & weighed)
             start[weak] = self._quality(view, poses[weak], *self._certified, tilt=tilt,
-                                        kinks=kinked)
+                                        beside_kinks=kinked)
         held = np.concatenate([np.full(first, np.inf), now[first:]])  # the first held already
         if kinked:
             weak = first + np.flatnonzero((now[first:] < view.grasp.margin_n) & weighed)
-            held[weak] = self._quality(view, poses[weak], view.centres, view.joints, kinks=True)
+            held[weak] = self._quality(view, poses[weak], view.centres, view.joints,
+                                       beside_kinks=True)
         for keep in ((held >= view.grasp.margin_n) & (start >= known_start),
                      held >= view.grasp.margin_n):
             if keep.any() and w[keep].sum() > 0:
@@ -270,16 +271,16 @@ class GraspGatedPolicy:
 
     def _quality(self, view: HandView, poses: np.ndarray, centres: np.ndarray,
                  joints: tuple[np.ndarray, ...], tilt: float = 0.0,
-                 kinks: bool = False) -> np.ndarray:
+                 beside_kinks: bool = False) -> np.ndarray:
         """Quality under each pose of fingertips at `centres` settled onto it (at best, with
-        normals turned by up to `tilt` and, with `kinks`, a tip beside a kink resting where
+        normals turned by up to `tilt` and, with `beside_kinks`, a tip beside a kink resting where
         it holds most: `grasp.hand_quality`)."""
         n = len(view.fingers)
         radii = np.array([f.radius for f in view.fingers])
         tips = rolling.settle(view.field, poses,
                               np.broadcast_to(centres, (len(poses), n, 2)).copy(), radii)
         return hand_quality(view.field, poses, tips, view.fingers, joints, view.torque,
-                            view.grasp, tilt, kinks)
+                            view.grasp, tilt, beside_kinks)
 
     # -- exploring -------------------------------------------------------------------------
     def _explore(self, view: HandView, poses: np.ndarray, weights: np.ndarray,
