@@ -90,7 +90,8 @@ class Estimate:
     position_sd: float = float("nan")
     heading_sd: float = float("nan")
     mode_mass: float = float("nan")
-    """Probability mass of the leading mode."""
+    """The leading mode's share of the weight given the modes: a ranking, over-confident as
+    a chance where the readings share the map's error (BENCHMARKS.md, sixteenth session)."""
     runner_up: tuple[float, float, float] | None = None
     runner_up_mass: float = 0.0
     information: np.ndarray | None = field(default=None, repr=False, compare=False)
