@@ -9,6 +9,7 @@ prints the warnings.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -33,6 +34,8 @@ MM_SLOPE = 20.0
 """Rise over run (87 degrees). Real surfaces are this steep only at walls, a thin share of
 the area; heights in millimetres over metres make most of the ground this steep."""
 MM_STEEP_SHARE = 0.25
+DIFFER_SIDE = 100
+"""Samples per side (at most) of the grid on which a symmetry's differences are measured."""
 
 
 @dataclass(frozen=True)
@@ -65,6 +68,17 @@ class MapReport:
     """(S, 2) how well each motion holds: correlation of the surface with its image, and
     the share of the map where the two overlap."""
     warnings: tuple[str, ...] = ()
+    surface: ContactSurface | None = field(default=None, repr=False, compare=False)
+    """The contact surface checked: what a report measures only when shown."""
+
+    @functools.cached_property
+    def symmetry_differences(self) -> np.ndarray:
+        """(S, 2) where each motion's image differs from the surface: the share of the
+        map, and by how much at most (metres). Measured only when the report is shown or
+        written: a correlation cannot tell an exact symmetry from one a feature breaks."""
+        if self.surface is None:
+            return np.full((len(self.symmetries), 2), np.nan)
+        return symmetry_differences(self.surface, self.symmetries)
 
     @property
     def is_profile(self) -> bool:
@@ -99,7 +113,8 @@ class MapReport:
             f"there reads under {PLAIN_TOLERANCE * self.step * 1e3:.2g} mm",
             "symmetries " + describe_symmetries(
                 self.symmetries, self.symmetry_strengths, self.is_profile,
-                ((self.shape[1] - 1) * self.spacing, (self.shape[0] - 1) * self.spacing)),
+                ((self.shape[1] - 1) * self.spacing, (self.shape[0] - 1) * self.spacing),
+                self.symmetry_differences),
         ]
         return lines + [f"warning    {w}" for w in self.warnings]
 
@@ -114,6 +129,8 @@ class MapReport:
             "symmetries": self.symmetries.tolist(),
             "symmetry_correlation": self.symmetry_strengths[:, 0].tolist(),
             "symmetry_overlap": self.symmetry_strengths[:, 1].tolist(),
+            "symmetry_differ_share": self.symmetry_differences[:, 0].tolist(),
+            "symmetry_differ_by": self.symmetry_differences[:, 1].tolist(),
             "warnings": list(self.warnings),
         }
 
@@ -124,22 +141,32 @@ def _degrees(slope: float) -> str:
 
 def describe_symmetries(motions: np.ndarray, strengths: np.ndarray,
                         is_profile: bool = False,
-                        extent: tuple[float, float] | None = None) -> str:
-    """The motions found, the strongest three shown with how well each holds; a surface of
-    revolution named as one, with its axis."""
+                        extent: tuple[float, float] | None = None,
+                        differences: np.ndarray | None = None) -> str:
+    """The motions found, the strongest three shown with how well each holds and, given
+    their `differences` (`symmetry_differences`), where the image differs; a surface of
+    revolution named as one, with its axis and how far its turns differ at most."""
     if len(motions) == 0:
         return "none found"
     from service.localization.localizers.symmetry import revolution_centre
 
+    if differences is None:
+        differences = np.full((len(motions), 2), np.nan)
     axis = None if is_profile or extent is None else revolution_centre(motions, extent)
     if axis is not None:
+        known = np.flatnonzero(np.isfinite(differences).all(axis=1))
+        worst = known[np.argmax(differences[known, 0])] if len(known) else None
         return (f"every turn about ({axis[0] * 1e3:.0f}, {axis[1] * 1e3:.0f}) mm nearly maps "
                 f"the contact surface onto itself ({len(motions)} motions, correlation "
-                f"{float(np.min(strengths[:, 0])):.2f} at least): a surface of revolution, "
-                "whose heading only a feature off its axis or the map's edges tell")
+                f"{float(np.min(strengths[:, 0])):.2f} at least"
+                + ("" if worst is None else "; " + _turns_differing(*differences[worst]))
+                + "): a surface of revolution, whose heading only a feature off its axis or "
+                "the map's edges tell")
     shown = []
-    for (k, dx, dy), (corr, overlap) in zip(motions[:3], strengths[:3], strict=True):
-        how = f" (correlation {corr:.2f} over {overlap:.0%} of the map)"
+    for (k, dx, dy), (corr, overlap), differ in zip(motions[:3], strengths[:3],
+                                                    differences[:3], strict=True):
+        how = (f" (correlation {corr:.2f} over {overlap:.0%} of the map"
+               + ("" if np.isnan(differ).any() else f"; {_differing(*differ)}") + ")")
         turn = ({0: "shift", 1: "quarter turn", 2: "reversal" if is_profile else "half turn",
                  3: "three-quarter turn"}[int(k) % 4] if k == round(k)
                 else f"turn by {k * 90:.0f} deg")
@@ -157,6 +184,63 @@ def describe_symmetries(motions: np.ndarray, strengths: np.ndarray,
     several = len(motions) > 1
     return (f"{len(motions)} motion{'s' if several else ''} nearly map{'' if several else 's'} "
             f"the contact surface onto itself: {'; '.join(shown)}{more}")
+
+
+_WITHIN = f"within {FEATURE_TOLERANCE * 1e3:.1f} mm"
+
+
+def _differing(share: float, largest: float) -> str:
+    """Where an image differs, in words."""
+    if share == 0:
+        return f"the same {_WITHIN} throughout"
+    return f"the same {_WITHIN} but over {share:.1%} of it, by up to {largest * 1e3:.2f} mm there"
+
+
+def _turns_differing(share: float, largest: float) -> str:
+    """Where the turns of a surface of revolution differ most, in words."""
+    if share == 0:
+        return f"every turned copy the same {_WITHIN} throughout"
+    return (f"turned copies not the same {_WITHIN} over {share:.1%} of the map at most, by "
+            f"up to {largest * 1e3:.2f} mm")
+
+
+def symmetry_differences(surface: ContactSurface, motions: np.ndarray) -> np.ndarray:
+    """(S, 2) for each motion (quarter turns, dx, dy): the share of the map where the
+    contact surface and its image differ by more than FEATURE_TOLERANCE, the height offset
+    a reading cannot tell taken out, and the largest difference (metres). An exact
+    symmetry differs nowhere; one that a feature breaks differs there only (a chamfered
+    corner of a plate, four alike holes); a square boss turned by 45 degrees differs at
+    its corners. Measured on a grid of at most `DIFFER_SIDE` samples a side, a tip's
+    radius in from the map's edges, where a surface seen through a tip is cut short."""
+    from service.localization.localizers.symmetry import moved
+
+    m = surface.map
+    rows, cols = m.heights.shape
+    stride = max(1, int(np.ceil(max(rows, cols) / DIFFER_SIDE)))
+    x, y = (v.ravel() for v in np.meshgrid(np.arange(0, cols, stride) * m.spacing,
+                                            np.arange(0, rows, stride) * m.spacing))
+    inward = _inward(m, surface.radius, x, y)
+    here, _ = surface.lookup(x, y)
+    out = np.full((len(motions), 2), np.nan)  # nan: no overlap to measure
+    for i, motion in enumerate(motions):
+        mx, my = moved(m.extent, np.repeat(motion[np.newaxis, :3], len(x), axis=0), x, y)
+        there, _ = surface.lookup(mx, my)
+        both = inward & _inward(m, surface.radius, mx, my)
+        if not both.any():
+            continue
+        d = np.abs((there - here)[both] - np.median((there - here)[both]))
+        out[i] = (np.count_nonzero(d > FEATURE_TOLERANCE) / np.count_nonzero(inward),
+                  float(d.max()))
+    return out
+
+
+def _inward(m: HeightMap, margin: float, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Mask of the points (x, y) at least `margin` inside the map (along it, on a profile)."""
+    x_max, y_max = m.extent
+    inside = (x >= margin - 1e-12) & (x <= x_max - margin + 1e-12)
+    if not m.is_profile:
+        inside &= (y >= margin - 1e-12) & (y <= y_max - margin + 1e-12)
+    return inside
 
 
 def check_map(height_map: HeightMap, radius: float, step: float = 0.01) -> MapReport:
@@ -181,7 +265,8 @@ def check_map(height_map: HeightMap, radius: float, step: float = 0.01) -> MapRe
         plains_share=float(np.mean(plains(surface, step))),
         **_symmetries(surface),
     )
-    return MapReport(**report, warnings=tuple(_warnings(MapReport(**report))))
+    return MapReport(**report, warnings=tuple(_warnings(MapReport(**report))),
+                     surface=surface)
 
 
 def _slopes(z: np.ndarray, h: float) -> np.ndarray:

@@ -149,3 +149,40 @@ def test_a_surface_of_revolution_is_named_with_its_axis(rings_map):
     text = "\n".join(check_map(load_map(str(rings_map), spacing=0.001), 0.008).lines())
     assert "surface of revolution" in text and "every turn about (110, 95) mm" in text
     assert "surface of revolution" not in "\n".join(check_map(load_map("peaks"), 0.008).lines())
+
+
+def test_a_symmetry_says_whether_it_is_exact_or_broken_and_where():
+    """A correlation cannot tell an exact symmetry from one a feature breaks, nor a square
+    boss's 45-degree turn from a ring's: `haptic map check` said "correlation 0.94" of a
+    plate whose one chamfered corner tells its quarter turns apart, and called a plate with
+    a square boss "a surface of revolution" with no word of the boss's corners. Each motion
+    now says where its image differs from the surface, and by how much."""
+    crate = check_map(load_map("eggcrate"), 0.008)
+    share, largest = crate.symmetry_differences[0]  # its half turn: exact
+    assert share == 0 and largest <= 2e-4
+    assert "half turn (correlation 1.00 over 100% of the map; the same within 0.2 mm " \
+           "throughout)" in "\n".join(crate.lines())
+
+    pattern = check_map(load_map("pattern:20:1"), 0.008)  # four alike pockets, one chamfer
+    quarter = int(np.flatnonzero(pattern.symmetries[:, 0] == 1)[0])
+    share, largest = pattern.symmetry_differences[quarter]
+    assert 0 < share < 0.02 and largest > 0.01  # only at the corner: the plate's whole rise
+    assert f"but over {share:.1%} of it, by up to {largest * 1e3:.2f} mm there" in \
+           "\n".join(pattern.lines())
+
+    x = np.arange(201) * 0.001
+    xx, yy = np.meshgrid(x, x)
+    boss = np.where((np.abs(xx - 0.1) < 0.02) & (np.abs(yy - 0.1) < 0.02), 0.004, 0.0)
+    square = check_map(HeightMap(boss, 0.001, "square boss"), 0.008)
+    text = "\n".join(square.lines())
+    assert "surface of revolution" in text
+    assert "turned copies not the same within 0.2 mm over" in text
+    assert abs(square.symmetry_differences[:, 1].max() - 0.004) < 5e-4  # the boss's corners
+
+    tilted = check_map(HeightMap(boss + 0.05 * xx, 0.001, "tilted plate"), 0.008)
+    shifts = tilted.symmetries[:, 0] == 0
+    assert shifts.any()  # along the slope's contour lines, clear of the boss
+    assert np.all(tilted.symmetry_differences[shifts, 0] == 0)  # a slope is an offset
+    payload = tilted.to_json()
+    assert len(payload["symmetry_differ_share"]) == len(payload["symmetries"]) \
+        == len(payload["symmetry_differ_by"])

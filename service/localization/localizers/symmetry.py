@@ -290,14 +290,24 @@ def images(surface: ContactSurface, pose: np.ndarray, motions: np.ndarray) -> np
     they read the same heights as `pose` wherever their paths stay on it."""
     if len(motions) == 0:
         return np.empty((0, 3))
-    x_max, y_max = surface.map.extent
-    x = pose[0] + motions[:, 1]
-    y = pose[1] + motions[:, 2]
+    x, y = moved(surface.map.extent, motions, np.full(len(motions), float(pose[0])),
+                 np.full(len(motions), float(pose[1])))
     heading = pose[2] + motions[:, 0] * (np.pi / 2)
+    return np.column_stack([x, y, heading])[surface.map.inside(x, y)]
+
+
+def moved(extent: tuple[float, float], motions: np.ndarray, x: np.ndarray, y: np.ndarray
+          ) -> tuple[np.ndarray, np.ndarray]:
+    """Where each motion (M, 3) takes its point (x[i], y[i]) of the map: shifted by (dx,
+    dy), then turned by its quarter turns about the map's centre. The poses it takes a
+    pose's readings to read the same heights (`images`)."""
+    x_max, y_max = extent
+    x = x + motions[:, 1]
+    y = y + motions[:, 2]
     quarter = motions[:, 0] == np.round(motions[:, 0])
     for turn in range(1, 4):  # rho: (x, y) -> (L - y, x) on a square map
         mask = quarter & (motions[:, 0] >= turn)
-        if surface.map.extent[0] == surface.map.extent[1]:
+        if extent[0] == extent[1]:
             x[mask], y[mask] = x_max - y[mask], x[mask].copy()
         elif turn == 2:  # a half turn on a rectangle: (x, y) -> (X - x, Y - y)
             x[mask], y[mask] = x_max - x[mask], y_max - y[mask]
@@ -307,4 +317,4 @@ def images(surface: ContactSurface, pose: np.ndarray, motions: np.ndarray) -> np
         u, v = x[other] - x_max / 2, y[other] - y_max / 2
         x[other] = x_max / 2 + np.cos(turn) * u - np.sin(turn) * v
         y[other] = y_max / 2 + np.sin(turn) * u + np.cos(turn) * v
-    return np.column_stack([x, y, heading])[surface.map.inside(x, y)]
+    return x, y
