@@ -34,8 +34,8 @@ MM_SLOPE = 20.0
 """Rise over run (87 degrees). Real surfaces are this steep only at walls, a thin share of
 the area; heights in millimetres over metres make most of the ground this steep."""
 MM_STEEP_SHARE = 0.25
-DIFFER_SIDE = 100
-"""Samples per side (at most) of the grid on which a symmetry's differences are measured."""
+DIFFER_SAMPLES = 10_000
+"""Samples (at most, about) of the grid on which a symmetry's differences are measured."""
 
 
 @dataclass(frozen=True)
@@ -73,12 +73,12 @@ class MapReport:
 
     @functools.cached_property
     def symmetry_differences(self) -> np.ndarray:
-        """(S, 2) where each motion's image differs from the surface: the share of the
-        map, and by how much at most (metres). Measured only when the report is shown or
-        written: a correlation cannot tell an exact symmetry from one a feature breaks."""
+        """(S, 4) where each motion's image differs from the surface (`image_differences`).
+        Measured only when the report is shown or written: a correlation cannot tell an
+        exact symmetry from one a feature breaks."""
         if self.surface is None:
-            return np.full((len(self.symmetries), 2), np.nan)
-        return symmetry_differences(self.surface, self.symmetries)
+            return np.full((len(self.symmetries), 4), np.nan)
+        return image_differences(self.surface, self.symmetries)
 
     @property
     def is_profile(self) -> bool:
@@ -129,8 +129,10 @@ class MapReport:
             "symmetries": self.symmetries.tolist(),
             "symmetry_correlation": self.symmetry_strengths[:, 0].tolist(),
             "symmetry_overlap": self.symmetry_strengths[:, 1].tolist(),
-            "symmetry_differ_share": self.symmetry_differences[:, 0].tolist(),
-            "symmetry_differ_by": self.symmetry_differences[:, 1].tolist(),
+            "symmetry_differ_share": _nil_for_nan(self.symmetry_differences[:, 0]),
+            "symmetry_differ_by": _nil_for_nan(self.symmetry_differences[:, 1]),
+            "symmetry_differ_at": [None if np.isnan(at).any() else at.tolist()
+                                   for at in self.symmetry_differences[:, 2:]],
             "warnings": list(self.warnings),
         }
 
@@ -144,22 +146,23 @@ def describe_symmetries(motions: np.ndarray, strengths: np.ndarray,
                         extent: tuple[float, float] | None = None,
                         differences: np.ndarray | None = None) -> str:
     """The motions found, the strongest three shown with how well each holds and, given
-    their `differences` (`symmetry_differences`), where the image differs; a surface of
+    their `differences` (`image_differences`), where the image differs; a surface of
     revolution named as one, with its axis and how far its turns differ at most."""
     if len(motions) == 0:
         return "none found"
     from service.localization.localizers.symmetry import revolution_centre
 
     if differences is None:
-        differences = np.full((len(motions), 2), np.nan)
+        differences = np.full((len(motions), 4), np.nan)
     axis = None if is_profile or extent is None else revolution_centre(motions, extent)
     if axis is not None:
-        known = np.flatnonzero(np.isfinite(differences).all(axis=1))
-        worst = known[np.argmax(differences[known, 0])] if len(known) else None
+        turns = differences[(motions[:, 0] != np.round(motions[:, 0]))
+                            & np.isfinite(differences[:, :2]).all(axis=1)]
         return (f"every turn about ({axis[0] * 1e3:.0f}, {axis[1] * 1e3:.0f}) mm nearly maps "
                 f"the contact surface onto itself ({len(motions)} motions, correlation "
                 f"{float(np.min(strengths[:, 0])):.2f} at least"
-                + ("" if worst is None else "; " + _turns_differing(*differences[worst]))
+                + ("" if len(turns) == 0 else
+                   "; " + _turns_differing(turns[:, 0].max(), turns[:, 1].max()))
                 + "): a surface of revolution, whose heading only a feature off its axis or "
                 "the map's edges tell")
     shown = []
@@ -189,48 +192,60 @@ def describe_symmetries(motions: np.ndarray, strengths: np.ndarray,
 _WITHIN = f"within {FEATURE_TOLERANCE * 1e3:.1f} mm"
 
 
-def _differing(share: float, largest: float) -> str:
+def _differing(share: float, largest: float, x: float, y: float) -> str:
     """Where an image differs, in words."""
     if share == 0:
         return f"the same {_WITHIN} throughout"
-    return f"the same {_WITHIN} but over {share:.1%} of it, by up to {largest * 1e3:.2f} mm there"
+    return (f"the same {_WITHIN} but over {_share(share)} of it, by up to "
+            f"{largest * 1e3:.2f} mm, most at ({x * 1e3:.0f}, {y * 1e3:.0f}) mm")
 
 
 def _turns_differing(share: float, largest: float) -> str:
-    """Where the turns of a surface of revolution differ most, in words."""
+    """How far the turns of a surface of revolution differ at most, in words."""
     if share == 0:
         return f"every turned copy the same {_WITHIN} throughout"
-    return (f"turned copies not the same {_WITHIN} over {share:.1%} of the map at most, by "
-            f"up to {largest * 1e3:.2f} mm")
+    return (f"turned copies not the same {_WITHIN} over {_share(share)} of the map at most, "
+            f"by up to {largest * 1e3:.2f} mm")
 
 
-def symmetry_differences(surface: ContactSurface, motions: np.ndarray) -> np.ndarray:
-    """(S, 2) for each motion (quarter turns, dx, dy): the share of the map where the
+def _share(share: float) -> str:
+    return "under 0.1%" if share < 0.001 else f"{share:.1%}"
+
+
+def _nil_for_nan(values: np.ndarray) -> list[float | None]:
+    """JSON has no NaN: an unmeasured value is null."""
+    return [None if np.isnan(v) else float(v) for v in values]
+
+
+def image_differences(surface: ContactSurface, motions: np.ndarray) -> np.ndarray:
+    """(S, 4) for each motion (quarter turns, dx, dy): the share of the map where the
     contact surface and its image differ by more than FEATURE_TOLERANCE, the height offset
-    a reading cannot tell taken out, and the largest difference (metres). An exact
-    symmetry differs nowhere; one that a feature breaks differs there only (a chamfered
-    corner of a plate, four alike holes); a square boss turned by 45 degrees differs at
-    its corners. Measured on a grid of at most `DIFFER_SIDE` samples a side, a tip's
-    radius in from the map's edges, where a surface seen through a tip is cut short."""
+    a reading cannot tell taken out; the largest difference (metres); and where on the map
+    it lies (x, y, metres). An exact symmetry differs nowhere; one that a feature breaks
+    differs there only (a chamfered corner of a plate, four alike holes); a square boss
+    turned by 45 degrees differs at its corners. Measured on a grid of about
+    `DIFFER_SAMPLES` samples, a tip's radius in from the map's edges, where a surface seen
+    through a tip is cut short; NaN where a motion's image leaves no sample to compare."""
     from service.localization.localizers.symmetry import moved
 
     m = surface.map
     rows, cols = m.heights.shape
-    stride = max(1, int(np.ceil(max(rows, cols) / DIFFER_SIDE)))
+    stride = max(1, int(np.ceil(np.sqrt(rows * cols / DIFFER_SAMPLES))))
     x, y = (v.ravel() for v in np.meshgrid(np.arange(0, cols, stride) * m.spacing,
                                             np.arange(0, rows, stride) * m.spacing))
     inward = _inward(m, surface.radius, x, y)
     here, _ = surface.lookup(x, y)
-    out = np.full((len(motions), 2), np.nan)  # nan: no overlap to measure
+    out = np.full((len(motions), 4), np.nan)
     for i, motion in enumerate(motions):
         mx, my = moved(m.extent, np.repeat(motion[np.newaxis, :3], len(x), axis=0), x, y)
         there, _ = surface.lookup(mx, my)
-        both = inward & _inward(m, surface.radius, mx, my)
-        if not both.any():
+        both = np.flatnonzero(inward & _inward(m, surface.radius, mx, my))
+        if len(both) == 0:
             continue
         d = np.abs((there - here)[both] - np.median((there - here)[both]))
+        most = both[int(np.argmax(d))]
         out[i] = (np.count_nonzero(d > FEATURE_TOLERANCE) / np.count_nonzero(inward),
-                  float(d.max()))
+                  float(d.max()), x[most], y[most])
     return out
 
 

@@ -4,7 +4,12 @@ import numpy as np
 import pytest
 
 from service.errors import MapError
-from service.localization.map_check import check_map, profile_symmetries, profile_symmetry_matches
+from service.localization.map_check import (
+    check_map,
+    image_differences,
+    profile_symmetries,
+    profile_symmetry_matches,
+)
 from service.localization.maps import load_map
 from service.localization.surface import HeightMap, contact_surface
 
@@ -156,19 +161,23 @@ def test_a_symmetry_says_whether_it_is_exact_or_broken_and_where():
     boss's 45-degree turn from a ring's: `haptic map check` said "correlation 0.94" of a
     plate whose one chamfered corner tells its quarter turns apart, and called a plate with
     a square boss "a surface of revolution" with no word of the boss's corners. Each motion
-    now says where its image differs from the surface, and by how much."""
+    now says how much of the map its image differs on, by how much, and where most."""
     crate = check_map(load_map("eggcrate"), 0.008)
-    share, largest = crate.symmetry_differences[0]  # its half turn: exact
-    assert share == 0 and largest <= 2e-4
+    half = _row(crate.symmetries, 2)
+    share, largest, _, _ = crate.symmetry_differences[half]
+    assert share == 0 and largest <= 2e-4  # a periodic crate's half turn is exact
     assert "half turn (correlation 1.00 over 100% of the map; the same within 0.2 mm " \
            "throughout)" in "\n".join(crate.lines())
 
     pattern = check_map(load_map("pattern:20:1"), 0.008)  # four alike pockets, one chamfer
-    quarter = int(np.flatnonzero(pattern.symmetries[:, 0] == 1)[0])
-    share, largest = pattern.symmetry_differences[quarter]
-    assert 0 < share < 0.02 and largest > 0.01  # only at the corner: the plate's whole rise
-    assert f"but over {share:.1%} of it, by up to {largest * 1e3:.2f} mm there" in \
-           "\n".join(pattern.lines())
+    quarter = _row(pattern.symmetries, 1)
+    share, largest, x, y = pattern.symmetry_differences[quarter]
+    assert 0 < share < 0.02 and largest > 0.01  # only at a corner: the plate's whole rise
+    assert min(x, 0.2 - x) < 0.02 and min(y, 0.2 - y) < 0.02  # and a corner it is
+    assert (f"quarter turn (correlation {pattern.symmetry_strengths[quarter, 0]:.2f} over "
+            f"100% of the map; the same within 0.2 mm but over {share:.1%} of it, by up to "
+            f"{largest * 1e3:.2f} mm, most at ({x * 1e3:.0f}, {y * 1e3:.0f}) mm)"
+            ) in "\n".join(pattern.lines())  # its three quarter turns are all it has: shown
 
     x = np.arange(201) * 0.001
     xx, yy = np.meshgrid(x, x)
@@ -177,12 +186,21 @@ def test_a_symmetry_says_whether_it_is_exact_or_broken_and_where():
     text = "\n".join(square.lines())
     assert "surface of revolution" in text
     assert "turned copies not the same within 0.2 mm over" in text
-    assert abs(square.symmetry_differences[:, 1].max() - 0.004) < 5e-4  # the boss's corners
+    assert "by up to 4.00 mm): a surface of revolution" in text  # the boss's corners
 
-    tilted = check_map(HeightMap(boss + 0.05 * xx, 0.001, "tilted plate"), 0.008)
-    shifts = tilted.symmetries[:, 0] == 0
-    assert shifts.any()  # along the slope's contour lines, clear of the boss
-    assert np.all(tilted.symmetry_differences[shifts, 0] == 0)  # a slope is an offset
-    payload = tilted.to_json()
+    tilted = contact_surface(HeightMap(0.05 * xx, 0.001, "tilted plane"), 0.008)
+    shifted = image_differences(tilted, np.array([[0.0, 0.03, 0.02]]))[0]
+    assert shifted[0] == 0 and shifted[1] < 1e-9  # a slope under a shift is an offset
+    payload = check_map(HeightMap(boss, 0.001, "square boss"), 0.008).to_json()
     assert len(payload["symmetry_differ_share"]) == len(payload["symmetries"]) \
-        == len(payload["symmetry_differ_by"])
+        == len(payload["symmetry_differ_by"]) == len(payload["symmetry_differ_at"])
+    narrow = check_map(HeightMap(np.tile(np.sin(np.arange(12) * 0.5) * 1e-3, (12, 1)),
+                                 0.001, "narrow"), 0.005)  # no sample a tip's radius in
+    unmeasured = narrow.to_json()["symmetry_differ_share"]
+    assert len(unmeasured) > 0 and all(v is None for v in unmeasured)  # JSON has no NaN
+
+
+def _row(motions: np.ndarray, quarter_turns: int) -> int:
+    """The row of `motions` that turns by `quarter_turns` with no shift."""
+    return int(np.flatnonzero((motions[:, 0] == quarter_turns)
+                              & (np.abs(motions[:, 1:]) < 1e-9).all(axis=1))[0])

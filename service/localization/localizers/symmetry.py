@@ -299,8 +299,9 @@ def images(surface: ContactSurface, pose: np.ndarray, motions: np.ndarray) -> np
 def moved(extent: tuple[float, float], motions: np.ndarray, x: np.ndarray, y: np.ndarray
           ) -> tuple[np.ndarray, np.ndarray]:
     """Where each motion (M, 3) takes its point (x[i], y[i]) of the map: shifted by (dx,
-    dy), then turned by its quarter turns about the map's centre. The poses it takes a
-    pose's readings to read the same heights (`images`)."""
+    dy), then turned by its quarter turns about the map's centre. A pose's image
+    (`images`) reads the same heights at the points its readings are moved to. On a
+    rectangle only half turns are taken (`_find` offers no other quarter turn there)."""
     x_max, y_max = extent
     x = x + motions[:, 1]
     y = y + motions[:, 2]
