@@ -21,7 +21,7 @@ from service.localization.surface import HeightMap, contact_surface  # noqa: E40
 
 def check_figure(height_map: HeightMap, report: MapReport, path: Path) -> None:
     surface = contact_surface(height_map, report.radius)
-    flat = plains(surface, report.step)
+    flat = plains(surface, report.step, report.tilt)
     hidden = hidden_depths(surface) > FEATURE_TOLERANCE
     x_max, y_max = height_map.extent
     xs = np.linspace(0, x_max, height_map.shape[1]) * 1e3

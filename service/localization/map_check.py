@@ -61,6 +61,10 @@ class MapReport:
     """Share of the area the tip cannot reach within FEATURE_TOLERANCE (pits narrower than it)."""
     hidden_depth: float
     plains_share: float
+    tilt: tuple[float, float]
+    """Rise over run along x and y of the slope most of the map shares (`dominant_slope`),
+    where plains lie on it (a part scanned on a tilted fixture); (0, 0) where none do (a
+    level part, a dome)."""
     symmetries: np.ndarray = field(repr=False)
     """(S, 3) motions (quarter turns, dx, dy) that map the contact surface nearly onto
     itself."""
@@ -110,7 +114,12 @@ class MapReport:
             f"hidden     {self.hidden_share:.1%} of the area lies deeper than the "
             f"{self.radius * 1e3:g} mm tip reaches (by up to {self.hidden_depth * 1e3:.2f} mm)",
             f"plains     {self.plains_share:.1%} of the area: a {self.step * 1e3:g} mm step "
-            f"there reads under {PLAIN_TOLERANCE * self.step * 1e3:.2g} mm",
+            f"there reads under {PLAIN_TOLERANCE * self.step * 1e3:.2g} mm"
+            + ("" if not _tilted(self.tilt) else
+               " more than the map's overall tilt would "
+               f"({np.degrees(np.arctan(np.hypot(*self.tilt))):.1f} deg, rising toward "
+               f"{np.degrees(np.arctan2(self.tilt[1], self.tilt[0])):.0f} deg from its x "
+               "axis): there a step tells at most which way the slope runs"),
             "symmetries " + describe_symmetries(
                 self.symmetries, self.symmetry_strengths, self.is_profile,
                 ((self.shape[1] - 1) * self.spacing, (self.shape[0] - 1) * self.spacing),
@@ -126,6 +135,7 @@ class MapReport:
             "steep_share": self.steep_share,
             "smallest_feature": self.smallest_feature, "hidden_share": self.hidden_share,
             "hidden_depth": self.hidden_depth, "plains_share": self.plains_share,
+            "tilt": list(self.tilt),
             "symmetries": self.symmetries.tolist(),
             "symmetry_correlation": self.symmetry_strengths[:, 0].tolist(),
             "symmetry_overlap": self.symmetry_strengths[:, 1].tolist(),
@@ -277,7 +287,7 @@ def check_map(height_map: HeightMap, radius: float, step: float = 0.01) -> MapRe
         smallest_feature=_smallest_feature(z, h, int(max(step, 2 * radius) / h) + 1),
         hidden_share=float(np.mean(hidden > FEATURE_TOLERANCE)),
         hidden_depth=float(hidden.max()),
-        plains_share=float(np.mean(plains(surface, step))),
+        **_plains(surface, step),
         **_symmetries(surface),
     )
     return MapReport(**report, warnings=tuple(_warnings(MapReport(**report))),
@@ -318,15 +328,57 @@ def _smallest_feature(z: np.ndarray, h: float, widest: int) -> float | None:
     return None
 
 
-def plains(surface: ContactSurface, step: float) -> np.ndarray:
+def _plains(surface: ContactSurface, step: float) -> dict[str, Any]:
+    """The report's `plains_share` and `tilt`: the level plains, and those on the slope
+    most of the map shares where there are any (a share of the map of 1 % or more)."""
+    level = plains(surface, step)
+    tilt = dominant_slope(surface)
+    if _tilted(tilt):
+        sloped = plains(surface, step, tilt)
+        if np.mean(sloped) - np.mean(level) >= 0.01:
+            return {"plains_share": float(np.mean(sloped)), "tilt": tilt}
+    return {"plains_share": float(np.mean(level)), "tilt": (0.0, 0.0)}
+
+
+def plains(surface: ContactSurface, step: float, tilt: tuple[float, float] = (0.0, 0.0)
+           ) -> np.ndarray:
     """Mask of the points where the contact height varies by less than PLAIN_TOLERANCE of a
-    step within a step's reach (a square window)."""
+    step within a step's reach (a square window), level or beyond an even slope of `tilt`
+    (rise over run along x and y): a step on an even slope reads that slope wherever it
+    is, which tells where the finger is no better than a level plain does (a plate
+    scanned 3 degrees off level was 0 % plain, the same plate level 88 %)."""
     k = int(round(step / surface.map.spacing))
     size = (1, 2 * k + 1) if surface.map.is_profile else (2 * k + 1, 2 * k + 1)
     c = surface.centre_heights
-    span = (ndimage.maximum_filter(c, size=size, mode="nearest")
+    flat = _span(c, size) < PLAIN_TOLERANCE * step
+    if tilt == (0.0, 0.0):
+        return flat
+    rows, cols = c.shape
+    h = surface.map.spacing
+    even = (tilt[0] * h * np.arange(cols)[np.newaxis, :]
+            + tilt[1] * h * np.arange(rows)[:, np.newaxis])
+    return flat | (_span(c - even, size) < PLAIN_TOLERANCE * step)
+
+
+def _span(c: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """Highest minus lowest of `c` within a window of `size` about each point."""
+    return (ndimage.maximum_filter(c, size=size, mode="nearest")
             - ndimage.minimum_filter(c, size=size, mode="nearest"))
-    return span < PLAIN_TOLERANCE * step
+
+
+def dominant_slope(surface: ContactSurface) -> tuple[float, float]:
+    """Rise over run along x and y that most of the contact surface shares: the median of
+    its slope between neighbouring samples (a level plate's plains make it zero, whatever
+    its features; a tilted scan's, the tilt)."""
+    c, h = surface.centre_heights, surface.map.spacing
+    along_x = float(np.median(np.diff(c, axis=1))) / h if c.shape[1] > 1 else 0.0
+    along_y = float(np.median(np.diff(c, axis=0))) / h if c.shape[0] > 1 else 0.0
+    return along_x, along_y
+
+
+def _tilted(tilt: tuple[float, float]) -> bool:
+    """Whether a slope changes what a step reads by PLAIN_TOLERANCE of the step or more."""
+    return bool(np.hypot(*tilt) >= PLAIN_TOLERANCE)
 
 
 def _symmetries(surface: ContactSurface) -> dict[str, np.ndarray]:

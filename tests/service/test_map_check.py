@@ -204,3 +204,24 @@ def _row(motions: np.ndarray, quarter_turns: int) -> int:
     """The row of `motions` that turns by `quarter_turns` with no shift."""
     return int(np.flatnonzero((motions[:, 0] == quarter_turns)
                               & (np.abs(motions[:, 1:]) < 1e-9).all(axis=1))[0])
+
+
+def test_plains_on_a_tilted_map_count_as_on_a_level_one():
+    """A plate scanned 3 degrees off level was reported 0 % plain (a step reads its slope,
+    0.5 mm), the same plate level 88 %; on either a step tells the finger nothing of where
+    it is, and the tilted one gave no warning."""
+    x = np.arange(201) * 0.001
+    xx, yy = np.meshgrid(x, x)
+    boss = np.where((np.abs(xx - 0.1) < 0.02) & (np.abs(yy - 0.1) < 0.02), 0.004, 0.0)
+    level = check_map(HeightMap(boss, 0.001, "level plate"), 0.008)
+    tilted = check_map(HeightMap(boss + 0.05 * xx + 0.02 * yy, 0.001, "tilted plate"), 0.008)
+    assert level.plains_share > 0.8 and warned(level, "plain")
+    assert tilted.plains_share == pytest.approx(level.plains_share, abs=0.02)
+    assert warned(tilted, "plain")
+    assert tilted.tilt == pytest.approx((0.05, 0.02), abs=1e-3) and level.tilt == (0.0, 0.0)
+    plains_line = next(line for line in tilted.lines() if line.startswith("plains"))
+    assert "more than the map's overall tilt would (3.1 deg, rising toward 22 deg" in plains_line
+    assert "overall tilt" not in "\n".join(level.lines())
+    assert tilted.to_json()["tilt"] == pytest.approx([0.05, 0.02], abs=1e-3)
+    curved = check_map(load_map("shell:20:0"), 0.008)  # sloped everywhere, evenly nowhere
+    assert curved.tilt == (0.0, 0.0) and curved.plains_share < 0.01
