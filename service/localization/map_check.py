@@ -81,7 +81,7 @@ class MapReport:
         Measured only when the report is shown or written: a correlation cannot tell an
         exact symmetry from one a feature breaks."""
         if self.surface is None:
-            return np.full((len(self.symmetries), 4), np.nan)
+            return np.full((len(self.symmetries), 6), np.nan)
         return image_differences(self.surface, self.symmetries)
 
     @property
@@ -115,7 +115,7 @@ class MapReport:
             f"{self.radius * 1e3:g} mm tip reaches (by up to {self.hidden_depth * 1e3:.2f} mm)",
             f"plains     {self.plains_share:.1%} of the area: a {self.step * 1e3:g} mm step "
             f"there reads under {PLAIN_TOLERANCE * self.step * 1e3:.2g} mm"
-            + ("" if not _tilted(self.tilt) else
+            + ("" if self.tilt == (0.0, 0.0) else
                " more than the map's overall tilt would "
                f"({np.degrees(np.arctan(np.hypot(*self.tilt))):.1f} deg, rising toward "
                f"{np.degrees(np.arctan2(self.tilt[1], self.tilt[0])):.0f} deg from its x "
@@ -141,7 +141,7 @@ class MapReport:
             "symmetry_overlap": self.symmetry_strengths[:, 1].tolist(),
             "symmetry_differ_share": _nil_for_nan(self.symmetry_differences[:, 0]),
             "symmetry_differ_by": _nil_for_nan(self.symmetry_differences[:, 1]),
-            "symmetry_differ_at": [None if np.isnan(at).any() else at.tolist()
+            "symmetry_differ_at": [None if np.isnan(at).any() else at.reshape(2, 2).tolist()
                                    for at in self.symmetry_differences[:, 2:]],
             "warnings": list(self.warnings),
         }
@@ -163,7 +163,7 @@ def describe_symmetries(motions: np.ndarray, strengths: np.ndarray,
     from service.localization.localizers.symmetry import revolution_centre
 
     if differences is None:
-        differences = np.full((len(motions), 4), np.nan)
+        differences = np.full((len(motions), 6), np.nan)
     axis = None if is_profile or extent is None else revolution_centre(motions, extent)
     if axis is not None:
         turns = differences[(motions[:, 0] != np.round(motions[:, 0]))
@@ -202,12 +202,14 @@ def describe_symmetries(motions: np.ndarray, strengths: np.ndarray,
 _WITHIN = f"within {FEATURE_TOLERANCE * 1e3:.1f} mm"
 
 
-def _differing(share: float, largest: float, x: float, y: float) -> str:
+def _differing(share: float, largest: float, x: float, y: float, x_to: float, y_to: float
+               ) -> str:
     """Where an image differs, in words."""
     if share == 0:
         return f"the same {_WITHIN} throughout"
     return (f"the same {_WITHIN} but over {_share(share)} of it, by up to "
-            f"{largest * 1e3:.2f} mm, most at ({x * 1e3:.0f}, {y * 1e3:.0f}) mm")
+            f"{largest * 1e3:.2f} mm, most between ({x * 1e3:.0f}, {y * 1e3:.0f}) and "
+            f"({x_to * 1e3:.0f}, {y_to * 1e3:.0f}) mm")
 
 
 def _turns_differing(share: float, largest: float) -> str:
@@ -228,14 +230,16 @@ def _nil_for_nan(values: np.ndarray) -> list[float | None]:
 
 
 def image_differences(surface: ContactSurface, motions: np.ndarray) -> np.ndarray:
-    """(S, 4) for each motion (quarter turns, dx, dy): the share of the map where the
+    """(S, 6) for each motion (quarter turns, dx, dy): the share of the map where the
     contact surface and its image differ by more than FEATURE_TOLERANCE, the height offset
-    a reading cannot tell taken out; the largest difference (metres); and where on the map
-    it lies (x, y, metres). An exact symmetry differs nowhere; one that a feature breaks
-    differs there only (a chamfered corner of a plate, four alike holes); a square boss
-    turned by 45 degrees differs at its corners. Measured on a grid of about
-    `DIFFER_SAMPLES` samples, a tip's radius in from the map's edges, where a surface seen
-    through a tip is cut short; NaN where a motion's image leaves no sample to compare."""
+    a reading cannot tell taken out; the largest difference (metres); and the two places
+    it compares there (x, y and the point the motion takes it to, metres): a feature at
+    one of them breaks the symmetry (which, one motion cannot tell). An exact symmetry
+    differs nowhere; one that a feature breaks differs there only (a chamfered corner of
+    a plate, four alike holes); a square boss turned by 45 degrees differs at its corners.
+    Measured on a grid of about `DIFFER_SAMPLES` samples, a tip's radius in from the map's
+    edges, where a surface seen through a tip is cut short; NaN where a motion's image
+    leaves no sample to compare."""
     from service.localization.localizers.symmetry import moved
 
     m = surface.map
@@ -245,7 +249,7 @@ def image_differences(surface: ContactSurface, motions: np.ndarray) -> np.ndarra
                                             np.arange(0, rows, stride) * m.spacing))
     inward = _inward(m, surface.radius, x, y)
     here, _ = surface.lookup(x, y)
-    out = np.full((len(motions), 4), np.nan)
+    out = np.full((len(motions), 6), np.nan)
     for i, motion in enumerate(motions):
         mx, my = moved(m.extent, np.repeat(motion[np.newaxis, :3], len(x), axis=0), x, y)
         there, _ = surface.lookup(mx, my)
@@ -255,7 +259,7 @@ def image_differences(surface: ContactSurface, motions: np.ndarray) -> np.ndarra
         d = np.abs((there - here)[both] - np.median((there - here)[both]))
         most = both[int(np.argmax(d))]
         out[i] = (np.count_nonzero(d > FEATURE_TOLERANCE) / np.count_nonzero(inward),
-                  float(d.max()), x[most], y[most])
+                  float(d.max()), x[most], y[most], mx[most], my[most])
     return out
 
 
@@ -295,13 +299,15 @@ def check_map(height_map: HeightMap, radius: float, step: float = 0.01) -> MapRe
 
 
 def _slopes(z: np.ndarray, h: float) -> np.ndarray:
-    """Rise over run to the next sample along each axis (the larger of the two)."""
-    along = np.abs(np.diff(z, axis=1)) / h
-    slopes = np.zeros_like(z)
-    slopes[:, :-1] = along
+    """Rise over run at each sample, toward the next sample along each axis: the slope of
+    the plane through the three (a 5-degree plane rising at 45 degrees to the axes was
+    3.5 degrees along either)."""
+    along_x = np.zeros_like(z)
+    along_x[:, :-1] = np.diff(z, axis=1) / h
+    along_y = np.zeros_like(z)
     if z.shape[0] > 1:
-        slopes[:-1, :] = np.maximum(slopes[:-1, :], np.abs(np.diff(z, axis=0)) / h)
-    return slopes
+        along_y[:-1, :] = np.diff(z, axis=0) / h
+    return np.hypot(along_x, along_y)
 
 
 def hidden_depths(surface: ContactSurface) -> np.ndarray:
@@ -333,7 +339,7 @@ def _plains(surface: ContactSurface, step: float) -> dict[str, Any]:
     most of the map shares where there are any (a share of the map of 1 % or more)."""
     level = plains(surface, step)
     tilt = dominant_slope(surface)
-    if _tilted(tilt):
+    if tilt != (0.0, 0.0):
         sloped = plains(surface, step, tilt)
         if np.mean(sloped) - np.mean(level) >= 0.01:
             return {"plains_share": float(np.mean(sloped)), "tilt": tilt}
@@ -375,10 +381,6 @@ def dominant_slope(surface: ContactSurface) -> tuple[float, float]:
     along_y = float(np.median(np.diff(c, axis=0))) / h if c.shape[0] > 1 else 0.0
     return along_x, along_y
 
-
-def _tilted(tilt: tuple[float, float]) -> bool:
-    """Whether a slope changes what a step reads by PLAIN_TOLERANCE of the step or more."""
-    return bool(np.hypot(*tilt) >= PLAIN_TOLERANCE)
 
 
 def _symmetries(surface: ContactSurface) -> dict[str, np.ndarray]:

@@ -164,19 +164,22 @@ def test_a_symmetry_says_whether_it_is_exact_or_broken_and_where():
     now says how much of the map its image differs on, by how much, and where most."""
     crate = check_map(load_map("eggcrate"), 0.008)
     half = _row(crate.symmetries, 2)
-    share, largest, _, _ = crate.symmetry_differences[half]
+    share, largest = crate.symmetry_differences[half, :2]
     assert share == 0 and largest <= 2e-4  # a periodic crate's half turn is exact
     assert "half turn (correlation 1.00 over 100% of the map; the same within 0.2 mm " \
            "throughout)" in "\n".join(crate.lines())
 
     pattern = check_map(load_map("pattern:20:1"), 0.008)  # four alike pockets, one chamfer
     quarter = _row(pattern.symmetries, 1)
-    share, largest, x, y = pattern.symmetry_differences[quarter]
+    share, largest, x, y, x_to, y_to = pattern.symmetry_differences[quarter]
     assert 0 < share < 0.02 and largest > 0.01  # only at a corner: the plate's whole rise
-    assert min(x, 0.2 - x) < 0.02 and min(y, 0.2 - y) < 0.02  # and a corner it is
+    corners = [(p, q) for p, q in ((x, y), (x_to, y_to)) if min(p, 0.2 - p) < 0.02
+               and min(q, 0.2 - q) < 0.02]
+    assert len(corners) == 2  # a corner and the corner the quarter turn brings it to
     assert (f"quarter turn (correlation {pattern.symmetry_strengths[quarter, 0]:.2f} over "
             f"100% of the map; the same within 0.2 mm but over {share:.1%} of it, by up to "
-            f"{largest * 1e3:.2f} mm, most at ({x * 1e3:.0f}, {y * 1e3:.0f}) mm)"
+            f"{largest * 1e3:.2f} mm, most between ({x * 1e3:.0f}, {y * 1e3:.0f}) and "
+            f"({x_to * 1e3:.0f}, {y_to * 1e3:.0f}) mm)"
             ) in "\n".join(pattern.lines())  # its three quarter turns are all it has: shown
 
     x = np.arange(201) * 0.001
@@ -194,6 +197,7 @@ def test_a_symmetry_says_whether_it_is_exact_or_broken_and_where():
     payload = check_map(HeightMap(boss, 0.001, "square boss"), 0.008).to_json()
     assert len(payload["symmetry_differ_share"]) == len(payload["symmetries"]) \
         == len(payload["symmetry_differ_by"]) == len(payload["symmetry_differ_at"])
+    assert np.shape(payload["symmetry_differ_at"][0]) == (2, 2)  # a place and its image
     narrow = check_map(HeightMap(np.tile(np.sin(np.arange(12) * 0.5) * 1e-3, (12, 1)),
                                  0.001, "narrow"), 0.005)  # no sample a tip's radius in
     unmeasured = narrow.to_json()["symmetry_differ_share"]
@@ -225,3 +229,12 @@ def test_plains_on_a_tilted_map_count_as_on_a_level_one():
     assert tilted.to_json()["tilt"] == pytest.approx([0.05, 0.02], abs=1e-3)
     curved = check_map(load_map("shell:20:0"), 0.008)  # sloped everywhere, evenly nowhere
     assert curved.tilt == (0.0, 0.0) and curved.plains_share < 0.01
+    # a held-out check's: a plane 0.6 degrees off level was 10 % plain (a 10 mm step reads
+    # 0.1 mm, but the window spans two steps), one at 1 degree 2 %; and a 5-degree plane
+    # rising at 45 degrees to the axes was "steepest 3.5 deg"
+    for degrees in (0.6, 1.0):
+        plane = check_map(HeightMap(np.tan(np.radians(degrees)) * xx, 0.001, "plane"), 0.008)
+        assert plane.plains_share == 1.0 and plane.tilt[0] > 0
+    diagonal = check_map(HeightMap(np.tan(np.radians(5.0)) * (xx + yy) / np.sqrt(2), 0.001,
+                                   "diagonal"), 0.008)
+    assert np.degrees(np.arctan(diagonal.steepest_slope)) == pytest.approx(5.0, abs=0.05)
