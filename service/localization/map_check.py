@@ -114,7 +114,7 @@ class MapReport:
             f"hidden     {self.hidden_share:.1%} of the area lies deeper than the "
             f"{self.radius * 1e3:g} mm tip reaches (by up to {self.hidden_depth * 1e3:.2f} mm)",
             f"plains     {self.plains_share:.1%} of the area: a {self.step * 1e3:g} mm step "
-            f"there reads under {PLAIN_TOLERANCE * self.step * 1e3:.2g} mm"
+            f"there reads under {PLAIN_TOLERANCE * self.step * 1e3:.3g} mm"
             + ("" if self.tilt == (0.0, 0.0) else
                " more than the map's overall tilt would "
                f"({np.degrees(np.arctan(np.hypot(*self.tilt))):.1f} deg, rising toward "
@@ -451,6 +451,12 @@ def _warnings(r: MapReport) -> list[str]:
         warnings.append(f"the tip's radius ({r.radius * 1e3:g} mm) spans under two samples "
                         f"({r.spacing * 1e3:g} mm apart): its contact model is coarse; use a "
                         "finer map")
+    shorter = x if r.is_profile else min(x, y)
+    if 2 * r.radius > shorter:
+        warnings.append(f"the tip ({2 * r.radius * 1e3:g} mm across) is wider than the map "
+                        f"({shorter * 1e3:g} mm): every contact height depends on ground "
+                        "beyond its edges, which it takes to continue the edge's heights; "
+                        "give a wider map or a smaller tip")
     if r.step < r.spacing:
         warnings.append(f"a step ({r.step * 1e3:g} mm) is shorter than the sample spacing "
                         f"({r.spacing * 1e3:g} mm)")

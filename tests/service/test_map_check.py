@@ -238,3 +238,13 @@ def test_plains_on_a_tilted_map_count_as_on_a_level_one():
     diagonal = check_map(HeightMap(np.tan(np.radians(5.0)) * (xx + yy) / np.sqrt(2), 0.001,
                                    "diagonal"), 0.008)
     assert np.degrees(np.arctan(diagonal.steepest_slope)) == pytest.approx(5.0, abs=0.05)
+
+
+def test_a_tip_wider_than_the_map_is_warned_of():
+    """A held-out check's: a 240 mm tip on a 200 mm map was taken without a word, though
+    every contact height then rests on ground the map does not have."""
+    z = np.zeros((201, 201))
+    z[90:110, 90:110] = 0.004
+    wide = check_map(HeightMap(z, 0.001, "plate"), 0.12)
+    assert warned(wide, "the tip (240 mm across) is wider than the map (200 mm)")
+    assert not warned(check_map(HeightMap(z, 0.001, "plate"), 0.008), "wider than the map")
