@@ -77,7 +77,7 @@ class MapReport:
 
     @functools.cached_property
     def symmetry_differences(self) -> np.ndarray:
-        """(S, 4) where each motion's image differs from the surface (`image_differences`).
+        """(S, 6) where each motion's image differs from the surface (`image_differences`).
         Measured only when the report is shown or written: a correlation cannot tell an
         exact symmetry from one a feature breaks."""
         if self.surface is None:
