@@ -85,6 +85,14 @@ class MapReport:
         return image_differences(self.surface, self.symmetries)
 
     @property
+    def _rising(self) -> str:
+        """Which way the map's overall tilt rises, in words."""
+        if self.is_profile:
+            return "rising along it" if self.tilt[0] > 0 else "falling along it"
+        toward = np.degrees(np.arctan2(self.tilt[1], self.tilt[0]))
+        return f"rising toward {toward:.0f} deg from its x axis"
+
+    @property
     def is_profile(self) -> bool:
         return self.shape[0] == 1
 
@@ -99,6 +107,7 @@ class MapReport:
         size = (f"profile {x * 1e3:g} mm long, {self.shape[1]} samples" if self.is_profile
                 else f"{x * 1e3:g} x {y * 1e3:g} mm, {self.shape[1]} x {self.shape[0]} samples")
         flat = hi - lo < FEATURE_TOLERANCE
+        area = "its length" if self.is_profile else "the area"
         feature = (("none (flat)" if flat else "none as steep as 1 in 4 for its width: "
                     "smooth, gently varying ground")
                    if self.smallest_feature is None else
@@ -111,15 +120,14 @@ class MapReport:
             f"slope      steepest {_degrees(self.steepest_slope)}, typical "
             f"{_degrees(self.typical_slope)} where not flat",
             f"features   smallest {feature}",
-            f"hidden     {self.hidden_share:.1%} of the area lies deeper than the "
+            f"hidden     {self.hidden_share:.1%} of {area} lies deeper than the "
             f"{self.radius * 1e3:g} mm tip reaches (by up to {self.hidden_depth * 1e3:.2f} mm)",
-            f"plains     {self.plains_share:.1%} of the area: a {self.step * 1e3:g} mm step "
+            f"plains     {self.plains_share:.1%} of {area}: a {self.step * 1e3:g} mm step "
             f"there reads under {PLAIN_TOLERANCE * self.step * 1e3:.3g} mm"
             + ("" if self.tilt == (0.0, 0.0) else
                " more than the map's overall tilt would "
-               f"({np.degrees(np.arctan(np.hypot(*self.tilt))):.1f} deg, rising toward "
-               f"{np.degrees(np.arctan2(self.tilt[1], self.tilt[0])):.0f} deg from its x "
-               "axis): there a step tells at most which way the slope runs"),
+               f"({np.degrees(np.arctan(np.hypot(*self.tilt))):.1f} deg, {self._rising}): "
+               "there a step tells at most which way the slope runs"),
             "symmetries " + describe_symmetries(
                 self.symmetries, self.symmetry_strengths, self.is_profile,
                 ((self.shape[1] - 1) * self.spacing, (self.shape[0] - 1) * self.spacing),

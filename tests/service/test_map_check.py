@@ -97,7 +97,8 @@ def test_a_flat_profile_like_a_flat_map_has_no_symmetry():
         report = check_map(HeightMap(heights, 0.001, name="flat"), 0.008)
         assert len(report.symmetries) == 0
         text = "\n".join(report.lines())
-        assert "symmetries none found" in text and "plains     100.0% of the area" in text
+        along = "its length" if report.is_profile else "the area"
+        assert "symmetries none found" in text and f"plains     100.0% of {along}" in text
     assert len(profile_symmetries(np.full(701, 0.02) + 3e-4 * (np.arange(701) == 350),
                                   0.001)) >= 1  # a bump 0.3 mm tall on it: a reversal
 
@@ -227,6 +228,9 @@ def test_plains_on_a_tilted_map_count_as_on_a_level_one():
     assert "more than the map's overall tilt would (3.1 deg, rising toward 22 deg" in plains_line
     assert "overall tilt" not in "\n".join(level.lines())
     assert tilted.to_json()["tilt"] == pytest.approx([0.05, 0.02], abs=1e-3)
+    ramp = check_map(HeightMap(0.02 * xx[:1], 0.001, "sloped profile"), 0.008)
+    assert "100.0% of its length" in "\n".join(ramp.lines())
+    assert "overall tilt would (1.1 deg, rising along it)" in "\n".join(ramp.lines())
     curved = check_map(load_map("shell:20:0"), 0.008)  # sloped everywhere, evenly nowhere
     assert curved.tilt == (0.0, 0.0) and curved.plains_share < 0.01
     # a held-out check's: a plane 0.6 degrees off level was 10 % plain (a 10 mm step reads
