@@ -456,9 +456,8 @@ class DxlBus:
         is clear, to time its own answer. Every servo answering in time says the host, not
         the bus, missed the cycles. It runs once, in the tick that latches the fault, after
         torque off has gone out."""
-        port = self._require()
+        self._require()  # a closed port is the caller's error, not a silent bus
         try:
-            port.budget_ms = SETUP_TIMEOUT_MS
             self._drain()  # the failed cycles' replies, already coming
             answered = self._ping_times(self.ids)
             half_cycle_ms = self.cycle_budget_s * 1e3 / 2  # what a cycle's read waits

@@ -42,16 +42,13 @@ class CommandHandlers:
         timing["localizer_p99_ms"], timing["localizer_max_ms"] = localizer["p99"], localizer["max"]
         scenario = self.config.scenario
         return {
-            "state": self.lifecycle.state.value, "fault": self.lifecycle.fault,
-            "exploring": bool(ex and ex.running), "phase": ex.phase.value if ex else "idle",
-            "episode": ex.episode if ex else 0,
+            **self._lifecycle_fields(),
             "configuring": self.reconf is not None, "configure_error": self.configure_error,
             "estimate": ex.estimate_fields() if ex and ex.estimate else None,
             "lease": {"holder": self.lease.holder_name,
                       "remaining_s": self.lease.remaining_s()},
             "timing": timing, "published": dict(self.pub.sent),
             "commands": {"handled": self.cmd.handled, "errors": self.cmd.errors},
-            "torque_on": bool(self.last_state and self.last_state.fingers[0].torque_on),
             "backend": self.config.backend.name, "map": self.config.scenario.map,
             "map_warnings": list(self.map_warnings),
             "backend_warnings": list(getattr(self.backend, "warnings", [])),

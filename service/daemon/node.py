@@ -336,18 +336,24 @@ class Node(CommandHandlers):
             self._timing_cache["localizer_p99_ms"] = self.localizer_work.summary_ms(
                 self.config.loop.stats_window)["p99"]
         s = self.last_state
-        ex = self.explorer
         self.pub.publish("state", "state", {
-            "state": self.lifecycle.state.value, "fault": self.lifecycle.fault,
+            **self._lifecycle_fields(),
             "fingers": [] if s is None else [
                 {"centre": list(f.centre), "joints": list(f.joints), "moving": f.moving,
                  "blocked": f.blocked} for f in s.fingers],
             "moving": bool(s and s.moving), "dropped": bool(s and s.dropped),
             "steps_done": 0 if s is None else s.fingers[0].steps_done,
-            "torque_on": bool(s and s.fingers[0].torque_on),
-            "exploring": bool(ex and ex.running), "phase": ex.phase.value if ex else "idle",
-            "episode": ex.episode if ex else 0, "lease_holder": self.lease.holder_name,
+            "lease_holder": self.lease.holder_name,
             "timing": self._timing_cache}, t_mono_ns=tick.start_ns)
+
+    def _lifecycle_fields(self) -> dict[str, Any]:
+        """What the stream's `state` and the `status` reply both say of the lifecycle and
+        the episode: one home, so the two never disagree."""
+        s, ex = self.last_state, self.explorer
+        return {"state": self.lifecycle.state.value, "fault": self.lifecycle.fault,
+                "exploring": bool(ex and ex.running),
+                "phase": ex.phase.value if ex else "idle", "episode": ex.episode if ex else 0,
+                "torque_on": bool(s and s.fingers[0].torque_on)}
 
     def _publish_cloud(self) -> None:
         cloud = self.explorer.cloud()

@@ -130,8 +130,7 @@ class MapReport:
                "there a step tells at most which way the slope runs"),
             "symmetries " + describe_symmetries(
                 self.symmetries, self.symmetry_strengths, self.is_profile,
-                ((self.shape[1] - 1) * self.spacing, (self.shape[0] - 1) * self.spacing),
-                self.symmetry_differences),
+                self.extent, self.symmetry_differences),
         ]
         return lines + [f"warning    {w}" for w in self.warnings]
 
@@ -345,10 +344,10 @@ def _smallest_feature(z: np.ndarray, h: float, widest: int) -> float | None:
 def _plains(surface: ContactSurface, step: float) -> dict[str, Any]:
     """The report's `plains_share` and `tilt`: the level plains, and those on the slope
     most of the map shares where there are any (a share of the map of 1 % or more)."""
-    level = plains(surface, step)
+    level = _even(surface, step, (0.0, 0.0))
     tilt = dominant_slope(surface)
     if tilt != (0.0, 0.0):
-        sloped = plains(surface, step, tilt)
+        sloped = level | _even(surface, step, tilt)
         if np.mean(sloped) - np.mean(level) >= 0.01:
             return {"plains_share": float(np.mean(sloped)), "tilt": tilt}
     return {"plains_share": float(np.mean(level)), "tilt": (0.0, 0.0)}
@@ -361,17 +360,22 @@ def plains(surface: ContactSurface, step: float, tilt: tuple[float, float] = (0.
     (rise over run along x and y): a step on an even slope reads that slope wherever it
     is, which tells where the finger is no better than a level plain does (a plate
     scanned 3 degrees off level was 0 % plain, the same plate level 88 %)."""
+    level = _even(surface, step, (0.0, 0.0))
+    return level if tilt == (0.0, 0.0) else level | _even(surface, step, tilt)
+
+
+def _even(surface: ContactSurface, step: float, tilt: tuple[float, float]) -> np.ndarray:
+    """Mask of the points within a step's reach of which the contact height departs from an
+    even slope of `tilt` by less than PLAIN_TOLERANCE of a step."""
     k = int(round(step / surface.map.spacing))
     size = (1, 2 * k + 1) if surface.map.is_profile else (2 * k + 1, 2 * k + 1)
     c = surface.centre_heights
-    flat = _span(c, size) < PLAIN_TOLERANCE * step
-    if tilt == (0.0, 0.0):
-        return flat
-    rows, cols = c.shape
-    h = surface.map.spacing
-    even = (tilt[0] * h * np.arange(cols)[np.newaxis, :]
-            + tilt[1] * h * np.arange(rows)[:, np.newaxis])
-    return flat | (_span(c - even, size) < PLAIN_TOLERANCE * step)
+    if tilt != (0.0, 0.0):
+        rows, cols = c.shape
+        h = surface.map.spacing
+        c = c - (tilt[0] * h * np.arange(cols)[np.newaxis, :]
+                 + tilt[1] * h * np.arange(rows)[:, np.newaxis])
+    return _span(c, size) < PLAIN_TOLERANCE * step
 
 
 def _span(c: np.ndarray, size: tuple[int, int]) -> np.ndarray:

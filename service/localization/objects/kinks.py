@@ -28,6 +28,7 @@ import shapely
 from scipy.spatial import cKDTree
 
 from service.localization.memo import kept
+from service.localization.models import rotate
 from service.localization.objects.contour import Contour
 
 ANGLE = np.deg2rad(6.0)
@@ -93,21 +94,18 @@ def beside(contour: Contour, poses: np.ndarray, centres: np.ndarray, radii: np.n
     `poses` (B, 3) and `centres` (B, n, 2), and the kink's three normals (m, 3, 2) turned
     into the hand frame by the row's pose."""
     rows, fingers, normals = [], [], []
-    c, s = np.cos(poses[:, 2]), np.sin(poses[:, 2])
     for f, radius in enumerate(radii):
         found = kinks(contour, float(radius))
         if found.tree is None:
             continue
         w = centres[:, f] - poses[:, :2]
-        local = np.column_stack([c * w[:, 0] + s * w[:, 1], -s * w[:, 0] + c * w[:, 1]])
+        local = np.column_stack(rotate(-poses[:, 2], w[:, 0], w[:, 1]))
         distance, k = found.tree.query(local, distance_upper_bound=reach)
         near = np.flatnonzero(np.isfinite(distance))
         if len(near) == 0:
             continue
         n = found.normals[k[near]]  # (m, 3, 2), object frame
-        cn, sn = c[near, None], s[near, None]
-        normals.append(np.stack([cn * n[..., 0] - sn * n[..., 1],
-                                 sn * n[..., 0] + cn * n[..., 1]], axis=-1))
+        normals.append(np.stack(rotate(poses[near, 2, None], n[..., 0], n[..., 1]), axis=-1))
         rows.append(near)
         fingers.append(np.full(len(near), f))
     if not rows:
