@@ -1,10 +1,12 @@
 """The Dynamixel bus driver: dynamixel-sdk (Protocol 2.0) with the fixes of `sdk_fixes`.
 
 One control cycle is one Sync Read (Fast Sync Read where every servo supports it, falling
-back to Sync Read) of Present Current, Velocity and Position, plus one Sync Write of goal
-positions. Packet timeouts are bounded by the cycle budget; waiting sleeps in select().
-Consecutive failed cycles are tolerated up to `failure_tolerance`, then the bus latches a
-fault and turns torque off; `reset()` recovers it.
+back to Sync Read) of Present Current, Velocity and Position and each servo's clock, plus one
+Sync Write of goal positions. Packet timeouts are bounded by the cycle budget; waiting sleeps
+in select(). A reply the servo made before the cycle asked (a late answer to an earlier
+cycle, `reply_age`) fails the cycle as a timeout does. Consecutive failed cycles are
+tolerated up to `failure_tolerance`, then the bus latches a fault and turns torque off;
+`reset()` recovers it.
 
 Every SDK call goes through `_sdk`: an error of the port itself (OSError with EIO when the
 adapter is unplugged or the emulator stops, termios.error from tcflush, SerialException)
@@ -35,6 +37,7 @@ from firmware_if.errors import (
     HardwareFault,
     NotReadyError,
     PortLost,
+    StaleReplyError,
 )
 from firmware_if.packets import INST_PING, PacketError, first_damaged, packet, split_fast_read
 from firmware_if.registers import (
@@ -45,6 +48,7 @@ from firmware_if.registers import (
     describe_hardware_error,
     describe_status_error,
 )
+from firmware_if.reply_age import ReplyAges
 from firmware_if.sdk_fixes import (
     PING_ANSWER_LENGTH,
     FixedPacketHandler,
@@ -100,6 +104,8 @@ class ServoReading:
     current: int
     error: int
     """Error byte of its status (bit 7: hardware alert)."""
+    tick: int = 0
+    """Its Realtime Tick when it answered (ms, wrapping at 32768)."""
 
 
 @dataclass
@@ -131,6 +137,11 @@ class DxlBus:
         """Torque was last switched on (and no fault has switched it off since)."""
         self._port: PacedPortHandler | None = None
         self._ph = FixedPacketHandler()
+        self._ages = ReplyAges(stale_ms=max(2.0, cycle_budget_s * 1e3 / 2))
+        """Each servo's clock against ours: a reply a cycle's read waits for no longer is
+        one made for an earlier read."""
+        self._asked_ns = 0
+        """When the latest sync read went out (monotonic)."""
 
     # -- lifecycle -----------------------------------------------------------------------
     def open(self) -> None:
@@ -145,6 +156,7 @@ class DxlBus:
         self._port = port
         self.stats = BusStats()
         self.fault = None
+        self._ages.forget()
 
     def close(self) -> None:
         """Torque off (best effort) and release the port. Safe to call twice."""
@@ -291,11 +303,26 @@ class DxlBus:
             fast = fast and info[1] >= FAST_READ_MIN_FIRMWARE
         if fast:
             try:
-                self._fast_sync_read()
+                self._anchor(self._fast_sync_read())
             except CommunicationError:
                 fast = False
         self.stats.fast_read = fast
+        if not fast:
+            self._anchor()
         return fast
+
+    def _anchor(self, readings: dict[int, ServoReading] | None = None) -> None:
+        """Take each servo's clock against ours from a read outside the control cycle (it
+        waits the setup's timeout and settles: its replies are its own), `readings` if
+        given; best effort: a servo missed here is anchored by its first cycle's reply."""
+        self._ages.forget()
+        if readings is None:
+            try:
+                readings = self._fast_sync_read() if self.stats.fast_read else self._sync_read()
+            except CommunicationError:
+                return
+        for sid, reading in readings.items():
+            self._ages.anchor(sid, reading.tick, self._asked_ns)
 
     def torque(self, on: bool, *, best_effort: bool = False) -> None:
         """Torque on or off for every servo (one Sync Write)."""
@@ -331,6 +358,7 @@ class DxlBus:
         try:
             with self._cycle_timing():
                 readings = self._fast_sync_read() if self.stats.fast_read else self._sync_read()
+            self._fresh(readings)
         except CommunicationError as exc:
             self.stats.failures += 1
             self.stats.consecutive_failures += 1
@@ -358,6 +386,18 @@ class DxlBus:
         self.stats.last_cycle_ns = time.monotonic_ns() - t0
         return readings
 
+    def _fresh(self, readings: dict[int, ServoReading]) -> None:
+        """Raise StaleReplyError if a reply was made before this cycle asked for it."""
+        ages = {sid: self._ages.age_ms(sid, r.tick, self._asked_ns)
+                for sid, r in readings.items()}
+        stale = {sid: age for sid, age in ages.items() if age > self._ages.stale_ms}
+        if stale:
+            told = ", ".join(f"servo {sid}'s {age:.0f} ms" for sid, age in stale.items())
+            raise StaleReplyError(
+                f"{'fast ' if self.stats.fast_read else ''}sync read: replies made before "
+                f"the read asked ({told} before): late answers to an earlier cycle",
+                tuple(stale))
+
     def write_goals(self, goals: dict[int, int]) -> None:
         writer = GroupSyncWrite(self._require(), self._ph, REG["goal_position"].address, 4)
         for sid, ticks in goals.items():
@@ -371,6 +411,7 @@ class DxlBus:
         port = self._require()
         result = self._sdk("sync read", self._ph.syncReadTx, port, SYNC_READ_START,
                            SYNC_READ_LENGTH, list(self.ids), len(self.ids), False)
+        self._asked_ns = time.monotonic_ns()  # after it went out: a reply is never older
         if result != COMM_SUCCESS:
             raise CommunicationError(f"sync read: {self._ph.getTxRxResult(result)}", self.ids)
         out = {}
@@ -387,6 +428,7 @@ class DxlBus:
         port = self._require()
         result = self._sdk("fast sync read", self._ph.syncReadTx, port, SYNC_READ_START,
                            SYNC_READ_LENGTH, list(self.ids), len(self.ids), True)
+        self._asked_ns = time.monotonic_ns()  # after it went out: a reply is never older
         if result != COMM_SUCCESS:
             raise CommunicationError(f"fast sync read: {self._ph.getTxRxResult(result)}",
                                      self.ids)
@@ -547,6 +589,7 @@ class DxlBus:
                 pass
         self.fault = None
         self.stats.consecutive_failures = 0
+        self._anchor()  # a rebooted servo's clock starts again
         return rebooted
 
 
@@ -582,7 +625,8 @@ def _reading(data: bytes, error: int) -> ServoReading:
         position=REG["present_position"].decode(data[132 - base:136 - base]),
         velocity=REG["present_velocity"].decode(data[128 - base:132 - base]),
         current=REG["present_current"].decode(data[126 - base:128 - base]),
-        error=error)
+        error=error,
+        tick=REG["realtime_tick"].decode(data[120 - base:122 - base]))
 
 
 __all__ = ["BROADCAST_ID", "BusStats", "DxlBus", "ServoReading"]

@@ -24,6 +24,11 @@ class BusTimeoutError(CommunicationError):
     """No (complete) status packet arrived before the deadline."""
 
 
+class StaleReplyError(BusTimeoutError):
+    """A reply came, but made before it was asked for: a late answer to an earlier read
+    (its own is late in turn)."""
+
+
 class HardwareFault(FirmwareError):
     """A servo reports a hardware error, or the bus failed too often: torque off, reset needed."""
 

@@ -155,9 +155,11 @@ def by_name(table: tuple[Register, ...] = XM430_W350) -> dict[str, Register]:
 REG = by_name()
 """The XM430-W350 registers by name: REG['present_position'].address == 132."""
 
-SYNC_READ_START = REG["present_current"].address
-SYNC_READ_LENGTH = 10
-"""One cycle reads Present Current, Velocity and Position (126..135) in one block."""
+SYNC_READ_START = REG["realtime_tick"].address
+SYNC_READ_LENGTH = 16
+"""One cycle reads Realtime Tick through Present Position (120..135) in one block: the
+current, velocity and position, and the servo's clock, which tells a late reply to an
+earlier cycle from this one's (`reply_age`)."""
 
 
 # -- conversions (pure; ticks are raw register values) ---------------------------------------

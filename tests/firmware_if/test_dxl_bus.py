@@ -170,6 +170,37 @@ def test_a_late_reply_is_a_timeout_within_the_budget(emulator, bus):
     bus.cycle()  # the stale reply is flushed; the next cycle is clean
 
 
+def test_a_servo_a_cycle_late_latches_a_fault_and_its_late_replies_are_never_readings(
+        emulator, bus):
+    """A late reply lands in the next cycle's window and read as that cycle's answer (status
+    packets carry no sequence number): a servo a cycle late gave a cycle-old position about
+    25 cycles running, and the fault latched only when two timeouts met (a fault campaign
+    saw one never latch). Each reply's Realtime Tick now dates it: a reply made more than
+    half a cycle before its read asked fails the cycle."""
+    bus.torque(True)
+    emulator.fault(2).late_s = bus.cycle_budget_s  # a read waits half of it
+    half_cycle_ms = bus.cycle_budget_s * 1e3 / 2
+    fault = None
+    deadline = time.monotonic()
+    for _ in range(10):
+        deadline += bus.cycle_budget_s
+        asked_ms = time.monotonic_ns() // 1_000_000  # the emulator's clock is ours
+        try:
+            readings = bus.cycle()
+        except CommunicationError:
+            pass
+        except HardwareFault as exc:
+            fault = exc
+            break
+        else:
+            for reading in readings.values():  # made after the read asked, to the tick
+                assert (asked_ms - reading.tick) % 32768 <= half_cycle_ms + 1, readings
+        time.sleep(max(0.0, deadline - time.monotonic()))  # hapticd's pace, not a wait
+    assert fault is not None, "10 cycles with a servo a cycle late, and no fault"
+    assert re.search(r"servos? (\d, )*2(, \d)* answers? a ping only after \d+ ms", str(fault))
+    assert emulator.wait_until(lambda: not any(s.torque_on for s in emulator.servos.values()))
+
+
 def test_a_single_read_or_write_outlives_missed_replies_but_not_a_silent_servo(emulator,
                                                                                bus):
     emulator.fault(2).drop = 2  # two replies miss their window; the third comes

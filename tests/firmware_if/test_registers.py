@@ -19,7 +19,7 @@ def test_key_items_of_the_xm430_w350():
     assert (reg["goal_position"].address, reg["goal_position"].size) == (116, 4)
     assert (reg["present_position"].address, reg["present_position"].size) == (132, 4)
     assert reg["return_delay_time"].eeprom and reg["return_delay_time"].initial == 250
-    assert r.SYNC_READ_START == 126 and r.SYNC_READ_LENGTH == 10
+    assert r.SYNC_READ_START == 120 and r.SYNC_READ_LENGTH == 16
 
 
 def test_items_do_not_overlap():
