@@ -140,8 +140,9 @@ class DxlBus:
         self._ages = ReplyAges(stale_ms=max(2.0, cycle_budget_s * 1e3 / 2))
         """Each servo's clock against ours: a reply a cycle's read waits for no longer is
         one made for an earlier read."""
-        self._asked_ns = 0
-        """When the latest sync read went out (monotonic)."""
+        self._asked_ns = self._received_ns = 0
+        """When the latest sync read began to go out, and when its replies were in
+        (monotonic)."""
 
     # -- lifecycle -----------------------------------------------------------------------
     def open(self) -> None:
@@ -312,9 +313,10 @@ class DxlBus:
         return fast
 
     def _anchor(self, readings: dict[int, ServoReading] | None = None) -> None:
-        """Take each servo's clock against ours from a read outside the control cycle (it
-        waits the setup's timeout and settles: its replies are its own), `readings` if
-        given; best effort: a servo missed here is anchored by its first cycle's reply."""
+        """Take each servo's clock against ours afresh from a read outside the control
+        cycle (patient, so likely prompt: the floor is tightest from a reply that came at
+        once), `readings` if given; best effort: a servo missed here is dated from its
+        first cycle's reply on."""
         self._ages.forget()
         if readings is None:
             try:
@@ -322,7 +324,7 @@ class DxlBus:
             except CommunicationError:
                 return
         for sid, reading in readings.items():
-            self._ages.anchor(sid, reading.tick, self._asked_ns)
+            self._ages.age_ms(sid, reading.tick, self._asked_ns, self._received_ns)
 
     def torque(self, on: bool, *, best_effort: bool = False) -> None:
         """Torque on or off for every servo (one Sync Write)."""
@@ -388,7 +390,7 @@ class DxlBus:
 
     def _fresh(self, readings: dict[int, ServoReading]) -> None:
         """Raise StaleReplyError if a reply was made before this cycle asked for it."""
-        ages = {sid: self._ages.age_ms(sid, r.tick, self._asked_ns)
+        ages = {sid: self._ages.age_ms(sid, r.tick, self._asked_ns, self._received_ns)
                 for sid, r in readings.items()}
         stale = {sid: age for sid, age in ages.items() if age > self._ages.stale_ms}
         if stale:
@@ -409,9 +411,9 @@ class DxlBus:
 
     def _sync_read(self) -> dict[int, ServoReading]:
         port = self._require()
+        self._asked_ns = time.monotonic_ns()  # as it goes out: its own replies are younger
         result = self._sdk("sync read", self._ph.syncReadTx, port, SYNC_READ_START,
                            SYNC_READ_LENGTH, list(self.ids), len(self.ids), False)
-        self._asked_ns = time.monotonic_ns()  # after it went out: a reply is never older
         if result != COMM_SUCCESS:
             raise CommunicationError(f"sync read: {self._ph.getTxRxResult(result)}", self.ids)
         out = {}
@@ -422,13 +424,14 @@ class DxlBus:
                 cls = BusTimeoutError if result in _TIMEOUT_RESULTS else CommunicationError
                 raise cls(f"sync read: servo {sid}: {self._ph.getTxRxResult(result)}", (sid,))
             out[sid] = _reading(bytes(data), error)
+        self._received_ns = time.monotonic_ns()
         return out
 
     def _fast_sync_read(self) -> dict[int, ServoReading]:
         port = self._require()
+        self._asked_ns = time.monotonic_ns()  # as it goes out: its own replies are younger
         result = self._sdk("fast sync read", self._ph.syncReadTx, port, SYNC_READ_START,
                            SYNC_READ_LENGTH, list(self.ids), len(self.ids), True)
-        self._asked_ns = time.monotonic_ns()  # after it went out: a reply is never older
         if result != COMM_SUCCESS:
             raise CommunicationError(f"fast sync read: {self._ph.getTxRxResult(result)}",
                                      self.ids)
@@ -440,6 +443,7 @@ class DxlBus:
             where = "" if damaged is None else f" (damaged from servo {damaged}'s part on)"
             raise cls(f"fast sync read: {self._ph.getTxRxResult(result)}{where}",
                       self.ids if damaged is None else (damaged,), bytes(rx))
+        self._received_ns = time.monotonic_ns()
         try:
             decoded = split_fast_read(bytes(rx), parts)
         except PacketError as exc:
