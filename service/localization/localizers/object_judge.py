@@ -192,12 +192,14 @@ class ObjectTracks:
 
 
 def to_object(points: np.ndarray, pose: np.ndarray) -> np.ndarray:
+    """Points (n, 2) of the hand plane in the frame of an object at `pose` (3,)."""
     c, s = np.cos(pose[2]), np.sin(pose[2])
     w = np.asarray(points) - pose[:2]
     return np.column_stack([c * w[:, 0] + s * w[:, 1], -s * w[:, 0] + c * w[:, 1]])
 
 
 def from_object(points: np.ndarray, pose: np.ndarray) -> np.ndarray:
+    """Points (n, 2) of an object at `pose` (3,) in the hand plane: `to_object` undone."""
     c, s = np.cos(pose[2]), np.sin(pose[2])
     return np.column_stack([c * points[:, 0] - s * points[:, 1] + pose[0],
                             s * points[:, 0] + c * points[:, 1] + pose[1]])

@@ -66,6 +66,7 @@ from service.localization import chain_kernels
 from service.localization.grasp import GraspSpec, hand_quality
 from service.localization.localizers.base import Hypotheses
 from service.localization.localizers.convergence import distinct
+from service.localization.localizers.object_judge import to_object
 from service.localization.objects import kinks, rolling
 from service.localization.objects.field import ContactField
 from service.localization.policies.info_gain import information
@@ -465,13 +466,13 @@ class GraspGatedPolicy:
 
     # -- felt contour ----------------------------------------------------------------------
     def _remember(self, centres: np.ndarray, lead: np.ndarray) -> None:
-        self._felt.extend(_object_frame(centres, lead))
+        self._felt.extend(to_object(centres, lead))
 
     def _novel(self, centre: np.ndarray, pose: np.ndarray) -> float:
         """1 if the fingertip at `centre` (1, 2) under `pose` is on contour not felt yet."""
         if not self._felt:
             return 1.0
-        local = _object_frame(centre, pose)[0]
+        local = to_object(centre, pose)[0]
         felt = np.asarray(self._felt)
         return float(np.min(np.hypot(*(felt - local).T)) > FELT)
 
@@ -575,8 +576,3 @@ def _ambiguous(poses: np.ndarray, weights: np.ndarray) -> bool:
         np.abs(np.angle(np.exp(1j * (poses[:, 2] - poses[0, 2])))) > MODE_CELL[1])
     return bool(np.any(far & (weights >= 1e-3 * weights[0])))
 
-
-def _object_frame(points: np.ndarray, pose: np.ndarray) -> np.ndarray:
-    c, s = np.cos(pose[2]), np.sin(pose[2])
-    w = np.asarray(points) - pose[:2]
-    return np.column_stack([c * w[:, 0] + s * w[:, 1], -s * w[:, 0] + c * w[:, 1]])
