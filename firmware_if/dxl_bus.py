@@ -394,10 +394,10 @@ class DxlBus:
                 for sid, r in readings.items()}
         stale = {sid: age for sid, age in ages.items() if age > self._ages.stale_ms}
         if stale:
-            told = ", ".join(f"servo {sid}'s {age:.0f} ms" for sid, age in stale.items())
+            told = ", ".join(f"servo {sid}: {age:.0f} ms" for sid, age in stale.items())
             raise StaleReplyError(
                 f"{'fast ' if self.stats.fast_read else ''}sync read: replies made before "
-                f"the read asked ({told} before): late answers to an earlier cycle",
+                f"the read asked for them ({told} before): late answers to an earlier cycle",
                 tuple(stale))
 
     def write_goals(self, goals: dict[int, int]) -> None:
