@@ -48,7 +48,7 @@ from firmware_if.registers import (
     describe_hardware_error,
     describe_status_error,
 )
-from firmware_if.reply_age import ReplyAges
+from firmware_if.reply_age import STALE_MS, ReplyAges
 from firmware_if.sdk_fixes import (
     PING_ANSWER_LENGTH,
     FixedPacketHandler,
@@ -137,9 +137,8 @@ class DxlBus:
         """Torque was last switched on (and no fault has switched it off since)."""
         self._port: PacedPortHandler | None = None
         self._ph = FixedPacketHandler()
-        self._ages = ReplyAges(stale_ms=max(2.0, cycle_budget_s * 1e3 / 2))
-        """Each servo's clock against ours: a reply a cycle's read waits for no longer is
-        one made for an earlier read."""
+        self._ages = ReplyAges()
+        """Each servo's clock against ours: dates replies (`_fresh`)."""
         self._asked_ns = self._received_ns = 0
         """When the latest sync read began to go out, and when its replies were in
         (monotonic)."""
@@ -392,7 +391,7 @@ class DxlBus:
         """Raise StaleReplyError if a reply was made before this cycle asked for it."""
         ages = {sid: self._ages.age_ms(sid, r.tick, self._asked_ns, self._received_ns)
                 for sid, r in readings.items()}
-        stale = {sid: age for sid, age in ages.items() if age > self._ages.stale_ms}
+        stale = {sid: age for sid, age in ages.items() if age > STALE_MS}
         if stale:
             told = ", ".join(f"servo {sid}: {age:.0f} ms" for sid, age in stale.items())
             raise StaleReplyError(

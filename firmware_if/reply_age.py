@@ -17,6 +17,12 @@ from __future__ import annotations
 
 TICK_WRAP = 32768
 """Realtime Tick counts milliseconds from 0 to 32767, then starts again."""
+STALE_MS = 2.0
+"""Age from which a reply was surely made for an earlier read: its own is dated at most
+the tick's millisecond before its read began (the floor only ever makes a reply look
+younger), so twice that. A fixed bar, not a share of the cycle: a loop faster than its
+read's wait took a reply 6 ms late, a cycle old at 200 Hz, as fresh for seconds on end
+when the bar was half the budget (5 ms), a held-out campaign's finding."""
 DRIFT = 0.02
 """Share of the time since the floor was set by which a servo's clock may have fallen behind
 ours: the floor gives way that fast. Generous (a crystal keeps 50 ppm): a late reply is a
@@ -37,9 +43,7 @@ def _wrapped(ms: float) -> float:
 class ReplyAges:
     """Each servo's clock against the host's: the least it can read, from every reply."""
 
-    def __init__(self, stale_ms: float) -> None:
-        self.stale_ms = stale_ms
-        """Age from which a reply is a late answer to an earlier read, not this one's."""
+    def __init__(self) -> None:
         self._floors: dict[int, tuple[float, float]] = {}
         """Servo id -> (the least its tick minus our clock can be, in ms; our clock when it
         was set)."""
@@ -50,9 +54,10 @@ class ReplyAges:
 
     def age_ms(self, servo_id: int, tick: int, asked_ns: int, received_ns: int) -> float:
         """The least time by which the servo made this reply before its read was asked (ms,
-        0 if it may have been made after): 0 for the read's own reply, about a cycle for a
-        late reply to the read before. `asked_ns` is our clock (monotonic) as the read began
-        to go out, `received_ns` once its reply was in. The reply raises the servo's floor."""
+        0 if it may have been made after): at most the tick's millisecond for the read's own
+        reply, about a cycle for a late reply to the read before (over `STALE_MS`: stale).
+        `asked_ns` is our clock (monotonic) as the read began to go out, `received_ns` once
+        its reply was in. The reply raises the servo's floor."""
         asked, received = asked_ns / 1e6, received_ns / 1e6
         arrived = tick - received  # the servo's clock, less ours, is at least this
         floor = self._floors.get(servo_id)

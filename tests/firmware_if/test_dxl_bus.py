@@ -170,20 +170,23 @@ def test_a_late_reply_is_a_timeout_within_the_budget(emulator, bus):
     bus.cycle()  # the stale reply is flushed; the next cycle is clean
 
 
+@pytest.mark.parametrize("period_s, late_s", [(0.01, 0.01), (0.005, 0.006)])
 def test_a_servo_a_cycle_late_latches_a_fault_and_its_late_replies_are_never_readings(
-        emulator, bus):
+        emulator, bus, period_s, late_s):
     """A late reply lands in the next cycle's window and read as that cycle's answer (status
     packets carry no sequence number): a servo a cycle late gave a cycle-old position about
     25 cycles running, and the fault latched only when two timeouts met (a fault campaign
-    saw one never latch). Each reply's Realtime Tick now dates it: a reply made more than
-    half a cycle before its read asked fails the cycle."""
+    saw one never latch). Each reply's Realtime Tick now dates it: a reply made before its
+    read was asked fails the cycle. At 200 Hz a read waits the whole period (half the
+    budget): a servo 6 ms late was taken a cycle old for seconds by a bar of half the
+    budget (a held-out campaign on the two-finger hand)."""
     bus.torque(True)
-    emulator.fault(2).late_s = bus.cycle_budget_s  # a read waits half of it
+    emulator.fault(2).late_s = late_s
     half_cycle_ms = bus.cycle_budget_s * 1e3 / 2
     fault = None
     deadline = time.monotonic()
     for _ in range(10):
-        deadline += bus.cycle_budget_s
+        deadline += period_s
         asked_ms = time.monotonic_ns() // 1_000_000  # the emulator's clock is ours
         try:
             readings = bus.cycle()
