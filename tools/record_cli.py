@@ -227,7 +227,8 @@ def episodes_from(events: list[wire.Message]) -> dict[int, dict[str, Any]]:
             episodes[eid]["steps"].append({k: v for k, v in ev.body.items()
                                            if k not in ("event", "episode")})
         elif eid in episodes and name == "episode_done":
-            episodes[eid].update(_outcome(episodes[eid], ev.body), complete=True)
+            episodes[eid].update(_outcome(episodes[eid], ev.body), complete=True,
+                                 ended=ev.get("reason"))
     for ep in episodes.values():
         if not ep["complete"]:
             ep.update(_outcome(ep, _last_belief(ep)))
@@ -248,7 +249,8 @@ def _outcome(ep: dict[str, Any], done: dict[str, Any]) -> dict[str, Any]:
     estimate = None if pose is None else {
         "x": pose[0], "y": pose[1], "heading": pose[2], "candidates": done["candidates"],
         **{k: done.get(k) for k in ("position_sd", "heading_sd", "mode_mass")}}
-    out = {"estimate": estimate, "converged": bool(done.get("converged")), "success": None,
+    out = {"estimate": estimate, "converged": bool(done.get("converged")), "ended": None,
+           "success": None,
            "wrong_declaration": None, "position_error": None, "heading_error": None,
            "true_pose_eliminated": done.get("true_pose_eliminated")}
     if ep["truth"] is not None and ep["settings"] is not None:

@@ -57,6 +57,16 @@ class EpisodeResult:
     def converged(self) -> bool:
         return bool(self.estimate and self.estimate.converged)
 
+    @property
+    def ended(self) -> str:
+        """Why the episode ended, in the words of the daemon's `episode_done` reason:
+        `converged`, `eliminated` (no hypothesis left) or `out_of_steps`."""
+        if self.converged:
+            return "converged"
+        if self.estimate is None or self.estimate.candidates == 0:
+            return "eliminated"
+        return "out_of_steps"
+
 
 def execute_step(backend: Backend, step: StepCommand, timeout_s: float = 10.0) -> FingerState:
     """Command a step and poll until the backend reports it finished."""

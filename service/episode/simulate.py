@@ -53,6 +53,7 @@ class EpisodeReport:
                 "heading_sd": _num(est.heading_sd), "mode_mass": _num(est.mode_mass),
             },
             "converged": self.result.converged,
+            "ended": self.result.ended,
             "success": self.score.success,
             "wrong_declaration": self.score.wrong_declaration,
             "position_error": self.score.position_error,

@@ -141,6 +141,21 @@ def test_export_writes_the_finger_episodes_of_a_recording_that_also_holds_a_hand
     assert "episode 4 in" in capsys.readouterr().err
 
 
+def test_an_exported_episode_says_how_it_ended(tmp_path: Path, capsys) -> None:
+    """A held-out fault campaign: an episode a servo's fault cut short was exported like one
+    that ran out of steps (nothing said why it ended). `ended` is the `episode_done`
+    reason, and null for an episode the recording ended before it did."""
+    rec = tmp_path / "cut.hrec"
+    done = {"episode": 3, "steps": 1, "converged": False, "reason": "fault",
+            "pose": [0.1, 0.1, 0.0], "candidates": 900}
+    write_hrec(rec, [*FINGER_EPISODE_3, ("episode_done", done),
+                     ("episode_started", {**FINGER_EPISODE_3[0][1], "episode": 5})])
+    assert main(["export", str(rec), "--json", "-"]) == 0
+    cut, unfinished = json.loads(capsys.readouterr().out)
+    assert (cut["ended"], cut["converged"]) == ("fault", False)
+    assert unfinished["ended"] is None
+
+
 def test_view_draws_the_last_finger_episode_of_a_recording_that_ends_with_a_hand(
         tmp_path: Path, capsys) -> None:
     """Recorded without the daemon's config, a finger's episode on peaks then a hand's: the
