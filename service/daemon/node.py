@@ -53,7 +53,10 @@ class Node(CommandHandlers):
         self.lifecycle = Lifecycle()
         self.ready = threading.Event()
         """Set once serving and the start-up configure has finished (or failed)."""
-        self._stop = threading.Event()
+        self._stopping = False
+        """Set by `stop`: a plain flag, not a threading.Event, whose lock a signal handler
+        may not take (two SIGTERMs at once, as `pkill -f` sends to `timeout` and to us: the
+        second handler ran inside the first's Event.set and waited on its lock for ever)."""
         self._settled = False
         """Whether the first episode's long-lived objects have been frozen (`gc.freeze`)."""
         self.endpoints: dict[str, str] = {}
@@ -119,7 +122,7 @@ class Node(CommandHandlers):
             # when the other core is busy) in calls as small as a 20,000-vector product
             threadpool_limits(limits=1)
             self._apply_priority()
-            self.loop.run(self._stop.is_set)
+            self.loop.run(self._stopped)
         except BaseException as exc:
             self.error = exc
             raise
@@ -147,12 +150,15 @@ class Node(CommandHandlers):
         self.ready.set()
 
     def stop(self) -> None:
-        """Ask the loop to finish (thread- and signal-safe)."""
-        self._stop.set()
+        """Ask the loop to finish (from any thread, or a signal handler: it takes no lock)."""
+        self._stopping = True
+
+    def _stopped(self) -> bool:
+        return self._stopping
 
     def _wait(self, until_ns: int) -> None:
         """Wait for the next deadline, answering requests as they arrive."""
-        while not self._stop.is_set():
+        while not self._stopping:
             left_ms = (until_ns - time.monotonic_ns()) / 1e6
             if left_ms <= 0:
                 return

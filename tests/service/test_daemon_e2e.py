@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 from service.daemon.harness import loopback_config, running_node
+from service.daemon.node import Node
 from service.episode.scenario import RunSettings, draw_truth, surface_for
 from service.wire.client import Client, Subscriber
 from service.wire.envelope import Message
@@ -213,3 +214,25 @@ def test_a_shutdown_mid_episode_ends_the_episode_and_says_torque_is_off() -> Non
     assert len(done) == 1 and seen[done[0]]["reason"] == "shutdown"
     last_state = [m for m in seen[done[0]:] if m.topic == "state"][-1]
     assert not last_state["torque_on"] and not last_state["exploring"]
+
+
+def test_stop_takes_no_lock_so_a_signal_may_land_inside_another() -> None:
+    """`hapticd` stops from its SIGTERM handler. `pkill -f hapticd` under `timeout` sends
+    SIGTERM to both, and `timeout` passes its own on: the second handler ran inside the
+    first's `threading.Event.set`, waited on the lock the first held, and the daemon hung for
+    good (a held-out soak's daemon, twice; `py-spy dump`: five handlers deep, each in
+    `Condition.__enter__`). A handler that takes no lock cannot wait on itself."""
+    node = Node(loopback_config({}))
+    entered: list[str] = []
+
+    def profile(frame: object, event: str, arg: object) -> None:
+        if event == "c_call" and getattr(arg, "__name__", "") in ("acquire", "__enter__"):
+            entered.append(repr(arg))
+
+    sys.setprofile(profile)
+    try:
+        node.stop()
+    finally:
+        sys.setprofile(None)
+    assert entered == []
+    assert node._stopped()
