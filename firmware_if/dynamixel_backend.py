@@ -141,13 +141,17 @@ class DynamixelBackend(HandOfOne):
             self.bus.close()
             raise
 
-    def _set_up(self) -> None:
+    def _set_up(self, *, look_for_strangers: bool = True) -> None:
         """Torque off, every servo configured and checked, fast reads detected, first read;
-        servos on the bus that the hand does not use are a warning (`warnings`)."""
+        servos on the bus that the hand does not use are a warning (`warnings`). A reset
+        keeps the warning its opening gave: the look pings 32 ids and waits a timeout for
+        each that is not there, 0.8 s during which `hapticd`'s loop published nothing."""
         self.bus.torque(False)
         self._settings_hold()
         self.bus.detect_fast_read()
         self._state = self._tolerant_read()
+        if not look_for_strangers:
+            return
         strangers = self._strangers()
         self.warnings = [strangers] if strangers else []
         for warning in self.warnings:  # `haptic run` shows it on stderr, hapticd in its log
@@ -216,7 +220,7 @@ class DynamixelBackend(HandOfOne):
             try:
                 self.bus.reopen()
                 rebooted += self.bus.reset()
-                self._set_up()
+                self._set_up(look_for_strangers=False)
                 break
             except FirmwareError as exc:
                 self.bus.close()
