@@ -76,6 +76,13 @@ def _centre_and_jacobian(hand: Chain, qb: np.ndarray) -> tuple[np.ndarray, np.nd
     return centre, np.cross(axes, centre[:, None, :] - positions).transpose(0, 2, 1)
 
 
+STALLED = 1e-9
+"""Metres an iteration must bring every centre nearer its target for the solver to go on:
+a target out of reach (a planar finger asked to step out of its plane) stalls at the
+nearest posture, and ran all `iterations` there, 10 ms in one tick of `hapticd`'s 5 ms
+loop (its `work_p99` 11.4 ms against 2.0 ms on a profile)."""
+
+
 @dataclass(frozen=True)
 class IKResult:
     q: np.ndarray
@@ -101,11 +108,14 @@ def inverse(hand: Chain, target: np.ndarray, q0: np.ndarray | tuple[float, ...],
     lo, hi = hand.lower, hand.upper
     q = np.clip(qb.copy(), lo, hi)
     eye = np.eye(3)
+    left = np.full(len(q), np.inf)
     for _ in range(iterations):
         centre, jac = _centre_and_jacobian(hand, q)
         err = tb - centre
-        if np.all(np.linalg.norm(err, axis=1) <= tolerance):
+        now = np.linalg.norm(err, axis=1)
+        if np.all((now <= tolerance) | (left - now < STALLED)):
             break
+        left = now
         jjt = jac @ jac.transpose(0, 2, 1) + damping**2 * eye
         dq = (jac.transpose(0, 2, 1) @ np.linalg.solve(jjt, err[:, :, None]))[:, :, 0]
         q = np.clip(q + dq, lo, hi)

@@ -15,7 +15,7 @@ from functools import lru_cache
 import numba
 import numpy as np
 
-from firmware_if.kinematics import Chain, base_frame
+from firmware_if.kinematics import STALLED, Chain, base_frame
 from service.localization.kernels import _solve3
 
 _JIT = {"cache": True, "nogil": True}
@@ -92,21 +92,24 @@ def _chain_batch(base_rot: np.ndarray, base_pos: np.ndarray, origins: np.ndarray
 def _solve_ik(base_rot: np.ndarray, base_pos: np.ndarray, origins: np.ndarray,
               axes: np.ndarray, skews: np.ndarray, squares: np.ndarray, tip: np.ndarray,
               lower: np.ndarray, upper: np.ndarray, q0: np.ndarray, targets: np.ndarray,
-              damping: float, tolerance: float, iterations: int
+              damping: float, tolerance: float, iterations: int, stalled: float
               ) -> tuple[np.ndarray, np.ndarray]:
-    """Damped least squares for every row until all are within `tolerance` (the batch
-    stops together) or `iterations` pass, every step clamped to the limits; the joint
-    angles and the distance left per row."""
+    """Damped least squares for every row until each is within `tolerance` or an iteration
+    brought it no nearer than `stalled` (the batch stops together), or `iterations` pass,
+    every step clamped to the limits; the joint angles and the distance left per row."""
     batch, n = q0.shape
     q = np.minimum(np.maximum(q0, lower), upper)
     system = np.empty((3, 4))
+    left = np.full(batch, np.inf)
     for _ in range(iterations):
         centres, jac = _chain_batch(base_rot, base_pos, origins, axes, skews, squares, tip, q)
         done = True
         for row in range(batch):
             e = targets[row] - centres[row]
-            if np.sqrt(e[0] * e[0] + e[1] * e[1] + e[2] * e[2]) > tolerance:
+            now = np.sqrt(e[0] * e[0] + e[1] * e[1] + e[2] * e[2])
+            if now > tolerance and left[row] - now >= stalled:
                 done = False
+            left[row] = now
         if done:
             break
         for row in range(batch):
@@ -142,5 +145,5 @@ def inverse(chain: Chain, targets: np.ndarray, q0: np.ndarray, *, damping: float
     whether each target is reached within `tolerance` (N,)."""
     q, error = _solve_ik(*_constants(chain), np.ascontiguousarray(q0, dtype=np.float64),
                          np.ascontiguousarray(targets, dtype=np.float64), float(damping),
-                         float(tolerance), int(iterations))
+                         float(tolerance), int(iterations), STALLED)
     return q, error <= tolerance

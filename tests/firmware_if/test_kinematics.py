@@ -90,3 +90,26 @@ def test_a_finger_of_a_hand_starts_at_its_base(finger):
     assert np.allclose(kin.jacobian(finger, q), numeric, atol=1e-8)
     target = kin.forward(finger, q)
     assert kin.inverse(finger, target, np.array(finger.home), iterations=300).reachable
+
+
+def test_a_target_out_of_reach_stops_the_solver_once_it_stalls(monkeypatch):
+    """A planar finger asked to step out of its plane ran all 100 iterations at the nearest
+    posture: 10 ms in one tick of hapticd's 5 ms loop, every blocked step. It stops once an
+    iteration brings the centre no nearer, at the same posture to a micrometre."""
+    planar = HANDS["planar"]
+    home = np.array(planar.home)
+    target = kin.forward(planar, home) + [0.003, 0.01, 0]
+    calls = {"n": 0}
+    solve = kin._centre_and_jacobian
+
+    def counted(hand, q):
+        calls["n"] += 1
+        return solve(hand, q)
+
+    monkeypatch.setattr(kin, "_centre_and_jacobian", counted)
+    stalled = kin.inverse(planar, target, home)
+    assert calls["n"] < 30 and not stalled.reachable
+    monkeypatch.setattr(kin, "STALLED", -np.inf)  # never stalls: all 100 iterations
+    full = kin.inverse(planar, target, home)
+    np.testing.assert_allclose(kin.forward(planar, stalled.q), kin.forward(planar, full.q),
+                               atol=1e-6)
