@@ -20,16 +20,15 @@ from __future__ import annotations
 import contextlib
 import functools
 import os
-import termios
 import time
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass
 from typing import Any, TypeVar
 
 from dynamixel_sdk.group_sync_write import GroupSyncWrite
-from dynamixel_sdk.protocol2_packet_handler import PKT_ID
 from dynamixel_sdk.robotis_def import BROADCAST_ID, COMM_SUCCESS
 
+from firmware_if.bus_diagnosis import why_cycles_failed
 from firmware_if.errors import (
     BusTimeoutError,
     CommunicationError,
@@ -39,7 +38,7 @@ from firmware_if.errors import (
     PortLost,
     StaleReplyError,
 )
-from firmware_if.packets import INST_PING, PacketError, first_damaged, packet, split_fast_read
+from firmware_if.packets import PacketError, first_damaged, split_fast_read
 from firmware_if.registers import (
     ALERT_BIT,
     REG,
@@ -50,17 +49,15 @@ from firmware_if.registers import (
 )
 from firmware_if.reply_age import STALE_MS, ReplyAges
 from firmware_if.sdk_fixes import (
-    PING_ANSWER_LENGTH,
+    PORT_ERRORS,
+    RX_TIMEOUT_RESULTS,
+    SETUP_TIMEOUT_MS,
     FixedPacketHandler,
     PacedPortHandler,
     PortBusy,
-    answers,
 )
 
 FAST_READ_MIN_FIRMWARE = 45
-SETUP_TIMEOUT_MS = 34.0
-"""Packet timeout outside the control cycle (setup, scan, single reads): the SDK's own."""
-_TIMEOUT_RESULTS = (-3001,)  # COMM_RX_TIMEOUT
 SETUP_ATTEMPTS = 3
 """Tries of a single read or write outside the control cycle before its timeout counts: a
 reply can miss its window on a loaded host or a noisy line (make test under load: a
@@ -69,14 +66,6 @@ TORQUE_CHECK_CYCLES = 20
 """Control cycles between reads of every servo's Torque Enable while torque should be on: a
 servo that restarts (a brown-out) answers as before, with its torque off and its RAM at
 defaults, and only this read tells (a fifth of a second at 100 Hz)."""
-LATE_LIMIT_S = 0.6
-"""How long a fault's diagnosis waits for a ping's answer, and for a line busy with late
-replies to fall quiet: a servo answering later is called silent (the emulator's `late`
-drills go to 0.5 s; a USB adapter's latency timer is 16 ms by default)."""
-LATE_CAP_S = 5.0
-"""The most one wait of the diagnosis lasts while replies keep coming (a babbling line)."""
-PORT_ERRORS = (OSError, termios.error)
-"""What a failing serial port raises (pyserial's SerialException is an OSError)."""
 
 
 def _cannot_open(port_name: str, why: object) -> str:
@@ -247,7 +236,7 @@ class DxlBus:
         reads 161 after writing 0", its CRC byte)."""
         for attempt in range(SETUP_ATTEMPTS):
             out = self._sdk(what, call, self._require(), *args)
-            if out[-2] not in _TIMEOUT_RESULTS:
+            if out[-2] not in RX_TIMEOUT_RESULTS:
                 if attempt:  # that answer may have been an earlier attempt's: this one's next
                     self._drain()
                 break
@@ -274,7 +263,7 @@ class DxlBus:
 
     def _check(self, result: int, error: int, ids: tuple[int, ...], what: str) -> None:
         if result != COMM_SUCCESS:
-            cls = BusTimeoutError if result in _TIMEOUT_RESULTS else CommunicationError
+            cls = BusTimeoutError if result in RX_TIMEOUT_RESULTS else CommunicationError
             raise cls(f"servo {ids[0]}: {what}: {self._ph.getTxRxResult(result)}", ids)
         if error & 0x7F:
             raise CommunicationError(f"servo {ids[0]}: {what}: {describe_status_error(error)}",
@@ -365,7 +354,8 @@ class DxlBus:
             self.stats.consecutive_failures += 1
             if self.stats.consecutive_failures >= self.failure_tolerance:
                 self._latch(f"{self.stats.consecutive_failures} consecutive failed cycles "
-                            f"(last: {exc})", explain=functools.partial(self._silent_servos, exc))
+                            f"(last: {exc})",
+                            explain=functools.partial(why_cycles_failed, self, exc))
             raise
         self.stats.consecutive_failures = 0
         alerts = [sid for sid, r in readings.items() if r.error & ALERT_BIT]
@@ -420,7 +410,7 @@ class DxlBus:
             data, result, error = self._sdk("sync read", self._ph.readRx, port, sid,
                                             SYNC_READ_LENGTH)
             if result != COMM_SUCCESS:
-                cls = BusTimeoutError if result in _TIMEOUT_RESULTS else CommunicationError
+                cls = BusTimeoutError if result in RX_TIMEOUT_RESULTS else CommunicationError
                 raise cls(f"sync read: servo {sid}: {self._ph.getTxRxResult(result)}", (sid,))
             out[sid] = _reading(bytes(data), error)
         self._received_ns = time.monotonic_ns()
@@ -437,7 +427,7 @@ class DxlBus:
         rx, result = self._sdk("fast sync read", self._ph.rxPacket, port, True)
         parts = [(sid, SYNC_READ_LENGTH) for sid in self.ids]
         if result != COMM_SUCCESS:
-            cls = BusTimeoutError if result in _TIMEOUT_RESULTS else CommunicationError
+            cls = BusTimeoutError if result in RX_TIMEOUT_RESULTS else CommunicationError
             damaged = first_damaged(bytes(rx), parts)  # a whole reply, spoiled in one part
             where = "" if damaged is None else f" (damaged from servo {damaged}'s part on)"
             raise cls(f"fast sync read: {self._ph.getTxRxResult(result)}{where}",
@@ -491,75 +481,6 @@ class DxlBus:
         finally:
             port.budget_ms, port.settles = SETUP_TIMEOUT_MS, True
 
-    def _silent_servos(self, last: CommunicationError) -> str:
-        """Which servos do not answer a ping, or answer it late, as words for a fault (one
-        silent servo spoils a sync read of all: the read alone cannot say which). A late
-        servo's replies may still be on the bus, and a ping waits behind them (a half-duplex
-        line, or the emulator, answers one request at a time): cut short, it blamed healthy
-        servos ("no servo answers" for `late 2 0.5`). So every ping's answer is waited for
-        up to `LATE_LIMIT_S`, and a servo that answered late is pinged again once the line
-        is clear, to time its own answer. Every servo answering in time says the host, not
-        the bus, missed the cycles. It runs once, in the tick that latches the fault, after
-        torque off has gone out."""
-        self._require()  # a closed port is the caller's error, not a silent bus
-        try:
-            self._drain()  # the failed cycles' replies, already coming
-            answered = self._ping_times(self.ids)
-            half_cycle_ms = self.cycle_budget_s * 1e3 / 2  # what a cycle's read waits
-            for sid in [s for s, ms in answered.items() if ms > half_cycle_ms]:
-                answered.update(self._ping_times((sid,)))  # alone, on a quiet line
-        except (FirmwareError, *PORT_ERRORS, ValueError):
-            return ""  # the port itself: its own error says so
-        late = {sid: ms for sid, ms in answered.items() if ms > half_cycle_ms}
-        silent = [sid for sid in self.ids if sid not in answered]
-        if not late and not silent and isinstance(last, BusTimeoutError):
-            return ("; every servo answers a ping in time now: the host missed the cycles "
-                    "(a loaded machine? the loop's scheduling is in `haptic ctl status`)")
-        if not late and not silent:  # the replies came, damaged
-            where = (f", first in servo {last.servo_ids[0]}'s reply (its cable, or one "
-                     "between it and the adapter)" if len(last.servo_ids) == 1 else "")
-            return (f"; every servo answers a ping now, but the cycles' replies came damaged"
-                    f"{where}: a noisy or loose cable or connector, or a baud too fast for "
-                    "the cable")
-        return (_late_words(late, self.cycle_budget_s)
-                + _silent_words(silent, len(self.ids), self.baud))
-
-    def _ping_times(self, ids: Sequence[int]) -> dict[int, float]:
-        """Ping `ids`: {id: ms from its ping to its answer} for those that answer. Each ping
-        gets the setup's timeout (or its answer) before the next goes out; answers that come
-        later still count, told apart by id and shape, until all have come or the line has
-        been quiet for `LATE_LIMIT_S` (a reply later than that is none)."""
-        port = self._require()
-        sent: dict[int, int] = {}
-        got: dict[int, float] = {}
-        for sid in ids:
-            port.writePort(list(packet(sid, INST_PING)))  # not txPacket: it would settle,
-            sent[sid] = time.monotonic_ns()  # dropping the answers still awaited
-            self._take_answers(sent, got, SETUP_TIMEOUT_MS, until=sid)
-        self._take_answers(sent, got, LATE_LIMIT_S * 1e3)
-        return got
-
-    def _take_answers(self, sent: dict[int, int], got: dict[int, float], wait_ms: float,
-                      until: int | None = None) -> None:
-        """Read status packets into `got` (answers to the pings `sent`) until `until` has
-        answered within `wait_ms` of its ping, or (no `until`) every ping has answered or no
-        status has come for `wait_ms`, at most `LATE_CAP_S`."""
-        port = self._require()
-        cap = time.monotonic_ns() + LATE_CAP_S * 1e9
-        while not (until in got if until is not None else got.keys() >= sent.keys()):
-            left = (wait_ms if until is None
-                    else wait_ms - (time.monotonic_ns() - sent[until]) / 1e6)
-            left = min(left, (cap - time.monotonic_ns()) / 1e6)
-            if left <= 0:
-                return
-            port.setPacketTimeoutMillis(left)
-            rx, result = self._sdk("ping", self._ph.rxPacket, port, False)
-            if result in _TIMEOUT_RESULTS:
-                return
-            if result == COMM_SUCCESS and rx[PKT_ID] in sent and rx[PKT_ID] not in got \
-                    and answers(rx, rx[PKT_ID], PING_ANSWER_LENGTH):
-                got[rx[PKT_ID]] = (time.monotonic_ns() - sent[rx[PKT_ID]]) / 1e6
-
     def _drain(self, quiet_s: float = SETUP_TIMEOUT_MS / 1e3, cap_s: float = 0.25) -> None:
         """Read and drop what arrives until the line has been quiet for `quiet_s` (at most
         `cap_s`): replies to requests given up on, which would land in the next one's."""
@@ -594,32 +515,6 @@ class DxlBus:
         self.stats.consecutive_failures = 0
         self._anchor()  # a rebooted servo's clock starts again
         return rebooted
-
-
-def _late_words(late: dict[int, float], cycle_budget_s: float) -> str:
-    """A fault's words for servos that answer a ping, but later than a cycle's read waits
-    (half the cycle's budget)."""
-    if not late:
-        return ""
-    who = (f"servo {next(iter(late))} answers" if len(late) == 1
-           else f"servos {', '.join(map(str, late))} answer")
-    return (f"; {who} a ping only after {max(late.values()):.0f} ms (a cycle's read waits "
-            f"{cycle_budget_s * 1e3 / 2:g} ms): a slow adapter or a loaded host (a USB "
-            "adapter's latency timer, 16 ms by default on FTDI, should be 1 ms: `haptic bus "
-            "check` tells)")
-
-
-def _silent_words(silent: list[int], servos: int, baud: int) -> str:
-    """A fault's words for servos that answer no ping at all."""
-    if not silent:
-        return ""
-    if len(silent) == servos:
-        return (f"; no servo answers a ping: check the bus power, the adapter, and that the "
-                f"servos use {baud} baud")
-    if len(silent) == 1:
-        return f"; servo {silent[0]} does not answer a ping: check its cable and power"
-    return (f"; servos {', '.join(map(str, silent))} do not answer a ping: check their "
-            "cables and power")
 
 
 def _reading(data: bytes, error: int) -> ServoReading:

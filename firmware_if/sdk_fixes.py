@@ -34,6 +34,7 @@ Each defect has a test in tests/firmware_if/test_sdk_fixes.py that fails on the 
 from __future__ import annotations
 
 import select
+import termios
 import time
 
 import serial
@@ -59,6 +60,13 @@ from dynamixel_sdk.robotis_def import (
 )
 
 from firmware_if import packets
+
+SETUP_TIMEOUT_MS = 34.0
+"""Packet timeout outside the control cycle (setup, scan, single reads): the SDK's own."""
+RX_TIMEOUT_RESULTS = (-3001,)  # COMM_RX_TIMEOUT
+"""The SDK's result for a reply that did not come in time."""
+PORT_ERRORS = (OSError, termios.error)
+"""What a failing serial port raises (pyserial's SerialException is an OSError)."""
 
 SETTLE_CAP = 8
 """A settle stops after this many quiet windows even while bytes still come (a babbling

@@ -1,0 +1,131 @@
+"""Why a bus's cycles failed, in words for its fault: which servos answer a ping late, or
+not at all, or whether the host missed the cycles or the replies came damaged.
+
+It runs once, when `DxlBus` latches a fault after its consecutive failed cycles, and may
+take a few timeouts: a late servo's replies may still be on the line.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Sequence
+from typing import TYPE_CHECKING
+
+from dynamixel_sdk.protocol2_packet_handler import PKT_ID
+from dynamixel_sdk.robotis_def import COMM_SUCCESS
+
+from firmware_if.errors import BusTimeoutError, CommunicationError, FirmwareError
+from firmware_if.packets import INST_PING, packet
+from firmware_if.sdk_fixes import (
+    PING_ANSWER_LENGTH,
+    PORT_ERRORS,
+    RX_TIMEOUT_RESULTS,
+    SETUP_TIMEOUT_MS,
+    answers,
+)
+
+if TYPE_CHECKING:
+    from firmware_if.dxl_bus import DxlBus
+
+LATE_LIMIT_S = 0.6
+"""How long a fault's diagnosis waits for a ping's answer, and for a line busy with late
+replies to fall quiet: a servo answering later is called silent (the emulator's `late`
+drills go to 0.5 s; a USB adapter's latency timer is 16 ms by default)."""
+LATE_CAP_S = 5.0
+"""The most one wait of the diagnosis lasts while replies keep coming (a babbling line)."""
+
+
+def why_cycles_failed(bus: DxlBus, last: CommunicationError) -> str:
+    """Which servos do not answer a ping, or answer it late, as words for a fault (one
+    silent servo spoils a sync read of all: the read alone cannot say which). A late
+    servo's replies may still be on the bus, and a ping waits behind them (a half-duplex
+    line, or the emulator, answers one request at a time): cut short, it blamed healthy
+    servos ("no servo answers" for `late 2 0.5`). So every ping's answer is waited for
+    up to `LATE_LIMIT_S`, and a servo that answered late is pinged again once the line
+    is clear, to time its own answer. Every servo answering in time says the host, not
+    the bus, missed the cycles. It runs once, in the tick that latches the fault, after
+    torque off has gone out."""
+    bus._require()  # a closed port is the caller's error, not a silent bus
+    try:
+        bus._drain()  # the failed cycles' replies, already coming
+        answered = ping_times(bus, bus.ids)
+        half_cycle_ms = bus.cycle_budget_s * 1e3 / 2  # what a cycle's read waits
+        for sid in [s for s, ms in answered.items() if ms > half_cycle_ms]:
+            answered.update(ping_times(bus, (sid,)))  # alone, on a quiet line
+    except (FirmwareError, *PORT_ERRORS, ValueError):
+        return ""  # the port itself: its own error says so
+    late = {sid: ms for sid, ms in answered.items() if ms > half_cycle_ms}
+    silent = [sid for sid in bus.ids if sid not in answered]
+    if not late and not silent and isinstance(last, BusTimeoutError):
+        return ("; every servo answers a ping in time now: the host missed the cycles "
+                "(a loaded machine? the loop's scheduling is in `haptic ctl status`)")
+    if not late and not silent:  # the replies came, damaged
+        where = (f", first in servo {last.servo_ids[0]}'s reply (its cable, or one "
+                 "between it and the adapter)" if len(last.servo_ids) == 1 else "")
+        return (f"; every servo answers a ping now, but the cycles' replies came damaged"
+                f"{where}: a noisy or loose cable or connector, or a baud too fast for "
+                "the cable")
+    return (_late_words(late, bus.cycle_budget_s)
+            + _silent_words(silent, len(bus.ids), bus.baud))
+
+def ping_times(bus: DxlBus, ids: Sequence[int]) -> dict[int, float]:
+    """Ping `ids`: {id: ms from its ping to its answer} for those that answer. Each ping
+    gets the setup's timeout (or its answer) before the next goes out; answers that come
+    later still count, told apart by id and shape, until all have come or the line has
+    been quiet for `LATE_LIMIT_S` (a reply later than that is none)."""
+    port = bus._require()
+    sent: dict[int, int] = {}
+    got: dict[int, float] = {}
+    for sid in ids:
+        port.writePort(list(packet(sid, INST_PING)))  # not txPacket: it would settle,
+        sent[sid] = time.monotonic_ns()  # dropping the answers still awaited
+        _take_answers(bus, sent, got, SETUP_TIMEOUT_MS, until=sid)
+    _take_answers(bus, sent, got, LATE_LIMIT_S * 1e3)
+    return got
+
+def _take_answers(bus: DxlBus, sent: dict[int, int], got: dict[int, float], wait_ms: float,
+                  until: int | None = None) -> None:
+    """Read status packets into `got` (answers to the pings `sent`) until `until` has
+    answered within `wait_ms` of its ping, or (no `until`) every ping has answered or no
+    status has come for `wait_ms`, at most `LATE_CAP_S`."""
+    port = bus._require()
+    cap = time.monotonic_ns() + LATE_CAP_S * 1e9
+    while not (until in got if until is not None else got.keys() >= sent.keys()):
+        left = (wait_ms if until is None
+                else wait_ms - (time.monotonic_ns() - sent[until]) / 1e6)
+        left = min(left, (cap - time.monotonic_ns()) / 1e6)
+        if left <= 0:
+            return
+        port.setPacketTimeoutMillis(left)
+        rx, result = bus._sdk("ping", bus._ph.rxPacket, port, False)
+        if result in RX_TIMEOUT_RESULTS:
+            return
+        if result == COMM_SUCCESS and rx[PKT_ID] in sent and rx[PKT_ID] not in got \
+                and answers(rx, rx[PKT_ID], PING_ANSWER_LENGTH):
+            got[rx[PKT_ID]] = (time.monotonic_ns() - sent[rx[PKT_ID]]) / 1e6
+
+
+def _late_words(late: dict[int, float], cycle_budget_s: float) -> str:
+    """A fault's words for servos that answer a ping, but later than a cycle's read waits
+    (half the cycle's budget)."""
+    if not late:
+        return ""
+    who = (f"servo {next(iter(late))} answers" if len(late) == 1
+           else f"servos {', '.join(map(str, late))} answer")
+    return (f"; {who} a ping only after {max(late.values()):.0f} ms (a cycle's read waits "
+            f"{cycle_budget_s * 1e3 / 2:g} ms): a slow adapter or a loaded host (a USB "
+            "adapter's latency timer, 16 ms by default on FTDI, should be 1 ms: `haptic bus "
+            "check` tells)")
+
+
+def _silent_words(silent: list[int], servos: int, baud: int) -> str:
+    """A fault's words for servos that answer no ping at all."""
+    if not silent:
+        return ""
+    if len(silent) == servos:
+        return (f"; no servo answers a ping: check the bus power, the adapter, and that the "
+                f"servos use {baud} baud")
+    if len(silent) == 1:
+        return f"; servo {silent[0]} does not answer a ping: check its cable and power"
+    return (f"; servos {', '.join(map(str, silent))} do not answer a ping: check their "
+            "cables and power")
