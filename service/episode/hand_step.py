@@ -20,6 +20,7 @@ from firmware_if.backend import HandState
 from service.episode.hand_scenario import HandParts, HandSettings
 from service.localization.localizers.base import Estimate, settle
 from service.localization.localizers.object_base import HandMeasurement
+from service.localization.objects.rolling import TwistNoise
 from service.localization.policies.grasp_gated import GraspGatedPolicy, HandDecision, HandView
 
 POLICY_HYPOTHESES = 500
@@ -97,7 +98,11 @@ class HandStepper:
                         step_length=self.settings.step, sigma=self.sigma,
                         fixed=self.settings.single_finger, blocked=frozenset(self.blocked),
                         spread=(float(est.position_sd), float(est.heading_sd)),
-                        slope_sd=self.settings.noise_spec.surface_slope_sd)
+                        slope_sd=self.settings.noise_spec.surface_slope_sd,
+                        motion=TwistNoise(self.settings.noise_spec.step_length_fraction,
+                                          self.settings.noise_spec.step_direction_sigma),
+                        mismatch=(self.settings.noise_spec.surface_sigma,
+                                  self.settings.noise_spec.surface_correlation))
         decision = self.policy.decide(view)
         self.policy_ms = (time.perf_counter() - t0) * 1e3
         return decision

@@ -34,6 +34,10 @@ bringing contour the fingers could not reach under them.
   the leading pose), each checked the same way at every substep of its rolling motion for
   every plausible pose (`rolling.carry`); the safe turn whose readings tell most, or that
   brings the most unfelt contour under the fingers, wins.
+* Precision, for three fingers or more: once one mode is left, a move is also worth what
+  its readings would pin the leader's spread by, their shared error and a turn's motion
+  error counted (`contour_precision`), and a turn is taken once the rolls are spent
+  (`SPENT`): re-reading the same arcs pins nothing new.
 
 * The last resort, for a hand of three fingers or more: with no roll or turn allowed, a roll
   may still take the gate's weightless guards (the spread's neighbours and the cover) below
@@ -69,6 +73,7 @@ from service.localization.localizers.convergence import distinct
 from service.localization.localizers.object_judge import to_object
 from service.localization.objects import kinks, rolling
 from service.localization.objects.field import ContactField
+from service.localization.policies.contour_precision import ContourSpread
 from service.localization.policies.info_gain import information
 
 NOVELTY = 0.05
@@ -77,6 +82,12 @@ FELT = 0.003
 """Metres: contour within this of a felt point counts as felt. Readings closer than the
 world's mismatch length share their error, so a mode is pinned down by new stretches of
 contour, not by re-reading one; with none left in reach, the hand turns the object."""
+SPENT = 0.05
+"""Nats of `HandDecision.worth` below which the rolls in reach are spent: then a turn that
+pins the leading pose more is taken instead, though a roll may still tell a little. Not
+before: a turn begins a new grasp, through which the localizer must carry its tracks (three
+fingers on blob:95 turned at the second step, the pool's one mode split after it, and the
+run ended undecided, where rolling on localized it in 4 steps)."""
 RISK = 0.05
 """Most posterior weight of plausible poses a move may take below the threshold."""
 DROP_RISK = 0.005
@@ -149,6 +160,13 @@ class HandView:
     slope_sd: float = 0.0
     """Sd (radians) of the slope by which the world's outline differs from the model's
     (`NoiseSpec.surface_slope_sd`); 0: the model is the world."""
+    motion: rolling.TwistNoise = rolling.EXACT
+    """How a carried object's motion strays from the rolling model (`HandSettings`' B2 step
+    noise): what a turn adds to the leading pose's spread."""
+    mismatch: tuple[float, float] = (0.0, 0.0)
+    """Sd and correlation length (metres) of the world's outline's difference from the
+    model's (`NoiseSpec.surface_sigma`, `surface_correlation`): readings near each other
+    share it (`contour_precision`)."""
 
 
 @dataclass(frozen=True)
@@ -164,6 +182,15 @@ class HandDecision:
     """Expected information (nats) of the move's readings about the pose."""
     novel: bool = False
     """The move feels contour not felt yet."""
+    precision: float = 0.0
+    """Nats by which the move's readings would shrink the leading pose's spread, their
+    shared error counted (`contour_precision`), times the leading mode's weight."""
+
+    @property
+    def worth(self) -> float:
+        """What the move is worth to the one mode there is: how it pins the leader's spread,
+        and a credit for new contour."""
+        return self.precision + NOVELTY * self.novel
 
 
 class GraspGatedPolicy:
@@ -171,11 +198,33 @@ class GraspGatedPolicy:
 
     def __init__(self, gate: bool = True, plausible: int = 96, min_gain: float = 0.02,
                  turns: Sequence[float] = (0.2, -0.2, 0.4, -0.4, 0.7, -0.7),
-                 substeps: int = 8) -> None:
+                 substeps: int = 8, precision: bool = True) -> None:
         self.gate, self.plausible, self.min_gain = gate, plausible, min_gain
+        self.precision = precision
+        """A hand of three fingers or more weighs moves by how they pin the leader's spread
+        (`contour_precision`) and takes a turn that pins it more once the rolls are spent
+        (`SPENT`); without, the policy of before: a turn only when no roll tells the modes
+        anything. Two fingers keep that: they hold by one opposed pair, whose quality
+        turns on the pose so sharply that the truth strays beyond the plausible poses as
+        the fingers spread out; weighed by precision, their least true quality on rounded,
+        blob and keyed (members 0-19, from a 2 N start) fell to 0.33 N from 1.09 N, the
+        margin being 0.2 N, and no more localized (3 of 60)."""
+        self._precise = False
+        """`precision` holds for this hand."""
         self.turns, self.substeps = tuple(turns), substeps
         self._felt: list[np.ndarray] = []
         """Object-frame points felt so far (under the leading pose when they were)."""
+        self._read: list[np.ndarray] = []
+        """Hand-plane fingertip centres read since the last manipulation."""
+        self._read_before = np.empty((0, 2))
+        """Object-frame centres read before it, under the leading pose as each
+        manipulation began (a mode the lead flips to within one grasp moves no reading)."""
+        self._read_radii: list[float] = []
+        """The radius of the fingertip of each reading, those before first."""
+        self._spread: ContourSpread | None = None
+        """The leading pose's spread from what was felt (`contour_precision`)."""
+        self._lead_mass = 0.0
+        """The plausible weight of the leading pose's mode."""
         self._decisions = 0
         self._certified: tuple[np.ndarray, tuple[np.ndarray, ...]] | None = None
         """Centres and joints of the grasp the hand last started from."""
@@ -195,19 +244,61 @@ class GraspGatedPolicy:
         self._decisions += 1
         radii = np.array([f.radius for f in view.fingers])
         lead = poses[0]
-        self._remember(view.centres, lead)
+        self._remember(view.centres, lead, radii)
+        self._precise = self.precision and len(view.fingers) > 2 and not view.fixed
+        self._spread = self._spread_now(view, lead) if self._precise else None
+        self._lead_mass = float(weights[_in_mode(poses, 0)].sum())
         explore = self._explore(view, poses, weights, radii)
-        if explore is not None and (explore.gain >= self.min_gain or view.fixed or (
-                explore.novel and not _ambiguous(poses, weights))):
-            return explore  # it tells the modes apart, or feels new contour of the one mode
+        ambiguous = _ambiguous(poses, weights)
+        if explore is not None and (view.fixed or not self._may_turn(explore, ambiguous)):
+            return explore
         if not view.fixed:
-            turn = self._manipulate(view, poses, weights, radii)
-            if turn is not None:
+            turn = self._manipulate(view, poses, weights, radii, ambiguous)
+            if turn is not None and (explore is None
+                                     or self._turn_instead(explore, turn, ambiguous)):
                 self._certified, self._turned = None, True  # it ends in the next start
+                self._read_before = np.vstack([self._read_before,
+                                               to_object(np.asarray(self._read), lead)])
+                self._read = []
                 return turn
         if explore is None and self.gate and not view.fixed and len(view.fingers) > 2:
             explore = self._explore(view, poses, weights, radii, last_resort=True)
         return explore if explore is not None else HandDecision(None, "stuck")
+
+    def _may_turn(self, explore: HandDecision, ambiguous: bool) -> bool:
+        """Whether a turn may do better than the best roll: not while the roll tells the
+        modes apart (nor, without `precision`, the one mode's pose, or feels its new
+        contour)."""
+        if explore.gain >= self.min_gain and (ambiguous or not self._precise):
+            return False
+        return self._precise or not (explore.novel and not ambiguous)
+
+    def _turn_instead(self, explore: HandDecision, turn: HandDecision,
+                      ambiguous: bool) -> bool:
+        """Whether to take the best safe `turn` rather than the best roll: the roll tells
+        nothing (and feels no new contour of the one mode), or - weighing precision, with
+        one mode - the rolls are spent and the turn pins the leader more."""
+        if explore.gain < self.min_gain and not (explore.novel and not ambiguous):
+            return True
+        return (self._precise and not ambiguous and explore.worth < SPENT
+                and turn.worth > explore.worth)
+
+    def _spread_now(self, view: HandView, lead: np.ndarray) -> ContourSpread:
+        """The leading pose's spread from every reading felt so far."""
+        sd, length = view.mismatch
+        places = np.vstack([self._read_before, to_object(np.asarray(self._read), lead)])
+        return ContourSpread.now(view.field, lead, places,
+                                 np.asarray(self._read_radii), max(view.sigma, 1e-4), sd,
+                                 np.sqrt(2.0) * length, view.step_length)
+
+    def _precision(self, places: np.ndarray, radii: np.ndarray,
+                   moved: np.ndarray | None = None) -> float:
+        """Nats readings at object-frame `places` would pin the leader by (after a motion of
+        error covariance `moved`), times its mode's weight."""
+        if not self._precise:
+            return 0.0
+        assert self._spread is not None
+        return self._lead_mass * self._spread.gain(places, radii, moved)
 
     def _plausible(self, view: HandView) -> tuple[np.ndarray, np.ndarray]:
         """The `plausible` heaviest hypotheses under which the grasp as it is holds the
@@ -346,7 +437,10 @@ class GraspGatedPolicy:
         gain = information(readings[:, weighed[told]], weights[weighed], s)
         novel = np.array([self._novel(readings[k][:1], poses[0]) for k in range(len(options))])
         larger = np.array([part for _, _, part in options])
-        score = gain + NOVELTY * novel + 1e-3 * larger  # ties: the longer step
+        precision = np.array([self._precision(to_object(readings[k][:1], poses[0]),
+                                              radii[f:f + 1])
+                              for k, (f, _, _) in enumerate(options)])
+        score = gain + precision + NOVELTY * novel + 1e-3 * larger  # ties: the longer step
         if gated and self._now[0] < 2 * view.grasp.threshold_n:
             lead_after = np.array([quality_of(k, slice(0, 1))[0] if reach_of(k)[0] else 0.0
                                    for k in range(len(options))])
@@ -360,7 +454,8 @@ class GraspGatedPolicy:
         delta = targets[k] - view.centres[f]
         moves[f] = FingerMove(dx=float(delta[0]), dz=float(delta[1]))
         return HandDecision(HandCommand(tuple(moves)), "explore", f, d,
-                            float(quality_of(k).min()), float(gain[k]), bool(novel[k]))
+                            float(quality_of(k).min()), float(gain[k]), bool(novel[k]),
+                            float(precision[k]))
 
     def _reach(self, view: HandView, f: int, targets: np.ndarray
                ) -> tuple[bool, np.ndarray]:
@@ -402,8 +497,11 @@ class GraspGatedPolicy:
 
     # -- manipulating ----------------------------------------------------------------------
     def _manipulate(self, view: HandView, poses: np.ndarray, weights: np.ndarray,
-                    radii: np.ndarray) -> HandDecision | None:
-        """The best turn in reach that the gate allows (checked best first)."""
+                    radii: np.ndarray, ambiguous: bool = True) -> HandDecision | None:
+        """The best turn in reach that the gate allows (checked best first): by what its
+        readings tell of the modes and its `worth`, or, with one mode (not `ambiguous`), by
+        its worth alone - the information a turn seems to bring within one mode is mostly
+        the spread its own carrying puts between the poses."""
         lead = poses[0]
         h, n = len(poses), len(view.fingers)
         s = max(view.sigma, 1e-4)
@@ -427,12 +525,16 @@ class GraspGatedPolicy:
                                      s)[0])
             novel = float(np.mean([self._novel(final[:1, f], final_poses[0])
                                    for f in range(n)]))
+            precision = self._precision(to_object(final[0], final_poses[0]), radii,
+                                        _turn_error(view.motion, turn, self.substeps))
             command = HandCommand(tuple(
                 FingerMove(dx=float(m[0]), dz=float(m[1]), roll=float(r))
                 for m, r in zip(moves, rolls, strict=True)))
             turns.append((HandDecision(command, "manipulate", None, int(np.sign(turn)),
-                                       gain=gain), states, angles))
-            scores.append(gain + NOVELTY * novel + 1e-3 * abs(turn))  # ties: the larger turn
+                                       gain=gain, novel=novel >= 0.5, precision=precision),
+                          states, angles))
+            scores.append(gain * (ambiguous or not self._precise) + precision + NOVELTY * novel
+                          + 1e-3 * abs(turn))  # ties: the larger turn
         quality: dict[int, np.ndarray] = {}
 
         def allowed(k: int) -> bool:
@@ -465,8 +567,10 @@ class GraspGatedPolicy:
                        for i, (p, c) in enumerate(states)], axis=0)
 
     # -- felt contour ----------------------------------------------------------------------
-    def _remember(self, centres: np.ndarray, lead: np.ndarray) -> None:
+    def _remember(self, centres: np.ndarray, lead: np.ndarray, radii: np.ndarray) -> None:
         self._felt.extend(to_object(centres, lead))
+        self._read.extend(centres)
+        self._read_radii.extend(float(r) for r in radii)
 
     def _novel(self, centre: np.ndarray, pose: np.ndarray) -> float:
         """1 if the fingertip at `centre` (1, 2) under `pose` is on contour not felt yet."""
@@ -567,6 +671,19 @@ def _best_allowed(score: np.ndarray, allowed: Callable[[int], bool]) -> int | No
         if allowed(int(k)):
             return int(k)
     return None
+
+
+def _turn_error(motion: rolling.TwistNoise, turn: float, substeps: int) -> np.ndarray:
+    """(3, 3) covariance of the pose error a turn by `turn` radians in `substeps` adds: each
+    substep's size strays by `motion.fraction` on its own; a turn about the centroid in place
+    moves it little, so its position error is left out."""
+    return np.diag([0.0, 0.0, (motion.fraction * turn) ** 2 / substeps])
+
+
+def _in_mode(poses: np.ndarray, i: int) -> np.ndarray:
+    """Which poses lie in pose i's mode (`MODE_CELL`)."""
+    return (np.hypot(*(poses[:, :2] - poses[i, :2]).T) <= MODE_CELL[0]) & (
+        np.abs(np.angle(np.exp(1j * (poses[:, 2] - poses[i, 2])))) <= MODE_CELL[1])
 
 
 def _ambiguous(poses: np.ndarray, weights: np.ndarray) -> bool:
