@@ -15,7 +15,7 @@ from tqdm import tqdm
 
 from service.episode.scenario import RunSettings
 from service.episode.simulate import EpisodeReport
-from service.errors import ConfigError, ServiceError
+from service.errors import ConfigError, InputError, ServiceError
 from service.localization.map_check import check_map
 from service.localization.maps import load_map
 from service.localization.surface import HeightMap
@@ -94,6 +94,10 @@ def run_episodes(settings: Sequence[RunSettings], height_map: HeightMap | None =
     maps = {s.map: height_map for s in settings}
     outcomes = collect(executor or InProcess(), settings, maps, desc)
     failed = [o for o in outcomes if isinstance(o, Failed)]
+    if failed and len(failed) == len(outcomes) and all(f.refused for f in failed):
+        raise InputError(f"every episode refused its settings, e.g. seed "
+                         f"{failed[0].settings.seed} on {failed[0].settings.map}: "
+                         f"{failed[0].error}")
     if failed:
         raise ServiceError(f"{len(failed)} of {len(outcomes)} episodes raised, e.g. seed "
                            f"{failed[0].settings.seed} on {failed[0].settings.map}: "

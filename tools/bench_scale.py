@@ -35,7 +35,8 @@ TARGET_P99_MS = 5.0
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     add_bench_options(p, defaults=DEFAULTS, runs=20, workers=1,
-                      algorithm_help=f"default: compare {' and '.join(COMPARED)}")
+                      algorithm_help=f"default: compare {' and '.join(COMPARED)}",
+                      own_maps=True)
     p.set_defaults(algorithm=None)  # none given: compare Algorithms IV and III
     p.add_argument("--sizes", default="20,40,80", metavar="UNITS,...",
                    help="map sizes in units, comma separated (default: %(default)s)")
@@ -59,8 +60,9 @@ def run(args: argparse.Namespace) -> int:
     algorithms = [args.algorithm] if args.algorithm else list(COMPARED)
     for name in algorithms:
         LOCALIZERS.load(name)
-    if args.map != DEFAULTS.map:
-        raise ConfigError("B3 builds its own bumps maps: --map does not apply (see --sizes, "
+    if args.map != DEFAULTS.map or args.spacing is not None:
+        raise ConfigError("B3 builds its own bumps maps: --map and --spacing do not apply "
+                          "(see --sizes, "
                           "--map-seed; `haptic bench realistic --map FILE` runs your map)")
     rows = []
     executor = executor_for(args)

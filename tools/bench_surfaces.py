@@ -42,7 +42,7 @@ def add_surface_options(p: argparse.ArgumentParser, *, families: str, seeds: str
                         size: float, runs: int) -> None:
     from tools.bench_common import add_bench_options
 
-    add_bench_options(p, defaults=B2_DEFAULTS, runs=runs)
+    add_bench_options(p, defaults=B2_DEFAULTS, runs=runs, own_maps=True)
     p.add_argument("--families", default=families, metavar="NAME,...",
                    help="surface families, comma separated (default: %(default)s)")
     p.add_argument("--map-seeds", default=seeds, metavar="N,...",
@@ -137,8 +137,9 @@ def run_surfaces(args: argparse.Namespace, *, scenario: str, label: str,
     """Run `args.runs` seeded episodes on every surface ({family: [map specs]}), print a row
     per surface and per family, write JSON and a figure; status 1 on a wrong declaration."""
     check_bench_args(args)
-    if args.map != B2_DEFAULTS.map:
-        raise ConfigError(f"{scenario} builds its own surfaces: --map does not apply (see "
+    if args.map != B2_DEFAULTS.map or args.spacing is not None:
+        raise ConfigError(f"{scenario} builds its own surfaces: --map and --spacing do not "
+                          "apply (see "
                           "--families, --map-seeds, --size; `haptic bench realistic --map "
                           "FILE` runs your map)")
     base = settings_from_args(args, noise=True)

@@ -25,7 +25,7 @@ from typing import Any
 
 from service.episode.scenario import RunSettings
 from service.episode.simulate import EpisodeReport, simulate
-from service.errors import ConfigError
+from service.errors import ConfigError, InputError
 from service.localization.surface import HeightMap
 
 CONNECT_TIMEOUT_S = 10.0
@@ -43,6 +43,8 @@ class Failed:
     settings: Any
     """What the episode was asked to run (RunSettings, or a task's own settings)."""
     error: str
+    refused: bool = False
+    """It refused its settings (an `InputError`): a user's to fix, not a fault of the run."""
 
     def to_json(self) -> dict[str, Any]:
         return {"settings": self.settings.to_json(), "error": self.error}
@@ -73,7 +75,7 @@ def run_one(settings: Any, maps: dict[str, HeightMap], task: Task = on_map) -> O
         return task(settings, maps)
     except Exception as exc:  # noqa: BLE001 - reported per episode, the rest go on
         first = str(exc).splitlines()[0] if str(exc) else ""
-        return Failed(settings, f"{type(exc).__name__}: {first}")
+        return Failed(settings, f"{type(exc).__name__}: {first}", isinstance(exc, InputError))
 
 
 def _portable(outcome: Outcome) -> Outcome:

@@ -42,21 +42,25 @@ def check_localizer_options(algorithm: str, options: dict[str, Any]) -> None:
 
 def add_scenario_options(parser: argparse.ArgumentParser, *, defaults: RunSettings,
                          localizer: bool = True, radius: bool = True,
-                         algorithm_help: str | None = None) -> None:
+                         algorithm_help: str | None = None, own_maps: bool = False) -> None:
     """Map, finger, algorithm, policy and noise options, with `defaults` shown in --help.
 
     `localizer=False` leaves out what only a localizer uses and `radius=False` the fingertip
     radius (for the servo-bus emulator, whose hand file sets it);
-    `algorithm_help` replaces the default's wording when there is no single default.
+    `algorithm_help` replaces the default's wording when there is no single default;
+    `own_maps` (a bench that builds its own surfaces) keeps --map and --spacing out of
+    --help: the bench refuses them, naming the command that takes a map.
     """
     g = parser.add_argument_group("scenario")
     g.add_argument("--map", default=defaults.map, metavar="NAME|PATH",
-                   help="preset NAME[:SIZE[:SEED]] (peaks, bumps, eggcrate, plate, pattern, "
-                        "shell, terrain; profile:KIND[:SIZE[:SEED]] for a 1-D profile; "
-                        "`haptic map list` describes them) or a .npy/.csv/.txt grid of heights "
-                        "in metres (default: %(default)s)")
+                   help=argparse.SUPPRESS if own_maps else
+                   "preset NAME[:SIZE[:SEED]] (peaks, bumps, eggcrate, plate, pattern, "
+                   "shell, terrain; profile:KIND[:SIZE[:SEED]] for a 1-D profile; "
+                   "`haptic map list` describes them) or a .npy/.csv/.txt grid of heights "
+                   "in metres (default: %(default)s)")
     g.add_argument("--spacing", type=float, default=None, metavar="M",
-                   help="metres between samples, for map files")
+                   help=argparse.SUPPRESS if own_maps else
+                   "metres between samples, for map files")
     if radius:
         g.add_argument("--radius", type=float, default=defaults.radius, metavar="M",
                        help="fingertip radius in metres (default: %(default)s)")

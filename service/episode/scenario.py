@@ -101,7 +101,12 @@ def check_start(settings: RunSettings, height_map: HeightMap) -> None:
     """Refuse a start the map cannot give (`draw_truth`), before any work is shown."""
     x_max, y_max = height_map.extent
     if settings.start is not None:
-        x, y, _ = settings.start
+        x, y, heading = settings.start
+        if height_map.is_profile and (y != 0 or not np.isclose(np.cos(heading) ** 2, 1.0)):
+            raise ConfigError(f"start ({x:.4g}, {y:.4g}, {np.rad2deg(heading):.4g} deg) on "
+                              f"profile '{height_map.name}': a planar finger's pose on a "
+                              "profile is a position along it, heading 0 or 180 deg, with y "
+                              f"0: give --start {x:.4g},0,0 or {x:.4g},0,180")
         if not height_map.inside(np.array(x), np.array(y)):
             raise ConfigError(f"start ({x:.4g}, {y:.4g}) m (`--start`, `scenario.start`) lies "
                               f"outside the map (0..{x_max:.4g}, 0..{y_max:.4g} m)")

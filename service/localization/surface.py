@@ -178,9 +178,17 @@ def check_radius(height_map: HeightMap, radius: float) -> None:
     hint = (f" The radius is in metres: for {radius:g} mm give {radius / 1000:g}." if radius >= 1
             else "")
     if radius > shorter:
+        if height_map.is_profile:
+            raise MapError(f"finger radius {radius * 1e3:g} mm does not fit on profile "
+                           f"'{height_map.name}' ({x_max * 1e3:g} mm long): it must be at most "
+                           f"the profile's length.{hint}")
+        rows = height_map.heights.shape[0]
+        profile = (f" A profile (the planar finger's map) is a single row; this map has "
+                   f"{rows}." if rows <= 3 else "")
         raise MapError(f"finger radius {radius * 1e3:g} mm does not fit on map "
                        f"'{height_map.name}' ({x_max * 1e3:g} x {y_max * 1e3:g} mm): it must "
-                       f"be at most the map's shorter side ({shorter * 1e3:g} mm).{hint}")
+                       f"be at most the map's shorter side ({shorter * 1e3:g} mm).{hint}"
+                       f"{profile}")
     k = int(np.floor(radius / height_map.spacing + 1e-9))
     footprint = (2 * k + 1) if height_map.is_profile else (2 * k + 1) ** 2
     if footprint * height_map.heights.size > DILATION_WORK_LIMIT:

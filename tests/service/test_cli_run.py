@@ -72,6 +72,31 @@ def test_profile_map_for_a_planar_finger(tmp_path, capsys):
     assert "truth" in capsys.readouterr().out
 
 
+@pytest.mark.parametrize("start", ["0.1,0.05,0", "0.1,0,45", "0.1,0,-90"])
+def test_a_start_off_a_profile_is_refused_naming_one_on_it(tmp_path, capsys, start):
+    """A held-out check: y off the profile was quietly set to 0, and a heading of 45 degrees
+    was taken, after which the particles reported poses off the map and elimination
+    declared a wrong one."""
+    path = tmp_path / "profile.csv"
+    np.savetxt(path, (np.sin(np.linspace(0, 12, 201)) * 0.004)[None], delimiter=",")
+    assert run_cli("--map", str(path), "--spacing", "0.001", "--start", start) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "--start 0.1,0,0 or 0.1,0,180" in err
+
+
+def test_a_radius_a_profile_cannot_take_names_its_length_and_a_two_row_map_its_rows(
+        tmp_path, capsys):
+    """"(200 x 0 mm): it must be at most the map's shorter side (200 mm)" on a profile, and
+    a two-row CSV meant as a profile was never told that a profile is one row."""
+    one, two = tmp_path / "one.csv", tmp_path / "two.csv"
+    np.savetxt(one, np.full((1, 201), 0.01), delimiter=",")
+    np.savetxt(two, np.full((2, 201), 0.01), delimiter=",")
+    assert run_cli("--map", str(one), "--spacing", "0.001", "--radius", "0.3") == 2
+    assert "profile's length" in capsys.readouterr().err
+    assert run_cli("--map", str(two), "--spacing", "0.001") == 2
+    assert "a single row; this map has 2" in capsys.readouterr().err
+
+
 def test_plot_is_written(tmp_path):
     png = tmp_path / "fig.png"
     assert run_cli("--seed", "1", "--plot", str(png)) == 0

@@ -72,9 +72,33 @@ def test_bad_options_are_one_line_errors(args, capsys):
 
 
 @pytest.mark.parametrize("bench", ["objects", "profile", "scale"])
-def test_a_map_these_benches_do_not_take_is_refused(bench, capsys):
+@pytest.mark.parametrize("given", [["--map", "bumps:20:1"], ["--spacing", "0.001"]])
+def test_a_map_these_benches_do_not_take_is_refused(bench, given, capsys):
     """A researcher's finding: `bench profile --map profile.csv` listed --map in its help,
-    printed that it ignored it and ran 30 preset episodes."""
-    assert main(["bench", bench, "--map", "bumps:20:1", "--runs", "1"]) == 2
+    printed that it ignored it and ran 30 preset episodes; --spacing was ignored without a
+    word."""
+    assert main(["bench", bench, *given, "--runs", "1"]) == 2
     err = capsys.readouterr()
-    assert err.out == "" and "--map does not apply" in err.err and "bench realistic" in err.err
+    assert err.out == "" and "--map and --spacing do not apply" in err.err
+    assert "bench realistic" in err.err
+
+
+@pytest.mark.parametrize("bench", ["objects", "profile", "scale"])
+def test_these_benches_do_not_offer_a_map_in_their_help(bench, capsys):
+    """A held-out check: `bench profile --help` listed --map, which it refuses."""
+    with pytest.raises(SystemExit):
+        main(["bench", bench, "--help"])
+    out = capsys.readouterr().out
+    assert "--map-seed" in out or "--sizes" in out
+    assert "--map NAME" not in out and "--spacing" not in out
+
+
+def test_a_map_every_episode_refuses_is_an_input_error(tmp_path, capsys):
+    """15 samples at 1 mm leave no start two steps inside the edges: every episode raised
+    the same error, and the bench ended with status 1, the status of a wrong declaration."""
+    profile = tmp_path / "short.csv"
+    profile.write_text(",".join(["0.01"] * 15) + "\n")
+    assert main(["bench", "realistic", "--map", str(profile), "--spacing", "0.001",
+                 "--runs", "2", "--workers", "1"]) == 2
+    err = capsys.readouterr().err
+    assert "every episode refused its settings" in err and "smaller --step" in err
