@@ -108,8 +108,11 @@ class MapReport:
                 else f"{x * 1e3:g} x {y * 1e3:g} mm, {self.shape[1]} x {self.shape[0]} samples")
         flat = hi - lo < FEATURE_TOLERANCE
         area = "its length" if self.is_profile else "the area"
-        feature = (("none (flat)" if flat else "none as steep as 1 in 4 for its width: "
-                    "smooth, gently varying ground")
+        smooth = ("none (flat)" if flat else
+                  "no bump or pit as steep as 1 in 4 for its width; its steep slopes are "
+                  "steps or walls between levels" if self.steepest_slope > FEATURE_ASPECT
+                  else "none as steep as 1 in 4 for its width: smooth, gently varying ground")
+        feature = (smooth
                    if self.smallest_feature is None else
                    f"{self.smallest_feature * 1e3:.3g} mm wide"
                    + (f", narrower than the tip ({2 * self.radius * 1e3:g} mm across): it is "

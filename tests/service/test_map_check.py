@@ -252,3 +252,18 @@ def test_a_tip_wider_than_the_map_is_warned_of():
     wide = check_map(HeightMap(z, 0.001, "plate"), 0.12)
     assert warned(wide, "the tip (240 mm across) is wider than the map (200 mm)")
     assert not warned(check_map(HeightMap(z, 0.001, "plate"), 0.008), "wider than the map")
+
+
+def test_a_wall_is_not_called_smooth_ground():
+    """A held-out check: a profile with a 20 mm vertical wall (steepest 87 degrees) was
+    "smallest none as steep as 1 in 4 for its width: smooth, gently varying ground"."""
+    x = np.arange(201) * 0.001
+    wall = HeightMap((0.01 + 0.02 * (x > 0.1) + 0.002 * np.sin(x / 0.02))[None], 0.001,
+                     name="wall")
+    report = check_map(wall, 0.008, 0.01)
+    features = next(line for line in report.lines() if line.startswith("features"))
+    assert report.smallest_feature is None and "steps or walls" in features
+    assert "smooth" not in features
+    gentle = HeightMap((0.01 + 0.002 * np.sin(x / 0.02))[None], 0.001, name="gentle")
+    assert "smooth, gently varying ground" in next(
+        line for line in check_map(gentle, 0.008, 0.01).lines() if line.startswith("features"))
