@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING
 from dynamixel_sdk.protocol2_packet_handler import PKT_ID
 from dynamixel_sdk.robotis_def import COMM_SUCCESS
 
-from firmware_if.errors import BusTimeoutError, CommunicationError, FirmwareError
+from firmware_if.errors import BusTimeoutError, CommunicationError, FirmwareError, PortLost
 from firmware_if.packets import INST_PING, packet
 from firmware_if.sdk_fixes import (
     PING_ANSWER_LENGTH,
@@ -52,8 +52,13 @@ def why_cycles_failed(bus: DxlBus, last: CommunicationError) -> str:
         half_cycle_ms = bus.cycle_budget_s * 1e3 / 2  # what a cycle's read waits
         for sid in [s for s, ms in answered.items() if ms > half_cycle_ms]:
             answered.update(ping_times(bus, (sid,)))  # alone, on a quiet line
-    except (FirmwareError, *PORT_ERRORS, ValueError):
-        return ""  # the port itself: its own error says so
+    except (PortLost, *PORT_ERRORS, ValueError) as exc:  # the port itself failed
+        words = bus.fault if isinstance(exc, PortLost) else f"{type(exc).__name__}: {exc}"
+        return (f"; then the serial port itself failed ({words}): its adapter unplugged, "
+                "or the emulator stopped? Reconnect it, then reset (or configure another "
+                "port)")
+    except FirmwareError:
+        return ""
     late = {sid: ms for sid, ms in answered.items() if ms > half_cycle_ms}
     silent = [sid for sid in bus.ids if sid not in answered]
     if not late and not silent and isinstance(last, BusTimeoutError):

@@ -141,6 +141,30 @@ def test_damaged_replies_are_told_from_a_host_that_missed_the_cycles(emulator, b
         "cable")
 
 
+def test_a_port_that_vanishes_after_its_cycles_timed_out_is_named_the_cause(emulator, bus,
+                                                                            monkeypatch):
+    """`make test` under load: the emulator stopped, three cycles timed out before its end of
+    the line closed, and the pings that were to say why met the closed port. The fault read
+    "3 consecutive failed cycles (last: ... no status packet!)" and never named the port."""
+    bus.torque(True)
+    port = bus._require()
+    calls = {"n": 0}
+
+    def gone(*_args):
+        raise OSError(5, "Input/output error")
+
+    def timed_out():
+        calls["n"] += 1
+        if calls["n"] == 3:  # the line closes as the third cycle gives up
+            port.writePort = gone
+        raise BusTimeoutError("fast sync read: [TxRxResult] There is no status packet!", IDS)
+
+    monkeypatch.setattr(bus, "_fast_sync_read" if bus.stats.fast_read else "_sync_read",
+                        timed_out)
+    fault = latched_on_the_third_failed_cycle(bus, "the serial port itself failed")
+    assert "Reconnect it, then reset" in str(fault.value)
+
+
 def test_a_bus_where_no_servo_answers_names_the_baud(emulator, bus):
     for sid in IDS:
         emulator.fault(sid).mute = True
