@@ -149,7 +149,8 @@ def _print_summary(report: EpisodeReport) -> None:
             max_steps=report.settings.max_steps, pose=None if est is None else est.pose,
             mode_mass=None if est is None else est.mode_mass,
             runner_up=None if est is None else est.runner_up,
-            runner_up_mass=None if est is None else est.runner_up_mass)
+            runner_up_mass=None if est is None else est.runner_up_mass,
+            held_back="" if est is None else est.held_back)
         print(f"result    not localized after {steps} steps: {why}")
         if est is not None and est.pose is not None and s.position_error is not None:
             print(f"          (the leading pose is {s.position_error * 1e3:.1f} mm / "

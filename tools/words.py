@@ -62,17 +62,21 @@ def why_not_converged(*, candidates: int, steps: int, max_steps: int,
                       pose: Sequence[float] | None, mode_mass: float | None,
                       runner_up: Sequence[float] | None,
                       runner_up_mass: float | None, second: str = "y",
-                      where: str = "on this map") -> str:
+                      where: str = "on this map", held_back: str = "") -> str:
     """One sentence on why an episode ended without declaring a pose (`second`: the name
     of a pose's second coordinate, `z` for an object in a hand's plane; `where` the poses
-    lie)."""
+    lie; `held_back`: the localizer's own words for what held the declaration back, if it
+    gave them)."""
     if candidates == 0 or pose is None:
         return f"every hypothesis was eliminated: the readings fit no pose {where}"
     parts = []
     if steps >= max_steps:
         parts.append(f"out of steps ({steps} of at most {max_steps})")
     lead = "" if mode_mass is None else f" ({100 * mode_mass:.0f} %)"
-    if runner_up is not None and runner_up_mass is not None and runner_up_mass < 0.005:
+    if held_back and (runner_up is None or runner_up_mass is None or runner_up_mass < 0.005):
+        parts.append(f"the leading pose {pose_text(pose, second=second)}{lead} is not yet "
+                     f"confirmed: {held_back}")
+    elif runner_up is not None and runner_up_mass is not None and runner_up_mass < 0.005:
         parts.append(f"the leading pose {pose_text(pose, second=second)}{lead} is not yet "
                      "confirmed: its fit to every reading, its spread, or another pose "
                      f"{where} that fits nearly as well holds it back")

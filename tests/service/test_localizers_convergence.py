@@ -501,3 +501,24 @@ def test_no_near_miss_on_shell_42_seed_14():
     (`test_the_valley_weighs_readings_that_err_together_as_one_error` has its readings)."""
     report = simulate(RunSettings(map="shell:20:42", noise=True, seed=14, max_steps=60))
     assert not report.score.wrong_declaration
+
+
+@pytest.mark.parametrize(("change", "words"), [
+    ({"readings": 3}, "3 distinct places read beyond the first, of the 6 needed"),
+    ({"mode_mass": 0.97}, "its share 97 % beside the other poses that fit, of the 99.9 %"),
+    ({"rms": 1.5}, "its fit: the readings' rms residual is 1.50 sds, of at most 1.3"),
+    ({"max_abs_shared": 4.0}, "its fit: a reading lies 4.00 sds off it"),
+    ({"position_sd": 0.0011}, "its spread: position sd 1.10 mm, of at most 0.80 mm"),
+    ({"heading_sd": np.deg2rad(2.0)}, "its spread: heading sd 2.00 deg, of at most 1.50 deg"),
+])
+def test_a_rule_that_does_not_hold_names_the_first_condition_it_misses(change, words):
+    """A held-out check: "not yet confirmed: its fit to every reading, its spread, or
+    another pose that fits nearly as well holds it back" left a user guessing which."""
+    rule = ConvergenceRule()
+    evidence = {"readings": 8, "mode_mass": 0.9999}
+    fit = _fit(position_sd=0.0002, heading_sd=0.002, max_abs_shared=2.0)
+    assert rule.unmet(noisy=True, fit=fit, step_length=0.01, **evidence) == ""
+    evidence.update({k: v for k, v in change.items() if k in evidence})
+    fit = dataclasses.replace(fit, **{k: v for k, v in change.items() if k not in evidence})
+    assert words in rule.unmet(noisy=True, fit=fit, step_length=0.01, **evidence)
+    assert not rule.holds(noisy=True, fit=fit, step_length=0.01, **evidence)

@@ -28,3 +28,13 @@ def test_a_rival_of_no_weight_is_not_called_an_ambiguity():
     text = why_not_converged(candidates=10, steps=40, max_steps=40, pose=(0.1, 0.2, 0.3),
                              mode_mass=0.7, runner_up=(0.0, 0.0, 0.0), runner_up_mass=0.3)
     assert "still ambiguous between" in text and "(30 %)" in text
+
+
+def test_a_localizer_that_says_what_held_it_back_is_quoted():
+    from tools.words import why_not_converged
+
+    text = why_not_converged(candidates=10, steps=60, max_steps=60, pose=(0.1, 0.0, 0.0),
+                             mode_mass=1.0, runner_up=None, runner_up_mass=0.0,
+                             held_back="its spread: position sd 0.90 mm, of at most 0.80 mm")
+    assert text.endswith("is not yet confirmed: its spread: position sd 0.90 mm, of at most "
+                         "0.80 mm")

@@ -100,6 +100,9 @@ class Estimate:
     pending: bool = False
     """Only the background's checks stand between `pose` and a declaration: run
     `background` before the next move, and the estimate may then be converged (`settle`)."""
+    held_back: str = ""
+    """Not converged: the first condition that held the declaration back, in words ("" when
+    the localizer does not say)."""
 
 
 @dataclass(frozen=True)

@@ -169,20 +169,38 @@ class ConvergenceRule:
     def holds(self, *, readings: int, noisy: bool, mode_mass: float, fit: Fit | None,
               step_length: float) -> bool:
         """Whether the evidence supports declaring `fit`."""
+        return not self.unmet(readings=readings, noisy=noisy, mode_mass=mode_mass, fit=fit,
+                              step_length=step_length)
+
+    def unmet(self, *, readings: int, noisy: bool, mode_mass: float, fit: Fit | None,
+              step_length: float) -> str:
+        """The first condition the evidence misses for declaring `fit`, in words ("" when
+        it holds): what a user told "not yet" wants to know."""
         if fit is None:
-            return False
+            return "no pose fitted yet"
         needed = self.min_readings_noisy if noisy else self.min_readings
-        if readings < needed or not mode_mass >= self.mode_mass:
-            return False
+        if readings < needed:
+            return f"{readings} distinct places read beyond the first, of the {needed} needed"
+        if not mode_mass >= self.mode_mass:
+            return (f"its share {_share(mode_mass)} beside the other poses that fit, of the "
+                    f"{_share(self.mode_mass)} needed")
         # with noise, a reading's error is its own and the map's, which the spread counts
         worst = fit.max_abs_shared if np.isfinite(fit.max_abs_shared) else fit.max_abs
-        fits = (fit.rms <= self.max_rms and worst <= self.max_abs_for(fit.readings)
-                if noisy
-                else fit.max_abs <= self.max_abs)
-        largest = self.max_position_sd if noisy else self.max_position_sd_exact
-        tight = (fit.position_sd <= largest * step_length
-                 and fit.heading_sd <= self.max_heading_sd)
-        return bool(fits and tight)
+        bar = self.max_abs_for(fit.readings) if noisy else self.max_abs
+        if noisy and not fit.rms <= self.max_rms:
+            return (f"its fit: the readings' rms residual is {fit.rms:.2f} sds, of at most "
+                    f"{self.max_rms:g}")
+        if not (worst if noisy else fit.max_abs) <= bar:
+            return (f"its fit: a reading lies {worst if noisy else fit.max_abs:.2f} sds off "
+                    f"it, of at most {bar:.2f}")
+        largest = (self.max_position_sd if noisy else self.max_position_sd_exact) * step_length
+        if not fit.position_sd <= largest:
+            return (f"its spread: position sd {fit.position_sd * 1e3:.2f} mm, of at most "
+                    f"{largest * 1e3:.2f} mm")
+        if not fit.heading_sd <= self.max_heading_sd:
+            return (f"its spread: heading sd {np.degrees(fit.heading_sd):.2f} deg, of at most "
+                    f"{np.degrees(self.max_heading_sd):.2f} deg")
+        return ""
 
 
 FLOOR = 0.002
@@ -207,6 +225,11 @@ REFINED_RIVALS = 2
 """Rivals refined by least squares beside the leader before a declaration."""
 
 
+def _share(mass: float) -> str:
+    """A share as a percentage with the digits that tell it from its bar (99.9 %)."""
+    return f"{100 * mass:.4g} %" if np.isfinite(mass) else "unknown"
+
+
 @dataclass(frozen=True)
 class Verdict:
     """The outcome of judging the leading modes of a localizer's hypotheses."""
@@ -218,6 +241,8 @@ class Verdict:
     runner_up: tuple[float, float, float] | None
     runner_up_mass: float
     converged: bool
+    held_back: str = ""
+    """Without a declaration: the first condition that held it back, in words."""
 
 
 def judge(surface: ContactSurface, history: np.ndarray, modes: Modes, *, sigma: float,
@@ -237,7 +262,9 @@ def judge(surface: ContactSurface, history: np.ndarray, modes: Modes, *, sigma: 
     """
     if len(history) < 4 or len(modes.centres) == 0:
         mass = float(modes.masses[0]) if len(modes.masses) else 0.0
-        return Verdict(None, modes.centres, mass, None, 0.0, False)
+        return Verdict(None, modes.centres, mass, None, 0.0, False,
+                       f"{len(history) - 1} readings beyond the first, of at least 3 to judge"
+                       if len(modes.centres) else "no pose fits the readings")
     sd = max(sigma, 0.01 * step_length)
     tol_pos, tol_head = 0.25 * step_length, float(np.deg2rad(5.0))
     centres = modes.centres if polish == 0 else gauss_newton(
@@ -272,8 +299,10 @@ def judge(surface: ContactSurface, history: np.ndarray, modes: Modes, *, sigma: 
     fit = _with_floored_spread(surface, history, assess(surface, history, best, sds), sigma,
                                position_sigma, step_length)
     converged = False
-    if rule.loosened(loose_mass).holds(readings=places - 1, noisy=noisy, mode_mass=mass, fit=fit,
-                             step_length=step_length):
+    held_back = rule.loosened(loose_mass).unmet(readings=places - 1, noisy=noisy,
+                                                mode_mass=mass, fit=fit,
+                                                step_length=step_length)
+    if not held_back:
         # a noise-free reading is never an outlier: dropping one could only flatter a
         # wrong pose; with noise, at most one reading in eight may be set aside
         outliers = len(history) // 8 if noisy else 0
@@ -301,24 +330,31 @@ def judge(surface: ContactSurface, history: np.ndarray, modes: Modes, *, sigma: 
             refined = 0.0  # a rival fits better once fitted: not this leader
         mass = refined
         fit = _with_floored_spread(surface, history, fit, sigma, position_sigma, step_length)
-        converged = rule.holds(readings=places - 1, noisy=noisy, mode_mass=mass,
-                               fit=fit, step_length=step_length)
+        held_back = rule.unmet(readings=places - 1, noisy=noisy, mode_mass=mass, fit=fit,
+                               step_length=step_length)
         # and it must lead by the readings' shared error too, against every mode weighed
-        converged = converged and (not noisy or shared_error_mass(
-            surface, history, np.vstack([[fit.pose], poses[1:], centres[order[1:]]]), sds,
-            sigma, step_length, margin, tol_pos, tol_head) >= rule.mode_mass)
+        if not held_back and noisy and shared_error_mass(
+                surface, history, np.vstack([[fit.pose], poses[1:], centres[order[1:]]]),
+                sds, sigma, step_length, margin, tol_pos, tol_head) < rule.mode_mass:
+            held_back = ("another pose fits nearly as well once the readings' shared error "
+                         "is counted")
         # the spread is the fit's curvature; where the misfit is not a bowl (a flat valley
         # with a wall) it can claim half a millimetre while the readings allow three
-        converged = converged and _valley_within(
-            surface, history, fit, np.maximum(sds, FLOOR * step_length), tol_pos, tol_head,
-            margin, toward=nearby, shared=(sigma, step_length) if noisy else None)
+        if not held_back and not _valley_within(
+                surface, history, fit, np.maximum(sds, FLOOR * step_length), tol_pos,
+                tol_head, margin, toward=nearby,
+                shared=(sigma, step_length) if noisy else None):
+            held_back = "the readings still let it slide along a valley of the misfit"
         # with noise it must also agree with where the previous update put it: a pose that
         # still jumps between updates is not settled, however tight its covariance looks
-        converged &= not noisy or previous is not None and bool(within(
-            np.asarray([fit.pose]), np.asarray(previous),
-            SETTLED * rule.max_position_sd * step_length, SETTLED * rule.max_heading_sd)[0])
+        if not held_back and noisy and not (previous is not None and bool(within(
+                np.asarray([fit.pose]), np.asarray(previous),
+                SETTLED * rule.max_position_sd * step_length,
+                SETTLED * rule.max_heading_sd)[0])):
+            held_back = "it moved since the last reading: not settled yet"
+        converged = not held_back
     return Verdict(fit, centres[order], mass, runner,
-                   float(share[1]) if len(order) > 1 else 0.0, converged)
+                   float(share[1]) if len(order) > 1 else 0.0, converged, held_back)
 
 
 def shared_error_mass(surface: ContactSurface, history: np.ndarray, poses: np.ndarray,

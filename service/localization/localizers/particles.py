@@ -139,6 +139,8 @@ class Particles:
         self.runner_up: tuple[float, float, float] | None = None
         self.runner_up_mass = 0.0
         self.converged = False
+        self.held_back = ""
+        """Why the last judgement did not declare (`Verdict.held_back`)."""
         self.pending = False
         """The judge would declare the fit, the sweep or the declaration's checks have yet
         to allow it (`Estimate.pending`): the background judges it again when done."""
@@ -212,6 +214,7 @@ class Particles:
             self.pending = False
             self.converged = self.sweep.checked and self._checks.clear(
                 np.asarray(self.fit.pose), self.history, self._add)
+            self.held_back = "" if self.converged else self._checks_words()
 
     def _update(self, job: AnytimeJob, m: Measurement) -> Iterator[int]:
         self.history = np.vstack([self.history, reading_row(m, self.ctx.walls)])
@@ -424,6 +427,7 @@ class Particles:
         previous = self.fit
         self.fit, self.converged, self.pending = None, False, False
         self.mode_mass, self.runner_up, self.runner_up_mass = 0.0, None, 0.0
+        self.held_back = ""
         if len(self.poses) == 0:
             return
         step = self.ctx.step_length
@@ -463,6 +467,14 @@ class Particles:
             self.converged = self.converged and self._checks.clear(
                 np.asarray(v.fit.pose), self.history, self._add)
         self.pending = v.converged and not self.converged
+        self.held_back = v.held_back or ("" if self.converged else self._checks_words())
+
+    def _checks_words(self) -> str:
+        """Why the checks of the whole map hold a declaration the judge would make back."""
+        if not self.sweep.checked:
+            return "the sweep of the whole map has not passed over every pose yet"
+        return ("the checks of the whole map (turned copies, the certificate) have not "
+                "cleared it yet: a pose elsewhere may fit comparably")
 
     # -- helpers ---------------------------------------------------------------------------
     def _random(self, count: int) -> np.ndarray:
@@ -494,7 +506,7 @@ class Particles:
                         position_sd=pos_sd, heading_sd=head_sd, mode_mass=self.mode_mass,
                         runner_up=self.runner_up, runner_up_mass=self.runner_up_mass,
                         information=None if self.fit is None else self.fit.information,
-                        pending=self.pending)
+                        pending=self.pending, held_back=self.held_back)
 
     def retains(self, pose: tuple[float, float, float], position_tol: float,
                 heading_tol: float) -> bool | None:
