@@ -299,6 +299,7 @@ def test_readings_off_the_truth_alike_are_not_read_as_another_pose(monkeypatch, 
 
 
 @pytest.mark.parametrize("refit", [True, False])
+@pytest.mark.usefixtures("one_step_policy")
 def test_a_world_off_the_model_alike_does_not_keep_the_declaration_back(monkeypatch, refit):
     """blob:27, seed 27, three fingers from a 2 N start: the world's outline lay off the
     model's alike under the fingertips, and the fit's largest residual stayed just beyond

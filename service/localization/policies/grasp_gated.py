@@ -201,14 +201,17 @@ class GraspGatedPolicy:
                  substeps: int = 8, precision: bool = True) -> None:
         self.gate, self.plausible, self.min_gain = gate, plausible, min_gain
         self.precision = precision
-        """A hand of three fingers or more weighs moves by how they pin the leader's spread
-        (`contour_precision`) and takes a turn that pins it more once the rolls are spent
-        (`SPENT`); without, the policy of before: a turn only when no roll tells the modes
-        anything. Two fingers keep that: they hold by one opposed pair, whose quality
-        turns on the pose so sharply that the truth strays beyond the plausible poses as
-        the fingers spread out; weighed by precision, their least true quality on rounded,
-        blob and keyed (members 0-19, from a 2 N start) fell to 0.33 N from 1.09 N, the
-        margin being 0.2 N, and no more localized (3 of 60)."""
+        """A hand of three fingers or more, once one mode is left, weighs moves by how they
+        pin the leader's spread (`contour_precision`) and takes a turn that pins it more
+        once the rolls are spent (`SPENT`); otherwise the policy of before: a turn only when
+        no roll tells the modes anything. Two fingers keep that: they hold by one opposed
+        pair, whose quality turns on the pose so sharply that the truth strays beyond the
+        plausible poses as the fingers spread out; weighed by precision, their least true
+        quality on rounded, blob and keyed (members 0-19, from a 2 N start) fell to 0.33 N
+        from 1.09 N, the margin being 0.2 N, and no more localized (3 of 60). So do
+        ambiguous modes: counted there too, three fingers on a helper's held-out outlines
+        (a 3:1 rounded rectangle, seed 7; a five-pointed star, seed 16) took other paths
+        through their turns and dropped the object where the policy of before did not."""
         self._precise = False
         """`precision` holds for this hand."""
         self.turns, self.substeps = tuple(turns), substeps
@@ -245,11 +248,12 @@ class GraspGatedPolicy:
         radii = np.array([f.radius for f in view.fingers])
         lead = poses[0]
         self._remember(view.centres, lead, radii)
-        self._precise = self.precision and len(view.fingers) > 2 and not view.fixed
+        ambiguous = _ambiguous(poses, weights)
+        self._precise = (self.precision and len(view.fingers) > 2 and not view.fixed
+                         and not ambiguous)
         self._spread = self._spread_now(view, lead) if self._precise else None
         self._lead_mass = float(weights[_in_mode(poses, 0)].sum())
         explore = self._explore(view, poses, weights, radii)
-        ambiguous = _ambiguous(poses, weights)
         if explore is not None and (view.fixed or not self._may_turn(explore, ambiguous)):
             return explore
         if not view.fixed:
