@@ -128,3 +128,12 @@ def test_with_noise_a_declaration_waits_for_the_whole_profile(seed):
     assert not report.score.wrong_declaration
     if report.result.estimate.converged:
         assert report.score.success
+
+
+def test_with_noise_an_undecided_estimate_says_what_holds_it_back():
+    """"not yet confirmed: its fit to every reading, its spread, or another pose ... holds
+    it back" said nothing of the hundreds of table poses still left."""
+    report = simulate(RunSettings(algorithm="elimination", noise=True, seed=0, max_steps=3))
+    estimate = report.result.estimate
+    assert not estimate.converged
+    assert "poses of the table are left; they are judged from 8" in estimate.held_back

@@ -266,7 +266,9 @@ class Elimination:
         idx = np.flatnonzero(self.alive)
         previous = self.verdict.fit.pose if self.verdict.fit is not None else None
         if idx.size + len(self.rivals) == 0 or idx.size > JUDGED:
-            return Verdict(None, np.empty((0, 3)), 0.0, None, 0.0, False)
+            return Verdict(None, np.empty((0, 3)), 0.0, None, 0.0, False,
+                           f"{idx.size} poses of the table are left; they are judged from "
+                           f"{JUDGED}" if idx.size else "")
         order = idx[np.argsort(self.sse[idx], kind="stable")]
         centres = np.vstack([self.poses[order], self.rivals])
         modes = Modes(centres=centres, masses=np.full(len(centres), 1.0 / len(centres)),
@@ -281,7 +283,9 @@ class Elimination:
                      motions=self.motions, polish=6)
         assert self.whole_map is not None
         if verdict.converged and not self.whole_map.checked:  # the whole map has yet to agree
-            verdict = dataclasses.replace(verdict, converged=False)
+            verdict = dataclasses.replace(
+                verdict, converged=False,
+                held_back="the sweep of the whole map has not passed over every pose yet")
         return verdict
 
     # -- belief ----------------------------------------------------------------------------
@@ -290,7 +294,7 @@ class Elimination:
         v = self.verdict
         if self.noisy and v.fit is not None:  # the refined survivor (or find), judged
             return Estimate(pose=v.fit.pose, candidates=int(idx.size) + len(self.rivals),
-                            converged=v.converged,
+                            converged=v.converged, held_back=v.held_back,
                             position_sd=v.fit.position_sd, heading_sd=v.fit.heading_sd,
                             mode_mass=v.mode_mass, runner_up=v.runner_up,
                             runner_up_mass=v.runner_up_mass, information=v.fit.information)
@@ -303,7 +307,8 @@ class Elimination:
         return Estimate(pose=best, candidates=int(idx.size),
                         converged=idx.size == 1 and not self.noisy,  # the paper's rule
                         position_sd=pos_sd, heading_sd=head_sd, mode_mass=1.0 / idx.size,
-                        runner_up=runner, runner_up_mass=1.0 / idx.size if runner else 0.0)
+                        runner_up=runner, runner_up_mass=1.0 / idx.size if runner else 0.0,
+                        held_back=v.held_back if self.noisy else "")
 
     def retains(self, pose: tuple[float, float, float], position_tol: float,
                 heading_tol: float) -> bool | None:
