@@ -20,7 +20,6 @@ from firmware_if.backend import HandState
 from service.episode.hand_scenario import HandParts, HandSettings
 from service.localization.localizers.base import Estimate, settle
 from service.localization.localizers.object_base import HandMeasurement
-from service.localization.objects.rolling import TwistNoise
 from service.localization.policies.grasp_gated import GraspGatedPolicy, HandDecision, HandView
 
 POLICY_HYPOTHESES = 500
@@ -99,10 +98,9 @@ class HandStepper:
                         fixed=self.settings.single_finger, blocked=frozenset(self.blocked),
                         spread=(float(est.position_sd), float(est.heading_sd)),
                         slope_sd=self.settings.noise_spec.surface_slope_sd,
-                        motion=TwistNoise(self.settings.noise_spec.step_length_fraction,
-                                          self.settings.noise_spec.step_direction_sigma),
-                        mismatch=(self.settings.noise_spec.surface_sigma,
-                                  self.settings.noise_spec.surface_correlation))
+                        motion=self.localizer.ctx.motion,
+                        mismatch=(self.localizer.ctx.mismatch_sd,
+                                  self.localizer.ctx.mismatch_length))
         decision = self.policy.decide(view)
         self.policy_ms = (time.perf_counter() - t0) * 1e3
         return decision

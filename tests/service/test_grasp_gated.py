@@ -20,14 +20,16 @@ from service.localization.objects.field import contact_field
 from service.localization.objects.presets import preset_object
 from service.localization.policies import grasp_gated
 from service.localization.policies.grasp_gated import (
-    COVER,
-    COVER_LENGTH,
-    SPREAD_CAP,
     GraspGatedPolicy,
     HandView,
     _best_allowed,
-    _with_cover,
-    _with_spread,
+)
+from service.localization.policies.guarded_poses import (
+    COVER,
+    COVER_LENGTH,
+    SPREAD_CAP,
+    with_cover,
+    with_spread,
 )
 from sim_backend.hand import HandSimConfig, SimulatedHand
 
@@ -159,18 +161,18 @@ def test_three_fingers_leave_a_start_whose_edge_poses_forbade_every_move():
 def test_each_modes_neighbours_lie_two_spreads_away_at_most_the_cap():
     poses = np.array([[0.0, 0.0, 1.0], [0.01, 0.0, 2.0], [0.001, 0.0, 1.02]])
     weights = np.array([0.7, 0.2, 0.1])  # the third is in the leader's mode
-    out, w, guard = _with_spread(poses, weights, (0.0005, np.deg2rad(10.0)))
+    out, w, guard = with_spread(poses, weights, (0.0005, np.deg2rad(10.0)))
     assert len(out) == 15 and guard.tolist() == [False] + [True] * 12 + [False, False]
     assert w.tolist() == [0.7] + [0.0] * 12 + [0.2, 0.1]
     for mode, around in ((poses[0], out[1:7]), (poses[1], out[7:13])):
         assert np.allclose(np.abs(around[:2, 2] - mode[2]), 2 * SPREAD_CAP[1])
         assert np.allclose(np.abs(around[2:, :2] - mode[:2]).max(axis=1), 0.001)
-    assert len(_with_spread(poses, weights, (float("nan"), 0.1))[0]) == 3
+    assert len(with_spread(poses, weights, (float("nan"), 0.1))[0]) == 3
 
 
 def test_a_mode_too_light_to_matter_gets_no_neighbours():
     poses = np.array([[0.0, 0.0, 1.0], [0.01, 0.0, 2.0]])
-    out, _, guard = _with_spread(poses, np.array([0.999, 0.001]), (0.0005, 0.01))
+    out, _, guard = with_spread(poses, np.array([0.999, 0.001]), (0.0005, 0.01))
     assert len(out) == 8 and guard.sum() == 6
 
 
@@ -195,7 +197,7 @@ def test_the_cover_fills_the_gaps_where_the_readings_allow():
     view = HandView(hypotheses=Hypotheses(poses, np.full(40, 1 / 40)), centres=centres,
                     joints=(), field=field, fingers=HAND.fingers, torque=0.5, grasp=SPEC,
                     step_length=0.003, sigma=2e-4)
-    cover = _with_cover(view, poses)
+    cover = with_cover(view, poses)
     assert len(cover) == 6 * min(COVER, len(poses))
     anchors = np.tile(poses[:COVER], (6, 1))
     scale = np.array([1.0, 1.0, COVER_LENGTH])

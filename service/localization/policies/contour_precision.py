@@ -20,6 +20,7 @@ import numpy as np
 from service.localization.localizers.object_judge import from_object
 from service.localization.objects import kernels
 from service.localization.objects.field import ContactField
+from service.localization.policies.precision import correlation
 
 PRIOR_HEADING = np.deg2rad(30.0)
 """How loose a heading no reading has constrained is taken to be."""
@@ -58,7 +59,9 @@ class ContourSpread:
         w = 1.0 / s**2
         prior = np.diag([1 / scale**2, 1 / scale**2, 1 / PRIOR_HEADING**2])
         normal = w * rows.T @ rows + prior
-        shared = shared_sd**2 * _correlation(places, places, length)
+        if length <= 0:  # no shared error to correlate
+            shared_sd, length = 0.0, 1.0
+        shared = shared_sd**2 * correlation(places, places, length)
         meat = normal + w * w * rows.T @ shared @ rows
         return cls(field, np.asarray(pose, dtype=np.float64), places, rows, normal, meat,
                    float(_volume(normal, meat)), s, shared_sd, length)
@@ -73,9 +76,9 @@ class ContourSpread:
         rows = _rows(self.field, self.pose, places, radii)
         w = 1.0 / self.s**2
         u = w * rows  # W j for each new reading
-        v = w * (self.shared_sd**2 * _correlation(places, self.places, self.length)) @ self.rows
+        v = w * (self.shared_sd**2 * correlation(places, self.places, self.length)) @ self.rows
         among = (self.s**2 * np.eye(len(places))
-                 + self.shared_sd**2 * _correlation(places, places, self.length))
+                 + self.shared_sd**2 * correlation(places, places, self.length))
         normal = self.normal + w * rows.T @ rows
         meat = self.meat + u.T @ v + v.T @ u + u.T @ among @ u
         if moved is not None:  # the readings before share the motion's error
@@ -95,13 +98,6 @@ def _rows(field: ContactField, pose: np.ndarray, places: np.ndarray, radii: np.n
         *field.args, np.ascontiguousarray(pose, dtype=np.float64),
         np.ascontiguousarray(world), np.ascontiguousarray(radii, dtype=np.float64))
     return jac
-
-
-def _correlation(a: np.ndarray, b: np.ndarray, length: float) -> np.ndarray:
-    """(A, B) the outline error's correlation between readings at places `a` and `b`."""
-    if length <= 0:
-        return np.zeros((len(a), len(b)))
-    return np.exp(-0.5 * np.sum((a[:, None, :] - b[None, :, :]) ** 2, axis=-1) / length**2)
 
 
 def _volume(normal: np.ndarray, meat: np.ndarray) -> float:

@@ -20,8 +20,8 @@ bringing contour the fingers could not reach under them.
   While the pose is a continuum the quality spans every level across it, and a rule over
   every sample would forbid every move; the weights say how likely each is. The samples
   leave gaps where an opposed grasp's quality changes fast, so the gate also holds for
-  weightless cover poses in those gaps that the readings allow (`_with_cover`), and for
-  each plausible mode's spread (`_with_spread`): no move may take one below the
+  weightless cover poses in those gaps that the readings allow (`guarded_poses.with_cover`), and for
+  each plausible mode's spread (`guarded_poses.with_spread`): no move may take one below the
   threshold. Where a tip lies beside a kink of the dilated contour (a hollow narrower than
   the tip, `objects/kinks.py`), the world may rest it on either side or bridging: a pose
   counts as possible (it is held) by the most the grasp may hold there, if the model finds
@@ -69,10 +69,10 @@ from firmware_if.hand import Finger
 from service.localization import chain_kernels
 from service.localization.grasp import GraspSpec, hand_quality
 from service.localization.localizers.base import Hypotheses
-from service.localization.localizers.convergence import distinct
 from service.localization.localizers.object_judge import to_object
 from service.localization.objects import kinks, rolling
 from service.localization.objects.field import ContactField
+from service.localization.policies import guarded_poses
 from service.localization.policies.contour_precision import ContourSpread
 from service.localization.policies.info_gain import information
 
@@ -100,23 +100,6 @@ RECOVERY = 0.5
 the grasp there is below twice the threshold: a weak grasp is strengthened first."""
 BUFFER = 0.25
 """Share of the gap from the margin to the threshold counted as near the margin."""
-SPREAD_CAP = (0.0015, np.deg2rad(3.0))
-"""Largest position (metres) and heading (radians) sd the gate's neighbours stand for: a
-wider spread is the pool's to cover."""
-MODE_SHARE = 0.005
-"""Least share of the plausible weight a mode's heaviest pose needs for the gate to guard
-the mode's spread."""
-MODE_CELL = (0.0025, np.deg2rad(5.0))
-"""Position (metres) and heading (radians) apart that two poses are distinct modes."""
-MODES = 16
-"""Most modes whose spread the gate guards."""
-COVER = 32
-"""Most plausible poses (the heaviest first) whose gaps the gate's cover fills."""
-COVER_LENGTH = 0.02
-"""Metres that one radian of heading counts as when measuring gaps between poses (about
-an object's radius: a turn moves its contour by that much per radian)."""
-COVER_GAP = (0.0005, 0.004)
-"""Least and largest step (scaled metres) from a pose to the cover poses beside it."""
 TILT = 3.0
 """Sds of the world's slope (`HandView.slope_sd`) by which its outline may turn a contact's
 normal from the model's. The start's quality is promised in the world; the model's outline
@@ -237,10 +220,10 @@ class GraspGatedPolicy:
         self._now = np.empty(0)
         """The grasp's quality as it is, under each plausible pose."""
         self._guard = np.empty(0, dtype=bool)
-        self._mode_of = np.empty(0, dtype=int)
-        """Each plausible pose's mode (`_mode_labels`), -1 for none."""
         """Plausible poses that stand for the leader's own spread: no weight of their own,
         but the gate holds for each as for a likely pose."""
+        self._mode_of = np.empty(0, dtype=int)
+        """Each plausible pose's mode (`guarded_poses.mode_labels`), -1 for none."""
 
 
     # -- the decision ----------------------------------------------------------------------
@@ -250,11 +233,11 @@ class GraspGatedPolicy:
         radii = np.array([f.radius for f in view.fingers])
         lead = poses[0]
         self._remember(view.centres, lead, radii)
-        ambiguous = _ambiguous(poses, weights)
+        ambiguous = guarded_poses.ambiguous(poses, weights)
         self._precise = (self.precision and len(view.fingers) > 2 and not view.fixed
                          and not ambiguous)
         self._spread = self._spread_now(view, lead) if self._precise else None
-        self._lead_mass = float(weights[_in_mode(poses, 0)].sum())
+        self._lead_mass = float(weights[guarded_poses.in_mode(poses, 0)].sum())
         explore = self._explore(view, poses, weights, radii)
         if explore is not None and (view.fixed or not self._may_turn(explore, ambiguous)):
             return explore
@@ -317,17 +300,17 @@ class GraspGatedPolicy:
             :self.plausible]
         if view.fixed:
             return poses, w / w.sum()
-        poses, w, self._guard = _with_spread(poses, w, view.spread)
+        poses, w, self._guard = guarded_poses.with_spread(poses, w, view.spread)
         if self._certified is None:
             self._certified = (view.centres.copy(), view.joints)
         poses, w, now, start = self._held(view, poses, w)
         if self.gate:  # fill the gaps between the poses that hold, then keep what holds
-            cover = _with_cover(view, poses)
+            cover = guarded_poses.with_cover(view, poses)
             poses, w = np.vstack([poses, cover]), np.concatenate([w, np.zeros(len(cover))])
             self._guard = np.concatenate([self._guard, np.ones(len(cover), dtype=bool)])
             poses, w, now, _ = self._held(view, poses, w, (now, start))
         self._now = now
-        self._mode_of = _mode_labels(poses, w)
+        self._mode_of = guarded_poses.mode_labels(poses, w)
         return poses, w / w.sum()
 
     def _held(self, view: HandView, poses: np.ndarray, w: np.ndarray,
@@ -487,7 +470,7 @@ class GraspGatedPolicy:
         (the leading modes) never below the threshold, or lower where it already is below;
         the chance (posterior weight) that it takes the quality down below the threshold
         at most `RISK`, and down near the margin at most `DROP_RISK`. The weightless guards
-        (`_with_spread`, `_with_cover`) are held as likely poses, or, as a `last_resort`,
+        (`guarded_poses`) are held as likely poses, or, as a `last_resort`,
         only off the margin."""
         grasp = view.grasp
         near = grasp.margin_n + BUFFER * (grasp.threshold_n - grasp.margin_n)
@@ -505,8 +488,8 @@ class GraspGatedPolicy:
 
     def _near_margin_chance(self, near: np.ndarray, weights: np.ndarray) -> float:
         """The chance a move takes the grasp near the margin: the whole weight of every
-        mode one of whose poses it takes there (`_mode_labels`), and that of poses of no
-        mode. A mode's poses are samples of one continuous uncertainty, over which the
+        mode one of whose poses it takes there (`guarded_poses.mode_labels`), and that of
+        poses of no mode. A mode's poses are samples of one continuous uncertainty, over which the
         quality can fall steeply (a star's flank: three fingers on a held-out five-pointed
         star, seed 37, moved where the two poses beside the truth predicted 0.24 and
         0.19 N at 0.15 % of the weight between them, the mode holding 17 %; the truth fell
@@ -602,98 +585,6 @@ class GraspGatedPolicy:
         return float(np.min(np.hypot(*(felt - local).T)) > FELT)
 
 
-def _with_spread(poses: np.ndarray, weights: np.ndarray, spread: tuple[float, float]
-                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Each plausible mode's neighbours two sds away (at most `SPREAD_CAP`) in heading and
-    in each position axis, weightless but guarded by the gate like a likely pose: near a
-    rounded corner a pose a couple of degrees off puts the contact where the grasp is far
-    weaker (rounded:9, seed 9, three fingers: the estimate 2.7 degrees off, the grasp
-    predicted sound, the object dropped). Every mode, not only the leader's: the truth
-    may lie in a mode of a few percent (rounded:39, seed 39, two fingers: its mode held
-    1.7-4.5 %, its own spread took the grasp from 1.7 to 0.15 N). The sd is the leader's.
-    Returns poses, weights and the mask of the neighbours."""
-    position, heading = spread
-    guard = np.zeros(len(poses), dtype=bool)
-    if not (np.isfinite(position) and np.isfinite(heading)) or (position == 0 and heading == 0):
-        return poses, weights, guard
-    position = 2 * min(position, SPREAD_CAP[0])
-    heading = 2 * min(heading, SPREAD_CAP[1])
-    offsets = np.array([[0, 0, heading], [0, 0, -heading], [position, 0, 0],
-                        [-position, 0, 0], [0, position, 0], [0, -position, 0]])
-    modes = _modes(poses, weights)
-    around = (poses[modes][:, None, :] + offsets[None]).reshape(-1, 3)
-    return (np.vstack([poses[:1], around, poses[1:]]),
-            np.concatenate([weights[:1], np.zeros(len(around)), weights[1:]]),
-            np.concatenate([[False], np.ones(len(around), dtype=bool), guard[1:]]))
-
-
-def _mode_labels(poses: np.ndarray, weights: np.ndarray) -> np.ndarray:
-    """Per pose, the index of the first mode head (`_modes`) within `MODE_CELL` of it, or
-    -1: which poses sample the same mode."""
-    heads = _modes(poses, weights) if weights.sum() > 0 else np.empty(0, dtype=int)
-    labels = np.full(len(poses), -1)
-    for k, h in enumerate(heads[::-1]):  # the heaviest head last: it wins a shared pose
-        same = (np.hypot(*(poses[:, :2] - poses[h, :2]).T) <= MODE_CELL[0]) & (
-            np.abs(np.angle(np.exp(1j * (poses[:, 2] - poses[h, 2])))) <= MODE_CELL[1])
-        labels[same] = len(heads) - 1 - k
-    return labels
-
-
-def _modes(poses: np.ndarray, weights: np.ndarray) -> np.ndarray:
-    """Indices of the heaviest pose of each distinct mode (`MODE_CELL` apart) holding at
-    least `MODE_SHARE` of the weight, at most `MODES`, the leader first."""
-    heavy = np.flatnonzero(weights >= MODE_SHARE * weights.sum())
-    return heavy[distinct(poses[heavy], weights[heavy], *MODE_CELL)][:MODES]
-
-
-def _with_cover(view: HandView, poses: np.ndarray) -> np.ndarray:
-    """The poses the readings still allow between the plausible ones, weightless but
-    guarded: the hypotheses are samples of a continuum, and an opposed grasp's quality is
-    so sensitive to the pose that the truth between two samples can drop the object where
-    both hold it (rounded:7, seed 7, two fingers: the nearest hypothesis 1.5 mm and 1.4
-    degrees from the truth, predicted 1.0 N, the truth gave 0.10 N). Beside each of the
-    `COVER` heaviest poses, half-way and all the way to the pool's typical gap, along the
-    direction the fingertips' readings constrain least (where the continuum runs); a cover
-    pose under which the grasp does not hold the object is dropped by `_plausible` as any
-    other. Returns the cover poses (k, 3)."""
-    anchors = poses[:COVER]
-    if len(poses) < 2 or len(view.fingers) == 0:
-        return np.empty((0, 3))
-    scale = np.array([1.0, 1.0, COVER_LENGTH])
-    gap = float(np.clip(_typical_gap(poses * scale), *COVER_GAP))
-    loose, next_loose, tight = _loosest(view, anchors)  # (a, 3) scaled directions, (a,)
-    across = np.minimum(gap, 2 * max(view.sigma, 1e-4) / np.maximum(tight, 1e-9))[:, None]
-    steps = np.concatenate([f * gap * loose for f in (0.5, -0.5, 1.0, -1.0)]
-                           + [f * across * next_loose for f in (1.0, -1.0)]) / scale
-    return np.tile(anchors, (6, 1)) + steps
-
-
-def _typical_gap(points: np.ndarray) -> float:
-    """Median distance from each point to its nearest other point."""
-    d = np.linalg.norm(points[:, None] - points[None], axis=-1)
-    np.fill_diagonal(d, np.inf)
-    return float(np.median(d.min(axis=1)))
-
-
-def _loosest(view: HandView, poses: np.ndarray
-             ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Per pose, the unit pose changes (a, 3) (scaled as in `_with_cover`) that move the
-    object's contour least and next-least across the fingertip centres - the readings' own
-    null direction, and the one they constrain least besides - and how many metres the
-    latter moves it per scaled metre (a,)."""
-    c, s = np.cos(poses[:, 2]), np.sin(poses[:, 2])
-    w = view.centres[None] - poses[:, None, :2]  # (a, n, 2)
-    u = c[:, None] * w[..., 0] + s[:, None] * w[..., 1]
-    v = -s[:, None] * w[..., 0] + c[:, None] * w[..., 1]
-    _, gu, gv = view.field.distance(u, v)
-    nx, nz = c[:, None] * gu - s[:, None] * gv, s[:, None] * gu + c[:, None] * gv
-    turn = (gu * v - gv * u) / COVER_LENGTH  # d(distance)/d(heading), scaled
-    jac = np.stack([-nx, -nz, turn], axis=-1)  # (a, n, 3)
-    _, sv, vt = np.linalg.svd(jac, full_matrices=True)
-    second = sv[:, 1] if sv.shape[1] > 1 else np.zeros(len(poses))  # one finger: loose too
-    return vt[:, -1], vt[:, -2], second
-
-
 def _best_allowed(score: np.ndarray, allowed: Callable[[int], bool]) -> int | None:
     """`np.argmax` of `score` over the indices `allowed` accepts (NaN counts highest; ties:
     the lower index), asking `allowed` best first and only until one passes: reach and the
@@ -711,18 +602,3 @@ def _turn_error(motion: rolling.TwistNoise, turn: float, substeps: int) -> np.nd
     substep's size strays by `motion.fraction` on its own; a turn about the centroid in place
     moves it little, so its position error is left out."""
     return np.diag([0.0, 0.0, (motion.fraction * turn) ** 2 / substeps])
-
-
-def _in_mode(poses: np.ndarray, i: int) -> np.ndarray:
-    """Which poses lie in pose i's mode (`MODE_CELL`)."""
-    return (np.hypot(*(poses[:, :2] - poses[i, :2]).T) <= MODE_CELL[0]) & (
-        np.abs(np.angle(np.exp(1j * (poses[:, 2] - poses[i, 2])))) <= MODE_CELL[1])
-
-
-def _ambiguous(poses: np.ndarray, weights: np.ndarray) -> bool:
-    """Whether a plausible pose of any weight lies outside the leader's mode (`MODE_CELL`):
-    then more readings where they agree cannot settle it."""
-    far = (np.hypot(*(poses[:, :2] - poses[0, :2]).T) > MODE_CELL[0]) | (
-        np.abs(np.angle(np.exp(1j * (poses[:, 2] - poses[0, 2])))) > MODE_CELL[1])
-    return bool(np.any(far & (weights >= 1e-3 * weights[0])))
-

@@ -62,7 +62,7 @@ class Spread:
         w = 1.0 / s**2
         prior = np.diag([1 / step**2, 1 / step**2, 1 / PRIOR_HEADING**2, 1 / step**2])
         normal = w * rows.T @ rows + prior
-        meat = normal + w * w * rows.T @ (shared_var * _correlation(done, done, step)) @ rows
+        meat = normal + w * w * rows.T @ (shared_var * correlation(done, done, step)) @ rows
         volume = float(_volumes(normal[np.newaxis], meat[np.newaxis])[0])
         mass = float(est.mode_mass) if np.isfinite(est.mode_mass) else 0.0
         return cls(done, rows, normal, meat, volume, s, shared_var, mass)
@@ -78,7 +78,7 @@ class Spread:
         # a reading at each place added: A + w j j^T, and M gains its row and column of
         # the readings' covariance (its own s^2 and what it shares with each one read)
         u = w * jt
-        v = w * (self.shared_var * _correlation(fresh, self.read, step)) @ self.rows
+        v = w * (self.shared_var * correlation(fresh, self.read, step)) @ self.rows
         normal = self.normal + w * np.einsum("ti,tj->tij", jt, jt)
         meat = (self.meat + np.einsum("ti,tj->tij", u, v) + np.einsum("ti,tj->tij", v, u)
                 + (s**2 + self.shared_var) * np.einsum("ti,tj->tij", u, u))
@@ -103,7 +103,7 @@ def _pose_rows(surface: ContactSurface, pose: tuple[float, float, float],
     return rows, surface.map.inside(x, y)
 
 
-def _correlation(a: np.ndarray, b: np.ndarray, length: float) -> np.ndarray:
+def correlation(a: np.ndarray, b: np.ndarray, length: float) -> np.ndarray:
     """(A, B) the map error's correlation between readings at places `a` and `b`: Gaussian
     over `length`, as `refine.shared_error` has it."""
     return np.exp(-0.5 * np.sum((a[:, None, :] - b[None, :, :]) ** 2, axis=-1) / length**2)
