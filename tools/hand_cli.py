@@ -219,5 +219,7 @@ def _print_summary(report, on_servos: bool = False) -> None:
             where="of the object in the hand")
         print(f"result    not localized after {steps} steps: {why}")
     if math.isfinite(report.min_quality):
-        print(f"grasp     least quality {report.min_quality:.2f} N (below "
-              f"{report.settings.margin_n:g} N the object drops)")
+        margin = report.settings.margin_n
+        print(f"grasp     least quality {report.min_quality:.2f} N, "
+              + (f"below the {margin:g} N margin: the object slipped"
+                 if report.result.dropped else f"held above the {margin:g} N margin"))

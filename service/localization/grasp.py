@@ -347,18 +347,21 @@ def joint_torque(goal_current_a: float, model: str) -> float:
 
 def hand_quality(field: ContactField, poses: np.ndarray, centres: np.ndarray,
                  fingers: Sequence[Chain], joint_angles: Sequence[np.ndarray], torque: float,
-                 spec: GraspSpec, tilt: float = 0.0, beside_kinks: bool = False) -> np.ndarray:
+                 spec: GraspSpec, tilt: float = 0.0, beside_kinks: bool = False,
+                 least: bool = False) -> np.ndarray:
     """Quality (B,) of fingertips at `centres` (B, n, 2) holding the object under `poses`
     (B, 3), finger i at joint angles `joint_angles[i]` ((B, joints) or (joints,)).
 
     `tilt` > 0: the most the grasp could have in a world whose outline turns each contact's
     normal up to `tilt` radians from the model's - the best of the model's normals and of
     every finger's turned by -tilt or +tilt (2^n ways). What the model says of a grasp in
-    the world is only that good: the quality turns on where the normals point.
+    the world is only that good: the quality turns on where the normals point. With `least`,
+    the worst of those ways instead: what the world may make of it at its worst.
 
     `beside_kinks`: where a tip lies beside a kink of the dilated contour (a hollow narrower than
     the tip, `objects.kinks`), the world may rest it on either side or bridging: the most
-    the grasp could have with that finger's normal any of the three, as well."""
+    the grasp could have with that finger's normal any of the three, as well (with `least`,
+    the least)."""
     radii = np.array([f.radius for f in fingers])
     points, normals = contacts(field, poses, centres, radii)
     angles = [np.asarray(q, dtype=np.float64) for q in joint_angles]
@@ -380,19 +383,21 @@ def hand_quality(field: ContactField, poses: np.ndarray, centres: np.ndarray,
     margins = quality(points, poses[:, :2], _forces(normals, jac, float(torque),
                                                      float(spec.mu)),
                       field.contour.max_radius, spec.load)
-    margins = margins.reshape(ways, -1).max(axis=0)
+    margins = margins.reshape(ways, -1)
+    margins = margins.min(axis=0) if least else margins.max(axis=0)
     if beside_kinks:
         own = slice(0, len(margins))  # the model's own normals come first of a tilt's ways
         _beside_kinks(field, poses[own], centres, points[own], normals[own], radii,
-                      jac[own] if jac.shape[0] > 1 else jac, torque, spec, margins)
+                      jac[own] if jac.shape[0] > 1 else jac, torque, spec, margins, least)
     return margins
 
 
 def _beside_kinks(field: ContactField, poses: np.ndarray, centres: np.ndarray,
                   points: np.ndarray, normals: np.ndarray, radii: np.ndarray, jac: np.ndarray,
-                  torque: float, spec: GraspSpec, margins: np.ndarray) -> None:
+                  torque: float, spec: GraspSpec, margins: np.ndarray,
+                  least: bool = False) -> None:
     """`margins` (B,) raised to the quality of every way a tip beside a kink may rest
-    (`kinks.beside`), one finger at a time."""
+    (`kinks.beside`), one finger at a time (with `least`, lowered to it)."""
     rows, finger, alternatives = kinks.beside(field.contour, poses, centres, radii)
     if len(rows) == 0:
         return
@@ -405,4 +410,4 @@ def _beside_kinks(field: ContactField, poses: np.ndarray, centres: np.ndarray,
     q = quality(at, poses[rows, :2], _forces(varied, jac[rows] if jac.shape[0] > 1 else jac,
                                              float(torque), float(spec.mu)),
                 field.contour.max_radius, spec.load)
-    np.maximum.at(margins, rows, q)
+    (np.minimum if least else np.maximum).at(margins, rows, q)

@@ -117,7 +117,7 @@ def test_hand_quality_pushes_each_finger_to_its_joint_limits(name):
 
 
 @pytest.mark.parametrize("name", ["two-finger", "three-finger"])
-def test_tilted_quality_is_the_best_with_each_normal_turned_either_way(name):
+def test_tilted_quality_is_the_best_or_least_with_each_normal_turned_either_way(name):
     """`tilt`: the most the grasp could have in a world whose outline turns each contact's
     normal by up to that much - the best of the model's normals and of every finger's
     turned by -tilt or +tilt, each way composed as the untilted quality is."""
@@ -152,6 +152,11 @@ def test_tilted_quality_is_the_best_with_each_normal_turned_either_way(name):
                               field.contour.max_radius, spec.load))
     np.testing.assert_allclose(got, np.max([plain, *ways], axis=0), rtol=1e-9, atol=1e-12)
     assert np.all(got >= plain) and np.any(got > plain + 0.01)
+    # `least`: the worst of the same ways, what the gate's check near the margin fears
+    worst = g.hand_quality(field, poses, centres, hand.fingers, angles, 0.4, spec, tilt,
+                           least=True)
+    np.testing.assert_allclose(worst, np.min([plain, *ways], axis=0), rtol=1e-9, atol=1e-12)
+    assert np.all(worst <= plain) and np.any(worst < plain - 0.01)
 
 
 @pytest.mark.parametrize(("kwargs", "message"), [

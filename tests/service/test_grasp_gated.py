@@ -114,6 +114,25 @@ def test_three_fingers_hold_a_five_pointed_star_where_the_quality_falls_steeply(
     assert not report.result.dropped and report.min_quality > SPEC.margin_n
 
 
+@pytest.mark.parametrize(("outline", "seed", "steps"), [
+    ("notched_disc.csv", 0, 6), ("notched_disc.csv", 19, 12),
+    ("rounded_rectangle_3_to_1.csv", 27, 4)])
+def test_two_fingers_fear_the_worlds_worst_near_the_margin(outline, seed, steps):
+    """Two fingers on a helper's held-out outlines (a 48 mm disc with a 4 mm notch; a 54 x 18
+    mm rectangle with 4 mm corners, `data/`): the model's quality held under every plausible
+    pose, the world's fell below the margin. A tip rested on the notch's edge where the model
+    bridged it (the disc, seed 19: 3.72 N in the model under the truth itself), or the world's
+    outline turned a contact's normal by about one sd of its slope (the rectangle, seed 27:
+    0.21 N in the model under the truth, -0.07 N with one normal turned 0.8 degrees; the
+    disc, seed 0, is held only with the normals turned too). Near the margin the gate now
+    judges each move at the world's worst (`WORLD_TILT`, and a tip beside a kink resting
+    where it holds least); each of these dropped the object before."""
+    path = Path(__file__).parent / "data" / outline
+    report = simulate_hand(HandSettings(object=str(path), hand="two-finger", seed=seed,
+                                        noise=True, max_steps=steps))
+    assert not report.result.dropped and report.min_quality > SPEC.margin_n
+
+
 @pytest.mark.parametrize(("guard", "safe"), [([False, True, False], False),
                                              ([False, False, True], True)])
 def test_the_gate_holds_for_the_leaders_spread(guard, safe):

@@ -106,7 +106,7 @@ def _two_fingers_in_a_valley():
     return hand, field, pose, centres, joints
 
 
-def test_beside_a_kink_the_quality_may_be_the_best_of_every_way_the_tip_may_rest():
+def test_beside_a_kink_the_quality_may_be_the_best_or_least_of_every_way_the_tip_may_rest():
     hand, field, pose, centres, joints = _two_fingers_in_a_valley()
     torque = joint_torque(hand.goal_current_a, hand.fingers[0].joints[0].model)
     args = (field, pose[None], centres, hand.fingers, joints, torque, GraspSpec())
@@ -121,6 +121,8 @@ def test_beside_a_kink_the_quality_may_be_the_best_of_every_way_the_tip_may_rest
         ways.append(_quality_with(field, pose, centres, hand, joints, torque, f, normal,
                                   contact))
     assert best == pytest.approx(max(model, *ways))
+    assert hand_quality(*args, beside_kinks=True, least=True)[0] == pytest.approx(
+        min(model, *ways))  # and at its worst, what the gate's check near the margin fears
     assert max(ways) - min(ways) > 0.5  # a 60-degree corner: the ways differ much
     # away from any kink it is the model's
     shifted = pose + np.array([0.0, 0.0, np.deg2rad(20)])
