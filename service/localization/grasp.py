@@ -30,7 +30,7 @@ from __future__ import annotations
 
 import itertools
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numba
@@ -41,7 +41,7 @@ from firmware_if.kinematics import Chain
 from firmware_if.registers import NEWTON_METRES_PER_AMP
 from service.errors import ConfigError
 from service.localization import chain_kernels
-from service.localization.objects import kinks
+from service.localization.objects import corners, kinks
 from service.localization.objects.field import ContactField
 from service.localization.objects.rolling import contacts
 
@@ -348,7 +348,7 @@ def joint_torque(goal_current_a: float, model: str) -> float:
 def hand_quality(field: ContactField, poses: np.ndarray, centres: np.ndarray,
                  fingers: Sequence[Chain], joint_angles: Sequence[np.ndarray], torque: float,
                  spec: GraspSpec, tilt: float = 0.0, beside_kinks: bool = False,
-                 least: bool = False) -> np.ndarray:
+                 least: bool = False, beside_corners: bool = False) -> np.ndarray:
     """Quality (B,) of fingertips at `centres` (B, n, 2) holding the object under `poses`
     (B, 3), finger i at joint angles `joint_angles[i]` ((B, joints) or (joints,)).
 
@@ -361,7 +361,8 @@ def hand_quality(field: ContactField, poses: np.ndarray, centres: np.ndarray,
     `beside_kinks`: where a tip lies beside a kink of the dilated contour (a hollow narrower than
     the tip, `objects.kinks`), the world may rest it on either side or bridging: the most
     the grasp could have with that finger's normal any of the three, as well (with `least`,
-    the least)."""
+    the least). `beside_corners`: likewise where a tip lies near a sharp convex corner,
+    whose vertex the world may put it on (`objects.corners`)."""
     radii = np.array([f.radius for f in fingers])
     points, normals = contacts(field, poses, centres, radii)
     angles = [np.asarray(q, dtype=np.float64) for q in joint_angles]
@@ -385,23 +386,25 @@ def hand_quality(field: ContactField, poses: np.ndarray, centres: np.ndarray,
                       field.contour.max_radius, spec.load)
     margins = margins.reshape(ways, -1)
     margins = margins.min(axis=0) if least else margins.max(axis=0)
-    if beside_kinks:
-        own = slice(0, len(margins))  # the model's own normals come first of a tilt's ways
-        _beside_kinks(field, poses[own], centres, points[own], normals[own], radii,
-                      jac[own] if jac.shape[0] > 1 else jac, torque, spec, margins, least)
+    own = slice(0, len(margins))  # the model's own normals come first of a tilt's ways
+    for find in (kinks.beside,) * beside_kinks + (corners.beside,) * beside_corners:
+        _rest_elsewhere(find, field, poses[own], centres, points[own], normals[own], radii,
+                        jac[own] if jac.shape[0] > 1 else jac, torque, spec, margins, least)
     return margins
 
 
-def _beside_kinks(field: ContactField, poses: np.ndarray, centres: np.ndarray,
-                  points: np.ndarray, normals: np.ndarray, radii: np.ndarray, jac: np.ndarray,
-                  torque: float, spec: GraspSpec, margins: np.ndarray,
-                  least: bool = False) -> None:
-    """`margins` (B,) raised to the quality of every way a tip beside a kink may rest
-    (`kinks.beside`), one finger at a time (with `least`, lowered to it)."""
-    rows, finger, alternatives = kinks.beside(field.contour, poses, centres, radii)
+def _rest_elsewhere(find: Callable, field: ContactField, poses: np.ndarray,
+                    centres: np.ndarray, points: np.ndarray, normals: np.ndarray,
+                    radii: np.ndarray, jac: np.ndarray, torque: float, spec: GraspSpec,
+                    margins: np.ndarray, least: bool = False) -> None:
+    """`margins` (B,) raised to the quality of every other way `find` (`kinks.beside`,
+    `corners.beside`) says a tip may rest, one finger at a time (with `least`, lowered to
+    it)."""
+    rows, finger, alternatives = find(field.contour, poses, centres, radii)
     if len(rows) == 0:
         return
-    rows, finger = np.repeat(rows, 3), np.repeat(finger, 3)
+    ways = alternatives.shape[1]
+    rows, finger = np.repeat(rows, ways), np.repeat(finger, ways)
     varied = normals[rows].copy()  # (3m, n, 2)
     varied[np.arange(len(rows)), finger] = alternatives.reshape(-1, 2)
     at = points[rows].copy()

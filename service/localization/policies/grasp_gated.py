@@ -15,10 +15,11 @@ bringing contour the fingers could not reach under them.
   weight) is predicted for every plausible pose at the middle and the end of the move, and
   a move is never taken if the chance that it falls below the threshold exceeds `RISK`
   (or that it comes near the margin, where the object slips, `DROP_RISK`): the chance is
-  the posterior weight of the plausible poses under which it would. Two fingers also judge
-  a move near the margin at the world's worst: normals turned by `WORLD_TILT` against the
+  the posterior weight of the plausible poses under which it would. Near the margin a move
+  is also judged at the world's worst (`WorldsWorst`): a tip near a sharp convex corner
+  resting on its vertex and, for two fingers, normals turned by `WORLD_TILT` against the
   grasp and a tip beside a kink resting where it holds least (the model's quality held
-  under every plausible pose where the world's dropped the object; `_doubted`). Plausible poses are
+  under every plausible pose where the world's dropped the object). Plausible poses are
   the heaviest hypotheses under which the grasp as it is holds the object (it is held).
   While the pose is a continuum the quality spans every level across it, and a rule over
   every sample would forbid every move; the weights say how likely each is. The samples
@@ -73,7 +74,7 @@ from service.localization import chain_kernels
 from service.localization.grasp import GraspSpec, hand_quality
 from service.localization.localizers.base import Hypotheses
 from service.localization.localizers.object_judge import to_object
-from service.localization.objects import kinks, rolling
+from service.localization.objects import corners, kinks, rolling
 from service.localization.objects.field import ContactField
 from service.localization.policies import guarded_poses
 from service.localization.policies.contour_precision import ContourSpread
@@ -186,6 +187,31 @@ class HandDecision:
         return self.precision + NOVELTY * self.novel
 
 
+@dataclass(frozen=True)
+class WorldsWorst:
+    """What the world may make of a grasp beyond the model's quality, as the gate fears it
+    near the margin (`grasp.hand_quality` with `least`)."""
+
+    tilt: float = 0.0
+    """Radians each contact's normal may turn against the grasp (`WORLD_TILT` sds of the
+    world's slope)."""
+    kinks: bool = False
+    """A tip beside a kink may rest on either side or bridging (`objects/kinks.py`)."""
+    corners: bool = False
+    """A tip near a sharp convex corner may rest on its vertex (`objects/corners.py`)."""
+
+    @property
+    def feared(self) -> bool:
+        return self.tilt > 0 or self.kinks or self.corners
+
+    def quality(self, view: HandView, poses: np.ndarray, centres: np.ndarray,
+                joints: tuple[np.ndarray, ...]) -> np.ndarray:
+        """Quality under each pose of fingertips at `centres` (B, n, 2), at this worst."""
+        return hand_quality(view.field, poses, centres, view.fingers, joints, view.torque,
+                            view.grasp, self.tilt, self.kinks, least=True,
+                            beside_corners=self.corners)
+
+
 class GraspGatedPolicy:
     name: ClassVar[str] = "grasp-gated"
 
@@ -237,8 +263,9 @@ class GraspGatedPolicy:
         """The grasp's quality as it is at the world's worst (`WORLD_TILT`, and a tip beside
         a kink resting where it holds least), under each of `_counted`; computed when first
         asked."""
-        self._kinked = False
-        """The object's contour dilated by a tip's radius has kinks (`objects/kinks.py`)."""
+        self._worst = WorldsWorst()
+        """What the gate fears of the world near the margin, for this hand and object
+        (`_worlds_worst`)."""
         self._guard = np.empty(0, dtype=bool)
         """Plausible poses that stand for the leader's own spread: no weight of their own,
         but the gate holds for each as for a likely pose."""
@@ -331,8 +358,7 @@ class GraspGatedPolicy:
             poses, w, now, _ = self._held(view, poses, w, (now, start))
         self._now = now
         self._mode_of = guarded_poses.mode_labels(poses, w)
-        self._kinked = kinks.any_kinks(view.field.contour,
-                                       np.array([f.radius for f in view.fingers]))
+        self._worst = self._worlds_worst(view)
         self._counted = np.flatnonzero((self._mode_of >= 0) | (w > 0))
         self._poses, self._now_worst = poses, None
         return poses, w / w.sum()
@@ -377,7 +403,7 @@ class GraspGatedPolicy:
 
     def _quality(self, view: HandView, poses: np.ndarray, centres: np.ndarray,
                  joints: tuple[np.ndarray, ...], tilt: float = 0.0,
-                 beside_kinks: bool = False, least: bool = False) -> np.ndarray:
+                 beside_kinks: bool = False) -> np.ndarray:
         """Quality under each pose of fingertips at `centres` settled onto it (at best, with
         normals turned by up to `tilt` and, with `beside_kinks`, a tip beside a kink resting where
         it holds most: `grasp.hand_quality`)."""
@@ -386,7 +412,7 @@ class GraspGatedPolicy:
         tips = rolling.settle(view.field, poses,
                               np.broadcast_to(centres, (len(poses), n, 2)).copy(), radii)
         return hand_quality(view.field, poses, tips, view.fingers, joints, view.torque,
-                            view.grasp, tilt, beside_kinks, least)
+                            view.grasp, tilt, beside_kinks)
 
     # -- exploring -------------------------------------------------------------------------
     def _explore(self, view: HandView, poses: np.ndarray, weights: np.ndarray,
@@ -431,21 +457,20 @@ class GraspGatedPolicy:
                     [targets[k], view.centres[f] + 0.5 * (targets[k] - view.centres[f])]))
             return reach[k]
 
-        def quality_of(k: int, rows: slice | np.ndarray = slice(None), tilt: float = 0.0
+        def quality_of(k: int, rows: slice | np.ndarray = slice(None), worst: bool = False
                        ) -> np.ndarray:
             """Least predicted quality over the move's middle and end, per plausible pose
-            (with `tilt`, at the world's worst: `WORLD_TILT`)."""
+            (with `worst`, at the world's worst: `WorldsWorst`)."""
             if view.fixed:
                 return np.full(h, np.inf)[rows]
-            if k in quality and tilt == 0:
+            if k in quality and not worst:
                 return quality[k][rows]
             f = options[k][0]
             angles = reach_of(k)[1]  # (end, middle)
             q = np.minimum(*(self._checkpoint_quality(view, poses[rows], aims(k, rows, share),
-                                                      f, angles[1 - part], tilt, tilt > 0
-                                                      and self._kinked)
+                                                      f, angles[1 - part], worst)
                              for part, share in enumerate((0.5, 1.0))))
-            if isinstance(rows, slice) and rows == slice(None) and tilt == 0:
+            if isinstance(rows, slice) and rows == slice(None) and not worst:
                 quality[k] = q
             return q
 
@@ -462,10 +487,9 @@ class GraspGatedPolicy:
             lead_after = np.array([quality_of(k, slice(0, 1))[0] if reach_of(k)[0] else 0.0
                                    for k in range(len(options))])
             score = score + RECOVERY * (lead_after - self._now[0]) / view.grasp.threshold_n
-        tilt = WORLD_TILT * view.slope_sd
         k = _best_allowed(score, lambda k: reach_of(k)[0] and (
             not gated or self._safe(view, quality_of(k), weights, last_resort,
-                                    lambda: quality_of(k, self._counted, tilt))))
+                                    lambda: quality_of(k, self._counted, worst=True))))
         if k is None:
             return None
         f, d, _ = options[k]
@@ -486,15 +510,15 @@ class GraspGatedPolicy:
         return bool(np.all(reached)), q
 
     def _checkpoint_quality(self, view: HandView, poses: np.ndarray, centres: np.ndarray,
-                            f: int, angles: np.ndarray, tilt: float = 0.0,
-                            beside_kinks: bool = False) -> np.ndarray:
+                            f: int, angles: np.ndarray, worst: bool = False) -> np.ndarray:
         """Quality under each pose of fingertips at `centres` (h, n, 2), finger f at joint
-        angles `angles` and the others where they are (with `tilt`, the least over normals
-        turned by up to that much; with `beside_kinks`, over the ways a tip beside a kink
-        may rest)."""
+        angles `angles` and the others where they are (with `worst`, at the world's worst:
+        `WorldsWorst`)."""
         joints = tuple(angles if i == f else q for i, q in enumerate(view.joints))
+        if worst:
+            return self._worst.quality(view, poses, centres, joints)
         return hand_quality(view.field, poses, centres, view.fingers, joints, view.torque,
-                            view.grasp, tilt, beside_kinks, least=True)
+                            view.grasp)
 
     def _safe(self, view: HandView, quality: np.ndarray, weights: np.ndarray,
               last_resort: bool = False,
@@ -518,7 +542,7 @@ class GraspGatedPolicy:
                 and weights[worse & (quality < grasp.threshold_n)].sum() <= RISK
                 and self._near_margin_chance(worse & (quality < near), weights) <= DROP_RISK):
             return False
-        if at_worst is None or not self._doubted(view):
+        if at_worst is None or not self._worst.feared:
             return True
         worst, near_worst = at_worst(), np.zeros(len(weights), dtype=bool)
         near_worst[self._counted] = (worst < self._worst_now(view)) & (worst < near)
@@ -527,20 +551,29 @@ class GraspGatedPolicy:
     def _worst_now(self, view: HandView) -> np.ndarray:
         """`_now_worst`, computed the first time a decision asks."""
         if self._now_worst is None:
-            self._now_worst = self._quality(view, self._poses[self._counted], view.centres,
-                                            view.joints,
-                                            WORLD_TILT * view.slope_sd, self._kinked,
-                                            least=True)
+            poses = self._poses[self._counted]
+            radii = np.array([f.radius for f in view.fingers])
+            tips = rolling.settle(view.field, poses,
+                                  np.broadcast_to(view.centres, (len(poses), *view.centres.shape)
+                                                  ).copy(), radii)
+            self._now_worst = self._worst.quality(view, poses, tips, view.joints)
         return self._now_worst
 
-    def _doubted(self, view: HandView) -> bool:
-        """Whether the gate judges a move near the margin at the world's worst too: the
-        world's outline turns the normals (`WORLD_TILT`) or a tip beside a kink may rest on
-        either side, and the hand holds by one opposed pair (two fingers), whose quality
-        turns on the normals sharply. Three fingers keep the model's: judged so, on a
-        helper's ten held-out outlines (40 runs each) they localized 154 instead of 163,
-        and dropped one object main held (a rounded triangle, seed 27, at step 60)."""
-        return (view.slope_sd > 0 or self._kinked) and len(view.fingers) == 2
+    @staticmethod
+    def _worlds_worst(view: HandView) -> WorldsWorst:
+        """What the gate fears of the world near the margin. Two fingers, which hold by one
+        opposed pair whose quality turns on the normals sharply: normals turned by
+        `WORLD_TILT`, a tip beside a kink on either side, a tip near a sharp corner on its
+        vertex. Three fingers or more fear only the corners: judged at the tilt and the
+        kinks too, on a helper's ten held-out outlines (40 runs each) they localized 154
+        instead of 163, and dropped one object the model's judgement held (a rounded
+        triangle, seed 27, at step 60)."""
+        radii = np.array([f.radius for f in view.fingers])
+        sharp = corners.any_corners(view.field.contour)
+        if len(view.fingers) != 2:
+            return WorldsWorst(corners=sharp)
+        return WorldsWorst(tilt=WORLD_TILT * view.slope_sd,
+                           kinks=kinks.any_kinks(view.field.contour, radii), corners=sharp)
 
     def _near_margin_chance(self, near: np.ndarray, weights: np.ndarray) -> float:
         """The chance a move takes the grasp near the margin: the whole weight of every
@@ -601,9 +634,7 @@ class GraspGatedPolicy:
             quality[k] = self._turn_quality(view, *turns[k][1:])
             return not self.gate or self._safe(
                 view, quality[k], weights,
-                at_worst=lambda: self._turn_quality(view, *turns[k][1:],
-                                                    tilt=WORLD_TILT * view.slope_sd,
-                                                    beside_kinks=self._kinked,
+                at_worst=lambda: self._turn_quality(view, *turns[k][1:], worst=True,
                                                     rows=self._counted))
 
         k = _best_allowed(np.array(scores), allowed)
@@ -625,14 +656,16 @@ class GraspGatedPolicy:
         return angles
 
     def _turn_quality(self, view: HandView, states: list[tuple[np.ndarray, np.ndarray]],
-                      angles: list[np.ndarray], tilt: float = 0.0,
-                      beside_kinks: bool = False,
+                      angles: list[np.ndarray], worst: bool = False,
                       rows: slice | np.ndarray = slice(None)) -> np.ndarray:
         """Least quality over every substep of a turn, per plausible pose (of `rows`; with
-        `tilt` and `beside_kinks`, at the world's worst: `_checkpoint_quality`)."""
+        `worst`, at the world's worst: `WorldsWorst`)."""
+        if worst:
+            return np.min([self._worst.quality(view, p[rows], c[rows],
+                                               tuple(q[i] for q in angles))
+                           for i, (p, c) in enumerate(states)], axis=0)
         return np.min([hand_quality(view.field, p[rows], c[rows], view.fingers,
-                                    tuple(q[i] for q in angles), view.torque, view.grasp,
-                                    tilt, beside_kinks, least=True)
+                                    tuple(q[i] for q in angles), view.torque, view.grasp)
                        for i, (p, c) in enumerate(states)], axis=0)
 
     # -- felt contour ----------------------------------------------------------------------
