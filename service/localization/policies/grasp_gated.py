@@ -260,9 +260,8 @@ class GraspGatedPolicy:
         self._counted = np.empty(0, dtype=int)
         """The plausible poses a chance can count: those of a mode or of some weight."""
         self._now_worst: np.ndarray | None = None
-        """The grasp's quality as it is at the world's worst (`WORLD_TILT`, and a tip beside
-        a kink resting where it holds least), under each of `_counted`; computed when first
-        asked."""
+        """The grasp's quality as it is at the world's worst (`_worst`), under each of
+        `_counted`; computed when first asked."""
         self._worst = WorldsWorst()
         """What the gate fears of the world near the margin, for this hand and object
         (`_worlds_worst`)."""
@@ -407,12 +406,8 @@ class GraspGatedPolicy:
         """Quality under each pose of fingertips at `centres` settled onto it (at best, with
         normals turned by up to `tilt` and, with `beside_kinks`, a tip beside a kink resting where
         it holds most: `grasp.hand_quality`)."""
-        n = len(view.fingers)
-        radii = np.array([f.radius for f in view.fingers])
-        tips = rolling.settle(view.field, poses,
-                              np.broadcast_to(centres, (len(poses), n, 2)).copy(), radii)
-        return hand_quality(view.field, poses, tips, view.fingers, joints, view.torque,
-                            view.grasp, tilt, beside_kinks)
+        return hand_quality(view.field, poses, _settled(view, poses, centres), view.fingers,
+                            joints, view.torque, view.grasp, tilt, beside_kinks)
 
     # -- exploring -------------------------------------------------------------------------
     def _explore(self, view: HandView, poses: np.ndarray, weights: np.ndarray,
@@ -429,8 +424,7 @@ class GraspGatedPolicy:
         if not options:
             return None
         h = len(poses)
-        here = rolling.settle(view.field, poses, np.broadcast_to(view.centres, (h, n, 2)).copy(),
-                              radii)  # the fingers that hold, under each pose
+        here = _settled(view, poses, view.centres)  # the fingers that hold, under each pose
         deltas = [d * part * view.step_length * tangents[f] for f, d, part in options]
         targets = [view.centres[f] + delta for (f, _, _), delta in zip(options, deltas,
                                                                       strict=True)]
@@ -528,7 +522,9 @@ class GraspGatedPolicy:
         the chance (posterior weight) that it takes the quality down below the threshold
         at most `RISK`, and down near the margin at most `DROP_RISK`. The weightless guards
         (`guarded_poses`) are held as likely poses, or, as a `last_resort`,
-        only off the margin."""
+        only off the margin. `at_worst` gives the move's quality at the world's worst under
+        each of `_counted` (`WorldsWorst`): the chance it takes that near the margin, below
+        where it is now, is held to `DROP_RISK` too."""
         grasp = view.grasp
         near = grasp.margin_n + BUFFER * (grasp.threshold_n - grasp.margin_n)
         worse = quality < self._now  # only what the move itself costs counts
@@ -552,11 +548,9 @@ class GraspGatedPolicy:
         """`_now_worst`, computed the first time a decision asks."""
         if self._now_worst is None:
             poses = self._poses[self._counted]
-            radii = np.array([f.radius for f in view.fingers])
-            tips = rolling.settle(view.field, poses,
-                                  np.broadcast_to(view.centres, (len(poses), *view.centres.shape)
-                                                  ).copy(), radii)
-            self._now_worst = self._worst.quality(view, poses, tips, view.joints)
+            self._now_worst = self._worst.quality(view, poses,
+                                                  _settled(view, poses, view.centres),
+                                                  view.joints)
         return self._now_worst
 
     @staticmethod
@@ -681,6 +675,14 @@ class GraspGatedPolicy:
         local = to_object(centre, pose)[0]
         felt = np.asarray(self._felt)
         return float(np.min(np.hypot(*(felt - local).T)) > FELT)
+
+
+def _settled(view: HandView, poses: np.ndarray, centres: np.ndarray) -> np.ndarray:
+    """Fingertips at `centres` (n, 2) settled onto the object under each pose: (B, n, 2)."""
+    radii = np.array([f.radius for f in view.fingers])
+    return rolling.settle(view.field, poses,
+                          np.broadcast_to(centres, (len(poses), *np.shape(centres))).copy(),
+                          radii)
 
 
 def _best_allowed(score: np.ndarray, allowed: Callable[[int], bool]) -> int | None:
