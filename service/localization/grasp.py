@@ -387,7 +387,9 @@ def hand_quality(field: ContactField, poses: np.ndarray, centres: np.ndarray,
     margins = margins.reshape(ways, -1)
     margins = margins.min(axis=0) if least else margins.max(axis=0)
     own = slice(0, len(margins))  # the model's own normals come first of a tilt's ways
-    for find in (kinks.beside,) * beside_kinks + (corners.beside,) * beside_corners:
+    finders = [find for find, asked in ((kinks.beside, beside_kinks),
+                                        (corners.beside, beside_corners)) if asked]
+    for find in finders:
         _rest_elsewhere(find, field, poses[own], centres, points[own], normals[own], radii,
                         jac[own] if jac.shape[0] > 1 else jac, torque, spec, margins, least)
     return margins

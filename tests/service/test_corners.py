@@ -19,7 +19,8 @@ from service.localization.objects import corners
 from service.localization.objects.contour import Contour
 from service.localization.objects.field import contact_field
 from service.localization.objects.presets import preset_object
-from service.localization.policies.grasp_gated import GraspGatedPolicy, HandView, WorldsWorst
+from service.localization.policies.grasp_gated import HandView
+from service.localization.policies.worlds_worst import WorldsWorst, worlds_worst
 
 DATA = Path(__file__).parent / "data"
 
@@ -107,11 +108,11 @@ def test_three_fingers_never_fear_the_tilt_but_do_fear_corners():
                     field=contact_field(square()), fingers=load_hand("three-finger").fingers,
                     torque=0.5, grasp=GraspSpec(), step_length=0.003, sigma=2e-4,
                     slope_sd=0.014)
-    assert GraspGatedPolicy._worlds_worst(view) == WorldsWorst(corners=True)
+    assert worlds_worst(view) == WorldsWorst(corners=True)
     two = HandView(hypotheses=None, centres=np.zeros((2, 2)), joints=(),
                    field=view.field, fingers=load_hand("two-finger").fingers, torque=0.5,
                    grasp=GraspSpec(), step_length=0.003, sigma=2e-4, slope_sd=0.014)
-    worst = GraspGatedPolicy._worlds_worst(two)
+    worst = worlds_worst(two)
     assert worst.corners and worst.tilt > 0
 
 

@@ -63,11 +63,16 @@ def _find(contour: Contour) -> Corners:
     length = np.hypot(*after.T)
     arc = np.concatenate([[0.0], np.cumsum(length)])[:-1]
     total = arc[-1] + length[-1]
-    gap = np.abs(arc[:, None] - arc[None, :])
-    near = np.minimum(gap, total - gap) <= ARC / 2
-    summed = near.astype(np.float64) @ turn
-    sharpest = turn >= np.max(np.where(near, turn[None, :], -np.inf), axis=1)
-    found = p[np.flatnonzero((summed >= ANGLE) & sharpest & (turn > 0))]
+    # each vertex's window of +-ARC/2 of outline, found on the outline laid out three times
+    # (it is closed): a sum of turns and a sharpest vertex per window, in O(N log N)
+    around = np.concatenate([arc - total, arc, arc + total])
+    turns = np.tile(turn, 3)
+    lo = np.searchsorted(around, arc - ARC / 2, side="left")
+    hi = np.searchsorted(around, arc + ARC / 2, side="right")
+    summed = np.concatenate([[0.0], np.cumsum(turns)])
+    summed = summed[hi] - summed[lo]
+    candidates = np.flatnonzero((summed >= ANGLE) & (turn > 0))
+    found = p[[i for i in candidates if turn[i] >= turns[lo[i]:hi[i]].max()]]
     if len(found) == 0:
         return Corners(np.empty((0, 2)), None)
     return Corners(found, cKDTree(found))

@@ -16,8 +16,8 @@ bringing contour the fingers could not reach under them.
   a move is never taken if the chance that it falls below the threshold exceeds `RISK`
   (or that it comes near the margin, where the object slips, `DROP_RISK`): the chance is
   the posterior weight of the plausible poses under which it would. Near the margin a move
-  is also judged at the world's worst (`WorldsWorst`): a tip near a sharp convex corner
-  resting on its vertex and, for two fingers, normals turned by `WORLD_TILT` against the
+  is also judged at the world's worst (`worlds_worst.py`): a tip near a sharp convex
+  corner resting on its vertex and, for two fingers, normals turned by `WORLD_TILT` against the
   grasp and a tip beside a kink resting where it holds least (the model's quality held
   under every plausible pose where the world's dropped the object). Plausible poses are
   the heaviest hypotheses under which the grasp as it is holds the object (it is held).
@@ -74,11 +74,12 @@ from service.localization import chain_kernels
 from service.localization.grasp import GraspSpec, hand_quality
 from service.localization.localizers.base import Hypotheses
 from service.localization.localizers.object_judge import to_object
-from service.localization.objects import corners, kinks, rolling
+from service.localization.objects import kinks, rolling
 from service.localization.objects.field import ContactField
 from service.localization.policies import guarded_poses
 from service.localization.policies.contour_precision import ContourSpread
 from service.localization.policies.info_gain import information
+from service.localization.policies.worlds_worst import WorldsWorst, worlds_worst
 
 NOVELTY = 0.05
 """Nats credited to a move whose fingertip lands on contour not felt yet."""
@@ -116,13 +117,6 @@ the model, the truth was not among the poses the gate guards, and the second rol
 the object.) Only weighted poses are given the benefit: the gate's weightless neighbours
 and cover stand for the poses the readings allow, and at this allowance they forbade every
 move from more starts (B6, members 0-99: 241 of 800 runs localized instead of 268)."""
-WORLD_TILT = 1.0
-"""Sds of the world's slope by which the gate's check near the margin turns each contact's
-normal against the grasp (the least over the ways, `grasp.hand_quality`). Two fingers on a
-held-out 3:1 rounded rectangle, seed 27: the truth itself predicted 0.21 N after a roll,
--0.07 N with one normal turned one sd (0.8 degrees), and the world dropped the object at
--0.18 N; no plausible pose came near the margin. Measured only near the margin: the
-threshold's checks stay the model's, whose every allowance cost starts (`TILT`)."""
 STEP_PARTS = (1.0, 0.5, 0.25, 0.1)
 """Shares of the step length tried: while the pose is uncertain, only a short roll may be
 safe under every plausible pose; as it narrows, longer ones become safe."""
@@ -187,31 +181,6 @@ class HandDecision:
         return self.precision + NOVELTY * self.novel
 
 
-@dataclass(frozen=True)
-class WorldsWorst:
-    """What the world may make of a grasp beyond the model's quality, as the gate fears it
-    near the margin (`grasp.hand_quality` with `least`)."""
-
-    tilt: float = 0.0
-    """Radians each contact's normal may turn against the grasp (`WORLD_TILT` sds of the
-    world's slope)."""
-    kinks: bool = False
-    """A tip beside a kink may rest on either side or bridging (`objects/kinks.py`)."""
-    corners: bool = False
-    """A tip near a sharp convex corner may rest on its vertex (`objects/corners.py`)."""
-
-    @property
-    def feared(self) -> bool:
-        return self.tilt > 0 or self.kinks or self.corners
-
-    def quality(self, view: HandView, poses: np.ndarray, centres: np.ndarray,
-                joints: tuple[np.ndarray, ...]) -> np.ndarray:
-        """Quality under each pose of fingertips at `centres` (B, n, 2), at this worst."""
-        return hand_quality(view.field, poses, centres, view.fingers, joints, view.torque,
-                            view.grasp, self.tilt, self.kinks, least=True,
-                            beside_corners=self.corners)
-
-
 class GraspGatedPolicy:
     name: ClassVar[str] = "grasp-gated"
 
@@ -264,7 +233,7 @@ class GraspGatedPolicy:
         `_counted`; computed when first asked."""
         self._worst = WorldsWorst()
         """What the gate fears of the world near the margin, for this hand and object
-        (`_worlds_worst`)."""
+        (`worlds_worst`)."""
         self._guard = np.empty(0, dtype=bool)
         """Plausible poses that stand for the leader's own spread: no weight of their own,
         but the gate holds for each as for a likely pose."""
@@ -357,7 +326,7 @@ class GraspGatedPolicy:
             poses, w, now, _ = self._held(view, poses, w, (now, start))
         self._now = now
         self._mode_of = guarded_poses.mode_labels(poses, w)
-        self._worst = self._worlds_worst(view)
+        self._worst = worlds_worst(view)
         self._counted = np.flatnonzero((self._mode_of >= 0) | (w > 0))
         self._poses, self._now_worst = poses, None
         return poses, w / w.sum()
@@ -552,22 +521,6 @@ class GraspGatedPolicy:
                                                   _settled(view, poses, view.centres),
                                                   view.joints)
         return self._now_worst
-
-    @staticmethod
-    def _worlds_worst(view: HandView) -> WorldsWorst:
-        """What the gate fears of the world near the margin. Two fingers, which hold by one
-        opposed pair whose quality turns on the normals sharply: normals turned by
-        `WORLD_TILT`, a tip beside a kink on either side, a tip near a sharp corner on its
-        vertex. Three fingers or more fear only the corners: judged at the tilt and the
-        kinks too, on a helper's ten held-out outlines (40 runs each) they localized 154
-        instead of 163, and dropped one object the model's judgement held (a rounded
-        triangle, seed 27, at step 60)."""
-        radii = np.array([f.radius for f in view.fingers])
-        sharp = corners.any_corners(view.field.contour)
-        if len(view.fingers) != 2:
-            return WorldsWorst(corners=sharp)
-        return WorldsWorst(tilt=WORLD_TILT * view.slope_sd,
-                           kinks=kinks.any_kinks(view.field.contour, radii), corners=sharp)
 
     def _near_margin_chance(self, near: np.ndarray, weights: np.ndarray) -> float:
         """The chance a move takes the grasp near the margin: the whole weight of every
