@@ -123,13 +123,15 @@ class Backend(Protocol):
         that the operator should know, in words (a servo with a hardware error rebooted)."""
 
 
-def check_can_step(*, fault: str | None, torque_on: bool, busy: bool) -> None:
-    """The contract's preconditions for `command_step`, raised the same way by every backend."""
+def check_can_step(*, fault: str | None, torque_on: bool, busy: bool,
+                   what: str = "finger") -> None:
+    """The contract's preconditions for `command_step`, raised the same way by every backend
+    (`what` names the finger or the hand in the words)."""
     if fault:  # a bus's fault already says how to recover: not twice
-        raise HardwareFault(f"finger is faulted: {fault}"
+        raise HardwareFault(f"{what} is faulted: {fault}"
                             + ("" if "to recover" in fault else "; reset first"))
     if not torque_on:
-        raise NotReadyError("torque is off: activate the finger before stepping")
+        raise NotReadyError(f"torque is off: activate the {what} before stepping")
     if busy:
         raise NotReadyError("a step is still under way")
 
@@ -139,7 +141,8 @@ def check_hand_command(command: HandCommand, *, hand: str, fingers: int, fault: 
     """The contract's preconditions for `command_hand` of a planar hand, raised the same way
     by every implementation: as `check_can_step`, then a held object, a move (or None) per
     finger, at least one moving, all in the hand's x-z plane."""
-    check_can_step(fault=fault, torque_on=torque_on, busy=busy)
+    check_can_step(fault=fault, torque_on=torque_on, busy=busy,
+                   what="hand" if fingers > 1 else "finger")
     if dropped:
         raise NotReadyError("the object was dropped: nothing left to explore")
     if len(command.moves) != fingers:

@@ -83,6 +83,9 @@ class DynamixelBackend(HandOfOne):
         self._q = np.asarray(hand.fingers[0].home, dtype=np.float64)
         self._torque = False
         self._fault: str | None = None
+        self._port_lost = False
+        """The port itself failed since the bus last opened: what answers when it opens
+        again may be another bus (a restarted emulator of another hand, an adapter moved)."""
         self._steps_done = 0
         self._blocked = False
         self._pending_goals: dict[int, int] | None = None
@@ -144,7 +147,8 @@ class DynamixelBackend(HandOfOne):
     def _set_up(self, *, look_for_strangers: bool = True) -> None:
         """Torque off, every servo configured and checked, fast reads detected, first read;
         servos on the bus that the hand does not use are a warning (`warnings`). A reset
-        keeps the warning its opening gave: the look pings 32 ids and waits a timeout for
+        keeps the warning its opening gave unless the port itself was lost (what answers
+        now may be another hand's bus): the look pings 32 ids and waits a timeout for
         each that is not there, 0.8 s during which `hapticd`'s loop published nothing."""
         self.bus.torque(False)
         self._settings_hold()
@@ -220,18 +224,19 @@ class DynamixelBackend(HandOfOne):
             try:
                 self.bus.reopen()
                 rebooted += self.bus.reset()
-                self._set_up(look_for_strangers=False)
+                self._set_up(look_for_strangers=self._port_lost)
                 break
             except FirmwareError as exc:
                 self.bus.close()
                 self._fault = f"reset failed: {exc}"
+                self._port_lost = self._port_lost or isinstance(exc, PortLost)
                 if isinstance(exc, CommunicationError) and attempt == 1:
                     raise CommunicationError(  # what to do, not only what the SDK said
                         f"reset failed: a servo does not answer ({exc}); check the bus power "
                         "and every servo's cable, then reset again", exc.servo_ids) from exc
                 if attempt == 1 or isinstance(exc, PortLost):
                     raise
-        self._fault = None
+        self._fault, self._port_lost = None, False
         return rebooted
 
     # -- I/O -------------------------------------------------------------------------------
@@ -257,6 +262,7 @@ class DynamixelBackend(HandOfOne):
             return self._read(goals)
         except HardwareFault as exc:
             self._fault = self._fault or str(exc)  # the first cause, not "reset first"
+            self._port_lost = self._port_lost or isinstance(exc, PortLost)
             self._torque = False
             if self._step is not None:
                 self._finish(blocked=True)  # whoever waits for the step sees it end

@@ -20,7 +20,7 @@ import time
 from typing import Any
 
 from service.errors import InputError, ServiceError
-from service.wire.client import Client, CommandFailed, CommandTimeout, Subscriber
+from service.wire.client import SLOW_COMMANDS, Client, CommandFailed, CommandTimeout, Subscriber
 from service.wire.commands import TABLE
 from tools.stream_cli import add_endpoint_options, client_from, subscriber_from
 from tools.words import (
@@ -52,8 +52,10 @@ def register_ctl(p: argparse.ArgumentParser) -> None:
                         "key (scenario.seed=3)")
     p.add_argument("--client", metavar="NAME", help="a name for this controller, shown as "
                    "the lease holder (default: ctl-PID)")
-    p.add_argument("--timeout", type=float, default=2.0, metavar="S",
-                   help="seconds to wait for each try (default: %(default)s)")
+    p.add_argument("--timeout", type=float, default=None, metavar="S",
+                   help="seconds to wait for each try (default: 2, and 120 for the commands "
+                        "answered when slow work is done: "
+                        + ", ".join(sorted(SLOW_COMMANDS)) + ")")
     p.add_argument("--retries", type=int, default=2, metavar="N",
                    help="resends before giving up; the daemon never runs a resent request "
                         "twice (default: %(default)s)")
@@ -111,9 +113,9 @@ def cmd_ctl(args: argparse.Namespace) -> int:
     spec = TABLE[args.command]
     cmd_args = parse_kv(args.args, sections=args.command == "configure")
     with client_from(args, client_id=args.client or f"ctl-{os.getpid()}",
-                     timeout_s=args.timeout, retries=args.retries) as client:
-        try:
-            reply = client.request(args.command, cmd_args)
+                     retries=args.retries) as client:
+        try:  # a timeout given is the user's for every command, a slow one's too
+            reply = client.request(args.command, cmd_args, args.timeout)
         except CommandTimeout as exc:
             print(f"haptic ctl: {exc}; is hapticd running?", file=sys.stderr)
             return NO_REPLY

@@ -12,7 +12,14 @@ from pathlib import Path
 
 from service.errors import ConfigError
 from service.localization.objects.files import OBJECT_FILE_SUFFIXES
-from tools.words import NO_SAFE_MOVE, hand_step_text, pose_text, why_not_converged
+from tools.words import (
+    EXIT_FAULT,
+    NO_SAFE_MOVE,
+    fault_result,
+    hand_step_text,
+    pose_text,
+    why_not_converged,
+)
 
 DEFAULT_HAND = "two-finger"
 
@@ -150,6 +157,8 @@ def run_hand(args: argparse.Namespace) -> int:
 
         hand_figure(report, args.plot)
         print(f"figure written to {args.plot}")
+    if report.result.fault is not None:
+        return EXIT_FAULT
     return 1 if failed else 0  # a wrong pose or a drop: a script must notice
 
 
@@ -195,7 +204,9 @@ def _print_summary(report, on_servos: bool = False) -> None:
         print(f"estimate  {_pose_text(est.pose)}  ({state})")
     steps = len(report.result.steps)
     s = report.score
-    if report.result.dropped:
+    if report.result.fault is not None:
+        print(f"result    {fault_result(report.result.fault, steps)}")
+    elif report.result.dropped:
         print(f"result    DROPPED the object at step {steps}")
     elif not report.truth_known:
         print(f"result    {'converged' if report.result.converged else 'not converged'} "

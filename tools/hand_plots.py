@@ -101,6 +101,8 @@ def hand_figure(report: HandEpisodeReport, path: Path) -> None:
     result = ("DROPPED" if report.result.dropped else "localized" if report.score.success
               else "WRONG" if report.score.wrong_declaration else "not localized")
     why = ": no safe move left" if report.result.stuck and result == "not localized" else ""
+    if report.result.fault is not None:
+        result, why = "stopped by a hardware fault", ""
     left.set_title(f"{report.parts.contour.name} in {report.parts.hand.name}: {result} "
                    f"after {len(report.result.steps)} steps{why}")
     draw_quality(right, report)

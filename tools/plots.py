@@ -159,6 +159,8 @@ def _legend_handles() -> list[Line2D]:
 
 def _outcome(report: EpisodeReport) -> str:
     s, steps = report.score, len(report.result.steps)
+    if report.result.fault is not None:
+        return f"stopped by a hardware fault after {steps} steps"
     if s.success:
         return f"localized in {steps} steps"
     if s.wrong_declaration:

@@ -214,9 +214,12 @@ def cmd_export(args: argparse.Namespace) -> int:
 def episodes_from(events: list[wire.Message]) -> dict[int, dict[str, Any]]:
     """{episode id: the episode in `haptic run --json`'s format} from the event stream."""
     episodes: dict[int, dict[str, Any]] = {}
+    fault = None  # the last fault's words: an episode it cut ends with them
     for ev in events:
         name, eid = ev.get("event"), ev.get("episode")
-        if name == "episode_started":
+        if name == "fault":
+            fault = ev.get("reason")
+        elif name == "episode_started":
             truth = ev.get("truth")
             episodes[eid] = {
                 "settings": ev.get("settings"),
@@ -228,7 +231,8 @@ def episodes_from(events: list[wire.Message]) -> dict[int, dict[str, Any]]:
                                            if k not in ("event", "episode")})
         elif eid in episodes and name == "episode_done":
             episodes[eid].update(_outcome(episodes[eid], ev.body), complete=True,
-                                 ended=ev.get("reason"))
+                                 ended=ev.get("reason"),
+                                 fault=fault if ev.get("reason") == "fault" else None)
     for ep in episodes.values():
         if not ep["complete"]:
             ep.update(_outcome(ep, _last_belief(ep)))
@@ -250,7 +254,7 @@ def _outcome(ep: dict[str, Any], done: dict[str, Any]) -> dict[str, Any]:
         "x": pose[0], "y": pose[1], "heading": pose[2], "candidates": done["candidates"],
         **{k: done.get(k) for k in ("position_sd", "heading_sd", "mode_mass")}}
     out = {"estimate": estimate, "converged": bool(done.get("converged")), "ended": None,
-           "success": None,
+           "fault": None, "success": None,
            "wrong_declaration": None, "position_error": None, "heading_error": None,
            "true_pose_eliminated": done.get("true_pose_eliminated")}
     if ep["truth"] is not None and ep["settings"] is not None:

@@ -19,7 +19,7 @@ from service.localization.policies.base import MOVE_NAMES
 from service.registry import BACKENDS
 from tools.hand_cli import add_object_options, run_hand
 from tools.scenario_options import add_scenario_options, settings_from_args
-from tools.words import belief_text, pose_text, why_not_converged
+from tools.words import EXIT_FAULT, belief_text, fault_result, pose_text, why_not_converged
 
 FIGURE_STEPS = (0, 5, 10)
 """Steps whose hypotheses `--plot` shows, besides the last (tools/plots.py)."""
@@ -96,6 +96,8 @@ def run(args: argparse.Namespace) -> int:
 
         episode_figure(report, args.plot)
         print(f"figure written to {args.plot}")
+    if report.result.fault is not None:
+        return EXIT_FAULT
     return 1 if failed else 0  # a script must notice a wrong pose
 
 
@@ -136,7 +138,9 @@ def _print_summary(report: EpisodeReport) -> None:
         state = "converged" if est.converged else "not converged"
         print(f"estimate  {pose_text(est.pose)}  ({belief}; {state})")
     s = report.score
-    if s.success:
+    if report.result.fault is not None:
+        print(f"result    {fault_result(report.result.fault, steps)}")
+    elif s.success:
         print(f"result    localized in {steps} steps: position error "
               f"{s.position_error * 1e3:.2f} mm, "
               f"heading error {math.degrees(s.heading_error):.1f} deg")

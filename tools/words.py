@@ -7,11 +7,32 @@ reads the same whichever way it ran. Only `math` is imported.
 from __future__ import annotations
 
 import math
+import re
 from collections.abc import Sequence
 
 NO_SAFE_MOVE = ("no safe move left (under a pose the readings still allow, every roll "
                 "and turn in reach would weaken the grasp below its threshold)")
 """Why a hand's episode stopped undecided (`stuck`): an honest "not yet", not a fault."""
+
+EXIT_FAULT = 3
+"""`haptic run`'s exit status when the servos faulted mid-run (2 is a bad option or file,
+1 a wrong pose or a drop): a script can tell the hardware from its own mistakes."""
+
+
+DAEMON_WAY_OUT = re.compile(r"(,? then|[;,]) reset\b(?! failed)[^;.?]*")
+"""A fault's advice to reset (`hapticd`'s way out: `reset` again, `reset first`, `reset (or
+configure another port) to recover`), which a command that has ended cannot take."""
+
+
+def fault_result(fault: str, steps: int) -> str:
+    """The result line of a run a latched fault cut, in a command's words: the fault's own
+    cause, without the advice for a daemon (`reset`, `configure`) that a command that has
+    ended cannot take."""
+    cause = "; ".join(part for part in DAEMON_WAY_OUT.sub("", fault).split("; ")
+                      if part and not part.startswith(("torque off", "torque is off")))
+    return (f"stopped by a hardware fault during step {steps + 1}, torque off: {cause}. "
+            f"Fix what it names (the servo's cable and power, the port) and run again; "
+            f"the {steps} step{'' if steps == 1 else 's'} before it stand")
 
 
 def mm(value: float | None, spec: str = ".1f") -> str:

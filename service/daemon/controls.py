@@ -191,7 +191,8 @@ class CommandHandlers:
             logging.getLogger("hapticd").warning("reset: %s", line)
         self.last_state = None
         self._transition("reset")
-        return {"state": self.lifecycle.state.value, "rebooted": rebooted}
+        return {"state": self.lifecycle.state.value, "rebooted": rebooted,
+                "warnings": list(getattr(self.backend, "warnings", []))}
 
     def estop(self: Node, reason: str) -> dict[str, Any]:
         if self.lifecycle.state is not State.UNCONFIGURED:

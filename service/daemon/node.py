@@ -375,7 +375,7 @@ class Node(CommandHandlers):
 
     def _event(self, name: str, **fields: Any) -> None:
         self.pub.event(name, **fields)
-        _log(name, **fields)
+        _log(name, _event_level(name, fields), **fields)
 
     # -- lifecycle -------------------------------------------------------------------------
     def _transition(self, event: str, reason: str | None = None) -> None:
@@ -461,6 +461,17 @@ def _preload() -> None:
         for name in registry.names():
             with contextlib.suppress(ImportError):  # a backend this machine lacks
                 registry.load(name)
+
+
+def _event_level(name: str, fields: dict[str, Any]) -> int:
+    """An event's log level: a fault (and the lifecycle entering one) an error, a lease lost
+    and the torque it turns off a warning, the rest info. A lab that runs with `--log-level
+    warning` to keep the steps out of its log must still find its faults there."""
+    if name == "fault" or (name == "lifecycle" and fields.get("state") == "fault"):
+        return logging.ERROR
+    if name in ("lease_expired", "stopped"):
+        return logging.WARNING
+    return logging.INFO
 
 
 def _log(event: str, level: int = logging.INFO, **fields: Any) -> None:

@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 
 from firmware_if.backend import HandCommand, HandState
-from firmware_if.errors import BusTimeoutError
+from firmware_if.errors import BusTimeoutError, HardwareFault
 from service.episode.hand_scenario import (
     HandParts,
     HandScore,
@@ -49,6 +49,9 @@ class HandEpisodeResult:
     dropped: bool = False
     stuck: bool = False
     """The policy found no safe move left."""
+    fault: str | None = None
+    """What a latched fault (a lost port, a servo's error) said when it cut the step after
+    the last: the episode ended there, and what it had found stands."""
     start_centres: tuple[tuple[float, float], ...] = ()
 
     @property
@@ -63,6 +66,9 @@ def execute(hand: Any, command: HandCommand, timeout_s: float = 10.0) -> HandSta
     deadline = time.monotonic() + timeout_s
     while True:
         state = hand.read_hand()
+        fault = next((f.fault for f in state.fingers if f.fault), None)
+        if fault:  # a latched fault (a lost port, a servo's error): no step will finish
+            raise HardwareFault(f"the hand faulted during a step: {fault}")
         if not state.moving and state.fingers[0].steps_done > before:
             return state
         if time.monotonic() > deadline:
@@ -90,7 +96,11 @@ def run_hand_episode(hand: Any, localizer: Any, policy: GraspGatedPolicy, parts:
         if decision.command is None:
             result.stuck = True
             break
-        state = execute(hand, decision.command)
+        try:
+            state = execute(hand, decision.command)
+        except HardwareFault as exc:  # the cut step tells nothing: end with what was found
+            result.fault = str(exc)
+            break
         result.dropped = result.dropped or state.dropped
         measurement = stepper.observe(index, decision, state)
         compute_ms = settle_ms = 0.0
@@ -154,6 +164,7 @@ class HandEpisodeReport:
             "wrong_declaration": self.score.wrong_declaration,
             "dropped": self.result.dropped,
             "stuck": self.result.stuck,
+            "fault": self.result.fault,
             "position_error": self.score.position_error,
             "heading_error": self.score.heading_error,
             "min_quality": json_number(self.min_quality),

@@ -186,8 +186,25 @@ def _why_no_hold(parts: HandParts, field: ContactField, centre: np.ndarray, best
                 f"{spec.start_quality_n:g} N the start needs (--start-quality, "
                 f"--threshold): a lighter object (--mass), more friction (--mu) or a lower "
                 "threshold")
-    return "every finger reaches it alone, but never all at once: it is too big or too " \
-        "small for this hand"
+    return "every finger reaches it alone, but never all at once: " + _size_words(parts, centre)
+
+
+def _size_words(parts: HandParts, centre: np.ndarray) -> str:
+    """Whether the object is too big or too small for the hand, in words: the fingers close
+    on it scaled down or up (a held-out check's 113 mm square was "too big or too small")."""
+    from sim_backend.hand import close_fingers
+
+    headings = np.linspace(-np.pi, np.pi, 12, endpoint=False)
+    width = parts.contour.extent * 1e3
+    for factor, words in ((0.5, "too big"), (2.0, "too small")):
+        scaled = contact_field(dataclasses.replace(parts.contour,
+                                                   points=parts.contour.points * factor))
+        if any(close_fingers(parts.hand.fingers, scaled, np.array([*centre, h])) is not None
+               for h in headings):
+            return (f"it is {words} for this hand ({width:.0f} mm across; it would hold "
+                    f"one {'half' if factor < 1 else 'twice'} that size)")
+    return (f"it is too big or too small for this hand ({width:.0f} mm across; it would "
+            "hold one neither half nor twice that size)")
 
 
 def streams(seed: int) -> list[np.random.Generator]:

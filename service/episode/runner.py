@@ -52,6 +52,9 @@ class EpisodeResult:
     steps: list[StepRecord] = field(default_factory=list)
     initial_candidates: int = 0
     estimate: Estimate | None = None
+    fault: str | None = None
+    """What a latched fault (a lost port, a servo's error) said when it cut the step after
+    the last: the episode ended there, and what it had found stands."""
 
     @property
     def converged(self) -> bool:
@@ -60,7 +63,9 @@ class EpisodeResult:
     @property
     def ended(self) -> str:
         """Why the episode ended, in the words of the daemon's `episode_done` reason:
-        `converged`, `eliminated` (no hypothesis left) or `out_of_steps`."""
+        `converged`, `eliminated` (no hypothesis left), `fault` or `out_of_steps`."""
+        if self.fault is not None:
+            return "fault"
         if self.converged:
             return "converged"
         if self.estimate is None or self.estimate.candidates == 0:
@@ -113,7 +118,11 @@ def run_episode(backend: Backend, localizer: Localizer, policy: Policy, *,
         background(localizer)  # while the move is under way (the daemon's worker overlaps them)
         background_ms = (time.perf_counter() - t0) * 1e3
         command = MOVES[move] * step_length
-        state = execute_step(backend, StepCommand(float(command[0]), float(command[1])))
+        try:
+            state = execute_step(backend, StepCommand(float(command[0]), float(command[1])))
+        except HardwareFault as exc:  # the cut step tells nothing: end with what was found
+            result.fault = str(exc)
+            break
         displacement = np.asarray(state.centre) - origin
         if state.blocked:
             blocked_here.add(move)

@@ -54,6 +54,7 @@ class EpisodeReport:
             },
             "converged": self.result.converged,
             "ended": self.result.ended,
+            "fault": self.result.fault,
             "success": self.score.success,
             "wrong_declaration": self.score.wrong_declaration,
             "position_error": self.score.position_error,

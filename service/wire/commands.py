@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
-from collections import OrderedDict
+from collections import Counter, OrderedDict
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, Protocol
@@ -207,6 +207,9 @@ class CommandServer:
         self._recent: OrderedDict[tuple[Any, Any], tuple[bytes, bytes]] = OrderedDict()
         self._pending: dict[tuple[Any, Any], bytes] = {}
         """Requests whose reply a Deferred will give: key -> payload."""
+        self._retried: Counter[tuple[Any, Any]] = Counter()
+        """Retries of each pending request received while it is at work: each is answered
+        when it settles, as a retry after it is (one reply per request sent)."""
         self._controls_accepted = 0
         """Control commands (those that need the lease) accepted so far."""
         self._poller = zmq.Poller()
@@ -278,7 +281,8 @@ class CommandServer:
                 if cached is not None and cached[0] == payload:
                     return cached[1]  # the same bytes again: a retry, answered from the cache
                 if self._pending.get(key) == payload:
-                    return None  # a retry of a request still at work: its reply is coming
+                    self._retried[key] += 1  # a retry of a request still at work: its
+                    return None  # reply is coming, once for each time it was sent
             rid, cmd, client, args, spec = validate(req)
             peer = dataclasses.replace(peer, label=client)
             before = self.lease.snapshot()
@@ -336,6 +340,7 @@ class CommandServer:
 
         def done(result: dict[str, Any] | None, error: Exception | None) -> None:
             self._pending.pop(key, None)
+            copies = 1 + self._retried.pop(key, 0)
             if holding:
                 self.lease.busy = max(0, self.lease.busy - 1)
                 self.lease.touch(peer)
@@ -349,7 +354,8 @@ class CommandServer:
                 self._remember(key, payload, out)
             if head is not None:
                 with contextlib.suppress(zmq.ZMQError):  # the client went away
-                    self._sock.send_multipart(head + [out], flags=zmq.NOBLOCK)
+                    for _ in range(copies):
+                        self._sock.send_multipart(head + [out], flags=zmq.NOBLOCK)
 
         deferred.on_settle(done)
 

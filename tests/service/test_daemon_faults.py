@@ -4,17 +4,20 @@ new port; after any reset every servo holds what `open` wrote."""
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
 
 from firmware_if.hand import load_hand
+from firmware_if.registers import BAUD_REGISTER
 from service.daemon.harness import loopback_config, running_node
 from service.localization.maps import load_map
 from service.wire.client import Controller, Subscriber
 from sim_backend.emulator import ServoBus
 from sim_backend.emulator.plant import FingerPlant, hand_bus_servos
+from sim_backend.emulator.servo import EmulatedServo
 
 HAND = load_hand("spatial")
 MAP = load_map("peaks")
@@ -208,3 +211,49 @@ def test_a_bus_that_does_not_open_again_after_a_failed_configure_is_a_named_faul
                                       "failed: servo 5 does not answer a ping; once the bus "
                                       "answers, send reset or configure")
     assert ctl.status()["fault"] == fault["reason"]
+
+
+def test_a_fault_is_logged_as_an_error(rig, caplog) -> None:
+    """A lab that keeps the steps out of its log (`--log-level warning`) still finds its
+    faults there: the `fault` event and the lifecycle entering it are errors."""
+    node, sub, ctl, buses, link = rig
+    explore_until_moving(sub, ctl)
+    buses[-1].stop()
+    wait_fault(sub)
+    records = [r for r in caplog.records if r.name == "hapticd"
+               and (r.getMessage() == "fault"
+                    or getattr(r, "fields", {}).get("state") == "fault")]
+    assert {r.getMessage() for r in records} == {"fault", "lifecycle"}
+    assert all(r.levelno == logging.ERROR for r in records)
+
+
+def test_a_reset_onto_another_bus_warns_of_servos_the_hand_does_not_use(rig) -> None:
+    """A held-out check killed the emulator and started another hand's at the same link:
+    `reset` said nothing of servos 5-9 answering beside the hand's, though `configure` would
+    have. Once the port itself was lost, what answers when it opens again is looked at."""
+    node, sub, ctl, buses, link = rig
+    assert sub.wait_for(lambda m: m.topic == "state" and m["fingers"], 10.0)
+    assert ctl.call("status")["backend_warnings"] == []
+    buses[-1].stop()  # the port vanishes, between episodes
+    assert "serial port" in sub.wait_for(
+        lambda m: m.topic == "event" and m["event"] == "fault", 10.0)["reason"]
+    plant = FingerPlant(HAND, MAP, TRUTH)
+    stranger = EmulatedServo(9, position=2048)
+    stranger.set("baud_rate", BAUD_REGISTER[HAND.baud])  # as the hand's, so it answers
+    buses.append(ServoBus([*hand_bus_servos(HAND, plant), stranger], plant=plant,
+                          link=str(link)).start())
+    reply = ctl.call("reset")
+    assert reply["state"] == "inactive"
+    assert len(reply["warnings"]) == 1 and "servo 9 also answers" in reply["warnings"][0]
+    assert ctl.call("status")["backend_warnings"] == reply["warnings"]
+
+
+def test_a_reset_after_a_servo_fault_keeps_the_bus_as_it_was(rig) -> None:
+    """A fault that is not the port's (a servo's hardware error) leaves the bus the same:
+    reset does not look at it again (0.8 s without a published state) and says nothing."""
+    node, sub, ctl, buses, link = rig
+    explore_until_moving(sub, ctl)
+    buses[-1].inject_hardware_error(2, 0x20)  # overload
+    assert "servo 2" in wait_fault(sub)["reason"]
+    reply = ctl.call("reset")
+    assert reply["state"] == "inactive" and reply["warnings"] == []

@@ -443,3 +443,18 @@ def test_the_reported_pose_is_never_outweighed_by_its_runner_up(monkeypatch):
                if e.mode_mass is not None and e.runner_up is not None]
     assert len(weighed) > 10
     assert all(runner <= mass for mass, runner in weighed), weighed
+
+
+def test_the_rival_is_named_while_the_readings_since_a_turn_are_few() -> None:
+    """A client from the docs alone: after each turn of two fingers on keyed (seed 2, no
+    noise) the estimate gave its leader at 49 % and `runner_up` nil; the rival holding the
+    other half is named now, as before the turn."""
+    from service.episode.hand_episode import simulate_hand
+    from service.episode.hand_scenario import HandSettings
+
+    report = simulate_hand(HandSettings(object="keyed", hand="two-finger", seed=2,
+                                        noise=False, max_steps=8))
+    assert report.result.steps[-1].kind == "manipulate"  # the last step was a turn
+    est = report.result.estimate
+    assert est.mode_mass < 0.6 and est.runner_up is not None
+    assert 0.3 < est.runner_up_mass <= 1.0 - est.mode_mass + 1e-9

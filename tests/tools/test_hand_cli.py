@@ -166,3 +166,15 @@ def test_a_finger_run_declared_wrong_exits_with_status_1(monkeypatch, capsys):
         estimate, dataclasses.replace(truth, x=truth.x + step), step))
     assert main(argv) == 1
     assert "result    WRONG" in capsys.readouterr().out
+
+
+def test_an_object_too_big_for_the_hand_is_called_too_big(tmp_path, capsys):
+    """A held-out check's 113 mm square in three fingers was "too big or too small for this
+    hand", which says neither which nor by how much."""
+    h = 0.0565
+    square = tmp_path / "square_113mm.csv"
+    square.write_text("\n".join(f"{x},{z}" for x, z in
+                                [(-h, -h), (h, -h), (h, h), (-h, h), (-h, -h)]) + "\n")
+    assert main(["run", "--hand", "three-finger", "--object", str(square)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "too big for this hand" in err and "half" in err, err

@@ -1,8 +1,13 @@
-"""`haptic run --backend dynamixel` whose emulator dies mid-run: one line, status 2."""
+"""`haptic run --backend dynamixel` whose emulator dies mid-run: the run ends with what it
+found (printed and saved), says what to fix, and exits with status 3 (a hardware fault, not
+a bad option)."""
 
 from __future__ import annotations
 
+import argparse
+import json
 import threading
+from collections.abc import Callable
 
 import pytest
 
@@ -11,26 +16,69 @@ from service.localization.maps import load_map
 from sim_backend.emulator import ServoBus
 from sim_backend.emulator.plant import FingerPlant, hand_bus_servos
 from tools.cli import main
+from tools.emulate_cli import register, start_emulator
+from tools.words import EXIT_FAULT
 
 
-def test_a_lost_port_mid_run_is_one_line_and_status_2(capsys) -> None:
+def _finger_bus() -> ServoBus:
     hand = load_hand("spatial")
     plant = FingerPlant(hand, load_map("peaks"), (0.1, 0.1, 0.5))
-    bus = ServoBus(hand_bus_servos(hand, plant), plant=plant).start()
+    return ServoBus(hand_bus_servos(hand, plant), plant=plant).start()
+
+
+def _hand_bus() -> ServoBus:
+    parser = argparse.ArgumentParser()
+    register(parser)
+    args = parser.parse_args(["--hand", "three-finger", "--object", "blob", "--seed", "2",
+                              "--noise"])
+    return start_emulator(args)[0]
+
+
+def _mid_finger_episode() -> Callable[[ServoBus], bool]:
+    """Past the touch-down (before it, a lost port is the opening's error, status 2) by
+    about two steps' packets (5-20 each; opening takes about 60, more on a loaded host)."""
+    touched: list[int] = []
+
+    def mid(bus: ServoBus) -> bool:
+        if not touched and bus.plant.in_contact:
+            touched.append(bus.stats["rx_packets"])
+        return bool(touched) and bus.stats["rx_packets"] > touched[0] + 30
+    return mid
+
+
+def _mid_hand_episode() -> Callable[[ServoBus], bool]:
+    return lambda bus: bus.plant.sim.steps_done >= 2
+
+
+@pytest.mark.parametrize(("make_bus", "argv", "mid_episode"), [
+    (_finger_bus, ["--hand", "spatial", "--noise"], _mid_finger_episode),
+    (_hand_bus, ["--hand", "three-finger", "--object", "blob", "--seed", "2", "--noise"],
+     _mid_hand_episode),
+], ids=["finger", "hand"])
+def test_a_lost_port_mid_run_ends_it_with_what_it_found(make_bus, argv, mid_episode, tmp_path,
+                                                        capsys) -> None:
+    bus = make_bus()
+    out = tmp_path / "run.json"
     status: list[int] = []
     run = threading.Thread(target=lambda: status.append(main(
-        ["run", "--backend", "dynamixel", "--port", bus.port, "--hand", "spatial",
-         "--noise", "--max-steps", "60", "--quiet"])), daemon=True)
+        ["run", "--backend", "dynamixel", "--port", bus.port, *argv, "--max-steps", "60",
+         "--quiet", "--json", str(out)])), daemon=True)
     try:
         run.start()
-        # mid-episode: opening and touching down take about 60 packets, a step 5 to 20
-        assert bus.wait_until(lambda: bus.stats["rx_packets"] > 90, 60.0)
+        mid = mid_episode()
+        assert bus.wait_until(lambda: mid(bus), 60.0)
     finally:
         bus.stop()  # as if `haptic emulate` were killed
     run.join(60)
-    assert status == [2]
-    err = capsys.readouterr().err
-    assert err.count("\n") == 1 and "serial port" in err and "Traceback" not in err, err
+    assert status == [EXIT_FAULT]
+    captured = capsys.readouterr()
+    assert "Traceback" not in captured.err
+    result = next(line for line in captured.out.splitlines() if line.startswith("result"))
+    assert "hardware fault" in result and "serial port" in result and "run again" in result
+    assert "reset" not in result  # a daemon's way out; a command that ended has none
+    episode = json.loads(out.read_text())
+    assert "serial port" in episode["fault"]
+    assert episode["estimate"] is not None  # what the steps before found is kept
 
 
 @pytest.mark.parametrize("argv", [

@@ -37,6 +37,14 @@ def test_ctl_exit_status_reflects_the_reply(node: Node, capsys) -> None:
                  "--retries", "0"]) == 3
 
 
+def test_ctl_timeout_holds_for_a_slow_command_too(capsys) -> None:
+    """A held-out check: `--timeout 2 --retries 0` on a `configure` with no daemon waited
+    120 s ("1 tries of 120 s"), the slow commands' own default, not the one asked for."""
+    assert main(["ctl", "configure", "scenario.seed=1", "--cmd", "tcp://127.0.0.1:1",
+                 "--timeout", "0.2", "--retries", "0"]) == 3
+    assert "1 tries of 0.2 s" in capsys.readouterr().err
+
+
 def test_ctl_refuses_an_unknown_command_before_sending_it(capsys) -> None:
     assert main(["ctl", "stauts", "--cmd", "tcp://127.0.0.1:1"]) == 2
     err = capsys.readouterr().err

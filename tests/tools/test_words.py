@@ -2,7 +2,9 @@
 
 import math
 
-from tools.words import belief_text
+import pytest
+
+from tools.words import belief_text, fault_result
 
 
 def test_a_spread_no_reading_bounds_reads_in_words():
@@ -38,3 +40,22 @@ def test_a_localizer_that_says_what_held_it_back_is_quoted():
                              held_back="its spread: position sd 0.90 mm, of at most 0.80 mm")
     assert text.endswith("is not yet confirmed: its spread: position sd 0.90 mm, of at most "
                          "0.80 mm")
+
+
+@pytest.mark.parametrize(("fault", "cause"), [
+    ("hand is faulted: bus on /dev/pts/3: serial port /dev/pts/3 failed (fast sync read: "
+     "[Errno 5] Input/output error); torque is off as far as the bus allows; reset (or "
+     "configure another port) to recover", "serial port /dev/pts/3 failed"),
+    ("the finger faulted during a step: bus on /dev/pts/3: 3 consecutive failed cycles; then "
+     "the serial port itself failed (x): its adapter unplugged, or the emulator stopped? "
+     "Reconnect it, then reset (or configure another port); torque off sent to every servo, "
+     "reset to recover", "or the emulator stopped? Reconnect it."),
+    ("finger is faulted: servo 5 does not answer a ping: check its cable and power; reset "
+     "first", "servo 5 does not answer a ping: check its cable and power."),
+])
+def test_a_run_cut_by_a_fault_names_its_cause_without_the_daemons_way_out(fault, cause):
+    """`haptic run` has ended when it says so: a `reset` is `hapticd`'s (a held-out check
+    was told to reset a run that no longer existed)."""
+    words = fault_result(fault, 4)
+    assert cause in words and "reset" not in words and "recover" not in words
+    assert "during step 5" in words and "the 4 steps before it stand" in words
