@@ -50,6 +50,8 @@ from service.localization.localizers.heading_scan import best_headings
 from service.localization.localizers.pool import AnytimeJob
 from service.localization.localizers.spread import pose_spread
 from service.localization.localizers.symmetry import symmetries
+from service.localization.localizers.turned import Weighing
+from service.localization.localizers.whole_map import WholeMapCheck
 from service.localization.models import rotate
 
 RING = 32
@@ -100,6 +102,12 @@ class Grid:
         self.prob = np.zeros((headings, *self.gx.shape))
         self.history = np.zeros((1, READING_COLUMNS))
         self.verdict = Verdict(None, np.empty((0, 3)), 0.0, None, 0.0, False)
+        step = ctx.step_length
+        self.whole_map = WholeMapCheck(Weighing(
+            ctx.surface, self.sigma, max(self.sigma, 0.002 * step), ctx.motion.position_sigma,
+            self.margin, self.outlier_p, self.outlier_range, step,
+            (0.25 * step, float(np.deg2rad(5.0))), self.rule.mode_mass))
+        """What a declaration waits on: the certificate of the whole map (`whole_map`)."""
         self.motions = symmetries(ctx.surface)  # found once, not inside an update's slice
         self._job: AnytimeJob | None = None
         self._judge_ns = 0
@@ -114,7 +122,14 @@ class Grid:
         self._job = AnytimeJob(lambda job: self._update(job, measurement))
 
     def background(self, budget: Budget) -> bool:
-        return True  # no global check waits between updates
+        """The check of the whole map a declaration waits on, between updates."""
+        if not self.whole_map.pending:
+            return True
+        verdict = self.whole_map.work(budget, self.history)
+        if verdict is None:
+            return False
+        self.verdict = verdict
+        return True
 
     def work(self, budget: Budget) -> bool:
         """Sliced between heading layers (or ring directions), then the judgement."""
@@ -131,7 +146,7 @@ class Grid:
         job.expect(self._judge_ns)  # the judgement is one slice: start it in a fresh call
         yield self.prob.size
         started = time.monotonic_ns()
-        self.verdict = self._judge()
+        self.verdict = self.whole_map.hold(self._judge(), self.history)
         self._judge_ns = time.monotonic_ns() - started
 
     def _likelihood(self, dz_cells: np.ndarray, dz: float) -> np.ndarray:
@@ -245,7 +260,8 @@ class Grid:
                         converged=v.converged, position_sd=pos_sd, heading_sd=head_sd,
                         mode_mass=v.mode_mass if v.fit is not None else float(w[0] / w.sum()),
                         runner_up=v.runner_up, runner_up_mass=v.runner_up_mass,
-                        information=None if v.fit is None else v.fit.information)
+                        information=None if v.fit is None else v.fit.information,
+                        pending=self.whole_map.pending, held_back=v.held_back)
 
     def hypotheses(self, limit: int | None = None) -> Hypotheses:
         limit = limit or self.keep
