@@ -6,6 +6,7 @@ their errors pass unchanged. The command-line tools keep the full message."""
 
 from __future__ import annotations
 
+import difflib
 import logging
 from pathlib import Path
 
@@ -33,8 +34,17 @@ def quiet_file_error(what: str, spec: str, exc: Exception, expected: str,
 
 
 def quiet_hand_error(spec: str, exc: Exception) -> ConfigError:
-    """A hand that does not load: a preset's error as it is, a file's quieted."""
+    """A hand that does not load: a preset's error as it is, a file's quieted, and a name
+    that is neither a preset nor shaped like a file's path (no '/', no .toml) told so, with
+    the preset it is nearest. (A held-out client's `four-finger` was "a hand file that
+    cannot be used": which says nothing of any file, as this says nothing either.)"""
     if spec in presets():
         return ConfigError(str(exc))
+    if "/" not in spec and not spec.lower().endswith(".toml"):
+        near = difflib.get_close_matches(spec, presets(), n=1, cutoff=0.8)
+        return ConfigError(f"no hand preset '{spec}'"
+                           + (f" (did you mean '{near[0]}'?)" if near else "")
+                           + f": the presets are {', '.join(presets())}; a hand file is "
+                           "named by its path, ending in .toml")
     return quiet_file_error("hand", spec, exc, "a hand description in TOML", ConfigError,
                             hint=f"; the presets are {', '.join(presets())}")

@@ -7,6 +7,7 @@ from pathlib import Path
 import pytest
 
 from service.daemon.config import DaemonConfig, from_dict, load_config
+from service.daemon.harness import loopback_config
 from service.daemon.lifecycle import Lifecycle, State
 from service.errors import ConfigError, StateError
 
@@ -111,3 +112,17 @@ def test_the_daemon_and_haptic_run_share_their_defaults():
     from service.episode.scenario import RunSettings
 
     assert ScenarioConfig().run_settings() == RunSettings()
+
+
+@pytest.mark.parametrize(("hand", "said"), [
+    ("four-finger", "no hand preset 'four-finger': the presets are"),
+    ("three-fingers", "no hand preset 'three-fingers' (did you mean 'three-finger'?)"),
+])
+def test_a_hand_name_that_is_no_preset_is_told_so(hand, said):
+    """A client from the docs alone: `scenario.hand = "four-finger"` was "hand file
+    'four-finger' cannot be used: it is missing, unreadable or not a hand description": a
+    name shaped like no file is a preset's, and the presets are listed."""
+    with pytest.raises(ConfigError) as refused:
+        loopback_config({"scenario": {"object": "blob", "hand": hand}})
+    assert said in str(refused.value) and "two-finger" in str(refused.value)
+    assert "cannot be used" not in str(refused.value)

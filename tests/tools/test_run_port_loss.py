@@ -8,6 +8,7 @@ import argparse
 import json
 import threading
 from collections.abc import Callable
+from pathlib import Path
 
 import pytest
 
@@ -50,6 +51,24 @@ def _mid_hand_episode() -> Callable[[ServoBus], bool]:
     return lambda bus: bus.plant.sim.steps_done >= 2
 
 
+def _lose_the_port_mid_run(bus: ServoBus, argv: list[str], mid: Callable[[ServoBus], bool],
+                           out: Path) -> tuple[bool, list[int]]:
+    """`haptic run` on `bus`, which is stopped once `mid` holds (as if `haptic emulate` were
+    killed): whether it was stopped mid-run, and the run's exit status."""
+    status: list[int] = []
+    run = threading.Thread(target=lambda: status.append(main(
+        ["run", "--backend", "dynamixel", "--port", bus.port, *argv, "--max-steps", "60",
+         "--quiet", "--json", str(out)])), daemon=True)
+    try:
+        run.start()
+        reached = bus.wait_until(lambda: mid(bus) or not run.is_alive(), 60.0)
+        reached = reached and run.is_alive()
+    finally:
+        bus.stop()
+    run.join(60)
+    return reached, status
+
+
 @pytest.mark.parametrize(("make_bus", "argv", "mid_episode"), [
     (_finger_bus, ["--hand", "spatial", "--noise"], _mid_finger_episode),
     (_hand_bus, ["--hand", "three-finger", "--object", "blob", "--seed", "2", "--noise"],
@@ -57,19 +76,16 @@ def _mid_hand_episode() -> Callable[[ServoBus], bool]:
 ], ids=["finger", "hand"])
 def test_a_lost_port_mid_run_ends_it_with_what_it_found(make_bus, argv, mid_episode, tmp_path,
                                                         capsys) -> None:
-    bus = make_bus()
     out = tmp_path / "run.json"
-    status: list[int] = []
-    run = threading.Thread(target=lambda: status.append(main(
-        ["run", "--backend", "dynamixel", "--port", bus.port, *argv, "--max-steps", "60",
-         "--quiet", "--json", str(out)])), daemon=True)
-    try:
-        run.start()
-        mid = mid_episode()
-        assert bus.wait_until(lambda: mid(bus), 60.0)
-    finally:
-        bus.stop()  # as if `haptic emulate` were killed
-    run.join(60)
+    for _attempt in range(3):
+        reached, status = _lose_the_port_mid_run(make_bus(), argv, mid_episode(), out)
+        if reached:
+            break
+        # a loaded host missed the opening's cycles (a fault of its own, before any step:
+        # status 2, as a port that is not there): not the run under test; try again
+        assert status == [2], status
+        capsys.readouterr()
+    assert reached, "three runs in a row faulted while opening"
     assert status == [EXIT_FAULT]
     captured = capsys.readouterr()
     assert "Traceback" not in captured.err
