@@ -266,9 +266,7 @@ def align_motions(surface: ContactSurface, motions: np.ndarray) -> np.ndarray:
     if m.is_profile or len(out) == 0:
         return out
     rows, cols = m.heights.shape
-    stride = max(1, int(np.ceil(np.sqrt(rows * cols / (DIFFER_SAMPLES / 4)))))
-    x, y = (v.ravel() for v in np.meshgrid(np.arange(0, cols, stride) * m.spacing,
-                                            np.arange(0, rows, stride) * m.spacing))
+    x, y = _sample_grid(m, DIFFER_SAMPLES // 4)
     keep = _inward(m, surface.radius, x, y)
     x, y = x[keep], y[keep]
     here, _ = surface.lookup(x, y)
@@ -315,10 +313,7 @@ def image_differences(surface: ContactSurface, motions: np.ndarray) -> np.ndarra
     from service.localization.localizers.symmetry import moved
 
     m = surface.map
-    rows, cols = m.heights.shape
-    stride = max(1, int(np.ceil(np.sqrt(rows * cols / DIFFER_SAMPLES))))
-    x, y = (v.ravel() for v in np.meshgrid(np.arange(0, cols, stride) * m.spacing,
-                                            np.arange(0, rows, stride) * m.spacing))
+    x, y = _sample_grid(m, DIFFER_SAMPLES)
     inward = _inward(m, surface.radius, x, y)
     here, _ = surface.lookup(x, y)
     out = np.full((len(motions), 6), np.nan)
@@ -333,6 +328,15 @@ def image_differences(surface: ContactSurface, motions: np.ndarray) -> np.ndarra
         out[i] = (np.count_nonzero(d > FEATURE_TOLERANCE) / np.count_nonzero(inward),
                   float(d.max()), x[most], y[most], mx[most], my[most])
     return out
+
+
+def _sample_grid(m: HeightMap, samples: int) -> tuple[np.ndarray, np.ndarray]:
+    """(x, y) of about `samples` map samples on a regular stride, flattened."""
+    rows, cols = m.heights.shape
+    stride = max(1, int(np.ceil(np.sqrt(rows * cols / samples))))
+    x, y = np.meshgrid(np.arange(0, cols, stride) * m.spacing,
+                       np.arange(0, rows, stride) * m.spacing)
+    return x.ravel(), y.ravel()
 
 
 def _inward(m: HeightMap, margin: float, x: np.ndarray, y: np.ndarray) -> np.ndarray:

@@ -161,8 +161,9 @@ def test_unknown_algorithm_for_objects_is_a_clear_error():
 def test_readings_that_share_the_outlines_error_count_once():
     """Readings within the world's mismatch length share its error: as evidence they count
     as the distinct patches they were taken on, and the spread widens to match."""
-    from service.localization.localizers.object_judge import _temper, _widened
     from service.localization.localizers.refine import Fit
+    from service.localization.localizers.shared_error import patch_temper as _temper
+    from service.localization.localizers.shared_error import widened as _widened
 
     ctx = dataclasses.replace(build_localizer(THREE, load_parts(THREE),
                                               np.random.default_rng(0)).ctx,
@@ -288,8 +289,8 @@ def test_readings_off_the_truth_alike_are_not_read_as_another_pose(monkeypatch, 
     the world's slope (`grasp_gated.TILT`)."""
     monkeypatch.setattr(grasp_gated, "TILT", 0.0)
     if not offset:  # neither in the comparison nor in the fit (nor the whole-object check)
-        monkeypatch.setattr(object_judge, "_offset_log_likelihood", _no_offset)
-        monkeypatch.setattr(object_judge, "_offset_refit", lambda *args: args[4])
+        monkeypatch.setattr(object_judge, "offset_log_likelihood", _no_offset)
+        monkeypatch.setattr(object_judge, "offset_refit", lambda *args: args[4])
         monkeypatch.setattr(object_judge, "_whole_object", _unchecked)
     report = simulate_hand(HandSettings(object="rounded:8", hand="three-finger", seed=8,
                                         noise=True, max_steps=23, start_n=2.0,
@@ -306,7 +307,7 @@ def test_a_world_off_the_model_alike_does_not_keep_the_declaration_back(monkeypa
     the rule's limit (4.5 sd against 3.6) to step 60, the pose 0.25 degrees off. Judged
     with the offset fitted, the hand localizes it; without, it does not."""
     if not refit:
-        monkeypatch.setattr(object_judge, "_offset_refit", lambda *args: args[4])
+        monkeypatch.setattr(object_judge, "offset_refit", lambda *args: args[4])
     report = simulate_hand(HandSettings(object="blob:27", hand="three-finger", seed=27,
                                         noise=True, max_steps=20, start_n=2.0))
     assert report.score.success == refit
@@ -329,7 +330,7 @@ def test_no_wrong_declaration_on_an_outline_near_its_120_degree_turn():
 
 def test_a_carry_keeps_the_evidence_as_tempered_as_it_was():
     """Readings from one patch of the outline share the world's error: the evidence they
-    give one track over another is tempered by the patches felt (`object_judge._temper`),
+    give one track over another is tempered by the patches felt (`shared_error.patch_temper`),
     and a carry keeps it so; counted afresh after the turn, it counted in full."""
     settings = HandSettings(object="blob:3", hand="three-finger", noise=True)
     parts = load_parts(settings)
@@ -343,7 +344,7 @@ def test_a_carry_keeps_the_evidence_as_tempered_as_it_was():
     tracks = object_judge.ObjectTracks()
     tracks.update(ctx, points, radii, np.vstack([truth, off]), np.zeros(2), sd=ctx.sigma,
                   position_tol=1e-9, heading_tol=1e-9)
-    temper = object_judge._temper(ctx, points)
+    temper = object_judge.patch_temper(ctx, points)
     assert len(tracks.centres) == 2 and temper <= 0.5
     kept = temper * (tracks.ll[0] - tracks.ll[1])
     assert kept > 1.0  # the readings do tell the two apart

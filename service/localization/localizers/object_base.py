@@ -89,7 +89,7 @@ def object_rule() -> ConvergenceRule:
     """The declaration rule for a held object: B2's, with 0.06 scales of position spread
     and a heading spread of at most 1.2 degrees. A held object is felt on a few short arcs,
     where the world's outline differs from the model coherently; the judge's spread counts
-    that error (`object_judge._with_shared_error`, the sandwich B2's rule is calibrated on),
+    that error (`shared_error.with_shared_error`, the sandwich B2's rule is calibrated on),
     and over three fingers' declarations on members 100-199 the heading error stayed within
     2.4 of its spread (6.1 while the spread counted only the patches felt). The 5-degree
     tolerance is then four spreads away; at B2's 1.5 degrees (3.3 spreads) as many poses

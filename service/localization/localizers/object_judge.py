@@ -24,18 +24,22 @@ import numpy as np
 from service.localization.localizers.base import Budget, wrap_angle
 from service.localization.localizers.contour_fit import (
     assess,
-    correlated_spread,
     distinct_places,
     fit_log_likelihood,
     gauss_newton,
     refine,
-    residuals,
 )
 from service.localization.localizers.convergence import ConvergenceRule, distinct
-from service.localization.localizers.fitting import log_likelihood
 from service.localization.localizers.object_base import ObjectContext, carry_poses
 from service.localization.localizers.object_certificate import rivals_beyond
 from service.localization.localizers.refine import Fit
+from service.localization.localizers.shared_error import (
+    offset_log_likelihood,
+    offset_refit,
+    patch_temper,
+    widened,
+    with_shared_error,
+)
 from service.localization.objects.symmetry import images
 
 REFINED_RIVALS = 2
@@ -71,7 +75,7 @@ class ObjectTracks:
     it (`felt`): a track that was carried knows where its own motion put its earlier
     readings, so its fit may use them too, with the motion's noise added.
 
-    Evidence counts as independent only as far as the readings are (`_temper`): the latest
+    Evidence counts as independent only as far as the readings are (`patch_temper`): the latest
     readings' score is tempered by their own patches, and what a carry makes the prior is
     kept tempered as it was. Tempered afresh by the readings since the turn instead, the
     evidence from before counted in full once the few readings since lay in distinct
@@ -90,7 +94,7 @@ class ObjectTracks:
         self.carries = np.empty(0, dtype=np.int64)
         """Per track, how many manipulations it was carried through."""
         self.temper = 1.0
-        """How much of `ll` is independent evidence (`_temper` of the latest readings)."""
+        """How much of `ll` is independent evidence (`patch_temper` of the latest readings)."""
 
     @property
     def total(self) -> np.ndarray:
@@ -123,7 +127,7 @@ class ObjectTracks:
                                          ctx.outlier_probability, ctx.outlier_range)
         else:
             self.ll = np.zeros(len(self.centres))
-        self.temper = _temper(ctx, points)
+        self.temper = patch_temper(ctx, points)
         total = self.total
         keep = distinct(self.centres, total, position_tol, heading_tol)
         keep = keep[total[keep] >= total[keep[0]] - self.drop]
@@ -245,7 +249,7 @@ def judge(ctx: ObjectContext, points: np.ndarray, radii: np.ndarray, tracks: Obj
                                     radii)
     centres = np.vstack([tracks.centres, mirrored])
     prior = np.concatenate([tracks.prior, image_prior])
-    temper = _temper(ctx, points)
+    temper = patch_temper(ctx, points)
     score = prior + temper * fit_log_likelihood(ctx.field, centres, points, radii, sd,
                                                 ctx.outlier_probability, ctx.outlier_range)
     order = distinct(centres, score, tol_pos, tol_head)
@@ -267,13 +271,13 @@ def judge(ctx: ObjectContext, points: np.ndarray, radii: np.ndarray, tracks: Obj
     if enough_here and rule.loosened().holds(readings=places - 1, noisy=noisy, mode_mass=mass,
                                              fit=fit, step_length=scale):
         outliers = len(points) // 8 if noisy else 0
-        fit = _offset_refit(ctx, lead_points, lead_radii, lead_sd, refine(
+        fit = offset_refit(ctx, lead_points, lead_radii, lead_sd, refine(
             ctx.field, lead_points, lead_radii, best, lead_sd, max_outliers=outliers), outliers)
         rivals = [i for i, w in zip(order[1:1 + REFINED_RIVALS], share[1:1 + REFINED_RIVALS],
                                     strict=False) if w > 1e-6]
         fits = [fit] + [refine(ctx.field, points, radii, centres[i], sigma,
                                max_outliers=outliers) for i in rivals]
-        ll = prior[[order[0]] + rivals] + _offset_log_likelihood(
+        ll = prior[[order[0]] + rivals] + offset_log_likelihood(
             ctx, np.array([f.pose for f in fits]), points, radii, max(sigma, 0.002 * scale),
             temper)
         rivals_ll, images, images_ll = _rivals_beside(
@@ -299,8 +303,8 @@ def judge(ctx: ObjectContext, points: np.ndarray, radii: np.ndarray, tracks: Obj
             if runner_mass > mass:  # this weighing prefers another pose: it is the estimate
                 return _reported_instead(ctx, points, radii, runner, runner_mass, fit.pose,
                                          mass)
-        fit = _with_shared_error(ctx, lead_points, lead_radii, lead_sd, _widened(
-            _floored(ctx, lead_points, lead_radii, fit), _temper(ctx, lead_points)))
+        fit = with_shared_error(ctx, lead_points, lead_radii, lead_sd, widened(
+            _floored(ctx, lead_points, lead_radii, fit), patch_temper(ctx, lead_points)))
         converged = rule.holds(readings=places - 1, noisy=noisy, mode_mass=mass, fit=fit,
                                step_length=scale)
         converged &= bool(order[0] < len(tracks.centres)
@@ -393,8 +397,8 @@ def _whole_object(ctx: ObjectContext, points: np.ndarray, radii: np.ndarray,
     found = found[~np.any(near(found, tracked, tol_pos, tol_head), axis=1)]
     if len(found) == 0:
         return 1.0, None, 0.0, found
-    ll = _offset_log_likelihood(ctx, np.vstack([np.asarray(fit.pose), found]), points, radii,
-                                sd, _temper(ctx, points))
+    ll = offset_log_likelihood(ctx, np.vstack([np.asarray(fit.pose), found]), points, radii,
+                                sd, patch_temper(ctx, points))
     w = np.exp(ll[1:] - ll[0])
     order = np.argsort(-w, kind="stable")
     heaviest = tuple(float(v) for v in found[order[0]])
@@ -417,7 +421,7 @@ def _rivals_beside(ctx: ObjectContext, tracks: ObjectTracks, leader: int, fit: F
     sd = max(ctx.sigma, 0.002 * ctx.scale)
     rivals_ll = refined_ll.copy()
     if len(rivals):
-        rivals_ll = np.maximum(rivals_ll, rivals_prior + _offset_log_likelihood(
+        rivals_ll = np.maximum(rivals_ll, rivals_prior + offset_log_likelihood(
             ctx, rivals, points, radii, sd, temper))
     if leader >= len(tracks.centres):
         return rivals_ll, np.empty((0, 3)), np.empty(0)
@@ -425,7 +429,7 @@ def _rivals_beside(ctx: ObjectContext, tracks: ObjectTracks, leader: int, fit: F
                               radii)
     if len(mirrored) == 0:
         return rivals_ll, np.empty((0, 3)), np.empty(0)
-    ll = prior + _offset_log_likelihood(ctx, mirrored, points, radii, sd, temper)
+    ll = prior + offset_log_likelihood(ctx, mirrored, points, radii, sd, temper)
     beside = near(mirrored, rivals, *tolerance(ctx))
     for i, row in enumerate(beside):
         if row.any():
@@ -457,96 +461,8 @@ def _images(ctx: ObjectContext, tracks: ObjectTracks, lead: int, pose: np.ndarra
         ll = fit_log_likelihood(ctx.field, polished, felt[:, :2], felt[:, 2],
                                 np.sqrt(max(ctx.sigma, 0.002 * ctx.scale) ** 2 + felt[:, 3]),
                                 ctx.outlier_probability, ctx.outlier_range)
-        prior += _temper(ctx, felt[:, :2]) * (ll[1:] - ll[0])
+        prior += patch_temper(ctx, felt[:, :2]) * (ll[1:] - ll[0])
     return polished[1:], prior
-
-
-def _offset_log_likelihood(ctx: ObjectContext, poses: np.ndarray, points: np.ndarray,
-                           radii: np.ndarray, sd: float, temper: float) -> np.ndarray:
-    """Tempered log likelihood (N,) of each pose on the readings, the world's outline
-    allowed to lie off the model's by one offset along its normals everywhere (fitted per
-    pose, with a prior of sd `ctx.sigma`). A world a fraction of a millimetre larger or
-    smaller - a part's tolerance, a tip's radius - leaves every reading off the truth alike,
-    and so does a world whose mismatch happens to lie outward under every fingertip: a pose
-    far off can fit such readings better than the truth (rounded:8, seed 8, three fingers:
-    every reading 0.0-0.9 mm outside the truth, 0.25-0.75 mm on average per finger's arc;
-    a pose 125 degrees off was declared at 0.9994). No offset when the model is exact."""
-    if ctx.mismatch_length <= 0:
-        return temper * fit_log_likelihood(ctx.field, poses, points, radii, sd,
-                                           ctx.outlier_probability, ctx.outlier_range)
-    r = residuals(ctx.field, poses, points, radii)  # (N, K), positive outside
-    offset = _shared_offset(ctx, r, sd)
-    ll = log_likelihood(r - offset[:, None], np.ones(r.shape, dtype=bool), sd,
-                        ctx.outlier_probability, ctx.outlier_range)
-    ll = temper * np.where(np.isfinite(ll), ll, -np.inf)
-    return ll - 0.5 * (offset / ctx.sigma) ** 2
-
-
-def _shared_offset(ctx: ObjectContext, r: np.ndarray, sd: float | np.ndarray) -> np.ndarray:
-    """The offset (N,) the residuals (N, K) of each pose share: their weighted mean, shrunk
-    towards zero by a prior of sd `ctx.sigma`."""
-    w = np.broadcast_to(1.0 / np.asarray(sd, dtype=np.float64) ** 2, r.shape[1:])
-    return (r * w).sum(axis=1) / (w.sum() + 1.0 / ctx.sigma**2)
-
-
-def _offset_refit(ctx: ObjectContext, points: np.ndarray, radii: np.ndarray, sd: np.ndarray,
-                  fit: Fit, outliers: int) -> Fit:
-    """`fit` refined again with the outline moved by the one offset its residuals share
-    (as `_offset_log_likelihood`), so that its residuals are judged without it; its spread
-    widened by their rms where that exceeds the sensor's sd, as the readings then say the
-    error is larger than the model thought. Before, a world off the model alike under every
-    fingertip left the largest residual just beyond the rule's limit for good (blob:27,
-    seed 27, three fingers: 4.5 sd against 3.6, undecided after 60 steps, 0.25 degrees
-    off)."""
-    if ctx.mismatch_length <= 0:
-        return fit
-    offset = float(_shared_offset(ctx, residuals(ctx.field, np.asarray([fit.pose]), points,
-                                                 radii), sd)[0])
-    refit = refine(ctx.field, points, radii + offset, np.asarray(fit.pose), sd,
-                   max_outliers=outliers)
-    if refit.rms > 1.0:
-        refit = dataclasses.replace(refit, position_sd=refit.position_sd * refit.rms,
-                                    heading_sd=refit.heading_sd * refit.rms)
-    return refit
-
-
-def _temper(ctx: ObjectContext, points: np.ndarray) -> float:
-    """How much of the readings' log likelihood is independent evidence: the world's outline
-    differs from the model coherently over `mismatch_length`, so readings within one such
-    patch share their error (a wrong pose 136 degrees off out-fitted the truth by 7 nats on
-    11 readings from three small arcs: rounded:14, seed 14). Counted as the distinct
-    patches felt per reading."""
-    if ctx.mismatch_length <= 0 or len(points) == 0:
-        return 1.0
-    return min(1.0, distinct_places(points, ctx.mismatch_length) / len(points))
-
-
-def _widened(fit: Fit, temper: float) -> Fit:
-    """`fit` with its spread widened for readings that share their error (`_temper`): the
-    covariance of K readings in K * temper independent patches. (rounded:8, seed 8: a
-    heading 5.5 degrees off was declared at a spread of 0.67 degrees from 10 readings on
-    three small arcs.)"""
-    scale = 1.0 / np.sqrt(max(temper, 1e-6))
-    return dataclasses.replace(fit, position_sd=fit.position_sd * scale,
-                               heading_sd=fit.heading_sd * scale)
-
-
-def _with_shared_error(ctx: ObjectContext, points: np.ndarray, radii: np.ndarray,
-                       sd: np.ndarray, fit: Fit) -> Fit:
-    """`fit` with its spread at least what the world's coherent difference from the model
-    leaves (`contour_fit.correlated_spread`): where the outline tells the heading only
-    weakly (a near-circle, an ellipse near its round), readings in a few patches that err
-    together turn the fit by degrees. Counting patches (`_widened`) missed it: keyed:124,
-    seed 124, three fingers, declared 3.6 degrees off at a spread of 0.75 degrees; the
-    sandwich says 1.3. The world's noise is white noise smoothed by a Gaussian of sd
-    `mismatch_length` along the outline, so readings d apart share exp(-d^2 / 4 L^2) of it."""
-    if ctx.mismatch_length <= 0 or ctx.mismatch_sd <= 0 or len(points) < 3:
-        return fit
-    position_sd, heading_sd = correlated_spread(
-        ctx.field, points, radii, np.asarray(fit.pose), np.broadcast_to(sd, (len(points),)),
-        ctx.mismatch_sd, np.sqrt(2.0) * ctx.mismatch_length)
-    return dataclasses.replace(fit, position_sd=max(fit.position_sd, position_sd),
-                               heading_sd=max(fit.heading_sd, heading_sd))
 
 
 def _floored(ctx: ObjectContext, points: np.ndarray, radii: np.ndarray, fit: Fit) -> Fit:
