@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import os
 import sys
 from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
@@ -60,12 +61,28 @@ LOG_EVERY_S = 30.0
 """Seconds between progress lines when stderr is not a terminal."""
 
 
+FALLBACK_SIZE = (80, 24)
+"""Columns and rows taken for a terminal that tells none."""
+
+
+def _columns(stream: Any) -> int:
+    """The terminal's width in columns (0 when it tells none)."""
+    try:
+        return os.get_terminal_size(stream.fileno()).columns
+    except (OSError, ValueError, AttributeError):
+        return 0
+
+
 def progress(total: int, desc: str, unit: str = "run", initial: int = 0) -> tqdm:
     """A progress bar on a terminal; in a log or a pipe, a line at the start, every
     `LOG_EVERY_S` and at the end, so a long run is never silent (a held-out check waited 22
     minutes for the first word of `haptic bench grasp > log`)."""
     if sys.stderr.isatty():
-        return tqdm(total=total, desc=desc, unit=unit, initial=initial, leave=False)
+        # a terminal that says it is 0 x 0 (a bare pseudo-terminal) made tqdm cut every
+        # line to nothing and hide the bar below its last row: no progress at all
+        size = {} if _columns(sys.stderr) else {"ncols": FALLBACK_SIZE[0],
+                                                "nrows": FALLBACK_SIZE[1]}
+        return tqdm(total=total, desc=desc, unit=unit, initial=initial, leave=False, **size)
     return tqdm(total=total, desc=desc, unit=unit, initial=initial, mininterval=LOG_EVERY_S,
                 bar_format="{desc}: {n_fmt}/{total_fmt} " + unit
                 + "s, {elapsed} elapsed, {remaining} left{postfix}\n")

@@ -24,6 +24,7 @@ from typing import Any
 import numpy as np
 
 from service.errors import ConfigError, ServiceError
+from service.localization.objects.files import OBJECT_FILE_SUFFIXES
 from service.localization.surface import HeightMap
 from tools.bench_common import executor_for, fmt, percentile, progress, write_json
 from tools.executor import Failed, add_executor_options
@@ -46,6 +47,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "centroid's z), each held in every run")
     p.add_argument("--hands", default=",".join(HANDS),
                    help="hands, comma-separated (default: %(default)s)")
+    p.add_argument("--plane", metavar="AXIS=V|PX,PY,PZ,NX,NY,NZ",
+                   help="where every mesh in --objects is cut (as `haptic run --plane`); "
+                        "default: z through each mesh's centroid")
+    p.add_argument("--object-units", choices=("m", "mm"), default="m",
+                   help="units of every object file in --objects (default: %(default)s)")
     p.add_argument("--max-steps", type=int, default=60, help="(default: %(default)s)")
     p.add_argument("--start-quality", type=float, metavar="N", help="grasp quality (newtons) "
                    "every hand starts with at least; the policy relies on it (default: the "
@@ -70,7 +76,7 @@ def _check(args: argparse.Namespace) -> None:
         if name in OBJECTS:
             continue
         try:
-            load_object(name)
+            load_object(name, plane=_plane_for(name, args.plane), units=args.object_units)
         except ObjectError as exc:
             raise ConfigError(f"--objects: '{name}' is neither a family ("
                               f"{', '.join(OBJECTS)}) nor an object: {exc}") from None
@@ -144,7 +150,9 @@ def run(args: argparse.Namespace) -> int:
                         object=f"{family}:{seed}" if family in OBJECTS else family,
                         hand=hand, seed=seed, noise=True,
                         max_steps=args.max_steps, gate=kind != "ablation",
-                        single_finger=kind == "single", start_n=args.start_quality)))
+                        single_finger=kind == "single", start_n=args.start_quality,
+                        plane=_plane_for(family, args.plane),
+                        units="m" if family in OBJECTS else args.object_units)))
     # a bad hand name or start quality fails here, not in a worker
     HandSettings(hand=hands[0], start_n=args.start_quality)
     outcomes: list[dict[str, Any] | None] = [None] * len(jobs)
@@ -167,12 +175,12 @@ def run(args: argparse.Namespace) -> int:
     gated = [o for (h, f, k), v in results.items() if k == "gated" for o in v]
     summary = _summary(gated)
     summary["quality_min_run"] = _least_quality_run(results, args.max_steps,
-                                                    args.start_quality)
+                                                    args.start_quality, _object_flags(args))
     if "ablation" in kinds:
         summary["ablation_drops"] = int(sum(o["dropped"] for (_, _, k), v in results.items()
                                             if k == "ablation" for o in v))
     _print(table, summary, hands, families, kinds)
-    failures = failed_runs(results, args.max_steps, args.start_quality)
+    failures = failed_runs(results, args.max_steps, args.start_quality, _object_flags(args))
     for line in failures:
         print(line)
     write_json(args.json, {"scenario": "grasp", "targets": TARGETS,
@@ -185,8 +193,24 @@ def run(args: argparse.Namespace) -> int:
     return 1 if failures else 0
 
 
+def _plane_for(spec: str, plane: str | None) -> str | None:
+    """--plane for a mesh of --objects (a preset or an outline is not cut)."""
+    from service.localization.objects.files import MESH_SUFFIXES
+
+    return plane if Path(spec).suffix.lower() in MESH_SUFFIXES else None
+
+
+def _object_flags(args: argparse.Namespace) -> dict[str, str]:
+    """`haptic run` options an object file of this bench was read with."""
+    flags = {} if args.object_units == "m" else {"--object-units": args.object_units}
+    if args.plane is not None:
+        flags["--plane"] = args.plane
+    return flags
+
+
 def failed_runs(results: dict[tuple, list[dict[str, Any]]], max_steps: int,
-                start_n: float | None = None) -> list[str]:
+                start_n: float | None = None, object_flags: dict[str, str] | None = None
+                ) -> list[str]:
     """A line for each gated run that dropped the object or declared a wrong pose (the
     ablation's drops are what it is for), with the `haptic run` options that re-run it."""
     lines = []
@@ -194,7 +218,7 @@ def failed_runs(results: dict[tuple, list[dict[str, Any]]], max_steps: int,
         if kind != "gated":
             continue
         for o in outcomes:
-            where = _rerun_options(hand, o, max_steps, start_n)
+            where = _rerun_options(hand, o, max_steps, start_n, object_flags)
             if o["dropped"]:
                 lines.append(f"DROPPED: {where} at step {o['steps']} (least quality "
                              f"{o['min_quality']:.2f} N)")
@@ -205,7 +229,8 @@ def failed_runs(results: dict[tuple, list[dict[str, Any]]], max_steps: int,
 
 
 def _least_quality_run(results: dict[tuple, list[dict[str, Any]]], max_steps: int,
-                       start_n: float | None) -> str | None:
+                       start_n: float | None, object_flags: dict[str, str] | None = None
+                       ) -> str | None:
     """The `haptic run` options of the gated run whose grasp came nearest the margin: the
     table's column says how near, this says which run to look at."""
     runs = [(o["min_quality"], hand, o) for (hand, _, kind), outcomes in results.items()
@@ -213,16 +238,21 @@ def _least_quality_run(results: dict[tuple, list[dict[str, Any]]], max_steps: in
     if not runs:
         return None
     _, hand, o = min(runs, key=lambda r: r[0])
-    return _rerun_options(hand, o, max_steps, start_n)
+    return _rerun_options(hand, o, max_steps, start_n, object_flags)
 
 
 def _rerun_options(hand: str, outcome: dict[str, Any], max_steps: int,
-                   start_n: float | None) -> str:
+                   start_n: float | None, object_flags: dict[str, str] | None = None) -> str:
     """The `haptic run` options that re-run a gated run as it ran (a helper re-ran one
-    without `--noise` and saw it localize)."""
-    return (f"--hand {_rerunnable(hand)} --object {_rerunnable(outcome['object'])} "
+    without `--noise` and saw it localize), an object file's own options with it."""
+    spec = outcome["object"]
+    flags = {k: v for k, v in (object_flags or {}).items()
+             if Path(spec).suffix.lower() in OBJECT_FILE_SUFFIXES
+             and (k != "--plane" or _plane_for(spec, v) is not None)}
+    return (f"--hand {_rerunnable(hand)} --object {_rerunnable(spec)} "
             f"--seed {outcome['seed']} --noise --max-steps {max_steps}") + (
-        "" if start_n is None else f" --start-quality {start_n:g}")
+        "" if start_n is None else f" --start-quality {start_n:g}") + "".join(
+        f" {k} {shlex.quote(v)}" for k, v in flags.items())
 
 
 def _rerunnable(spec: str) -> str:

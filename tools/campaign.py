@@ -3,7 +3,7 @@
     name = "noise sweep"       # optional
     runs = 20                  # seeded episodes per scenario (seeds first_seed, ...)
     first_seed = 0             # optional
-    out = "sweep-results"      # optional; default: FILE's folder / FILE's stem
+    out = "sweep-results"      # optional, beside FILE; default: FILE's stem + "-results"
     [fixed]                    # settings every scenario shares
     noise = true
     max_steps = 60

@@ -49,6 +49,9 @@ def run(args: argparse.Namespace) -> int:
             maps[key] = load_map(key, sc.settings.spacing)
             for warning in check_map(maps[key], sc.settings.radius, sc.settings.step).warnings:
                 print(f"warning: {key}: {warning}")
+    # reached before anything is written or forgotten: a cluster that is not there changes
+    # nothing (`--fresh` deleted the finished episodes first)
+    executor = make_executor(args.workers, args.scheduler)
     campaign.out.mkdir(parents=True, exist_ok=True)
     (campaign.out / "campaign.toml").write_text(campaign.source)
     store = Store(campaign.out)
@@ -57,7 +60,6 @@ def run(args: argparse.Namespace) -> int:
     done = store.load()
     todo = [(sc, seed) for sc in campaign.scenarios for seed in campaign.seeds
             if (sc.key, seed) not in done]
-    executor = make_executor(args.workers, args.scheduler)
     print(f"campaign {campaign.name}: {len(campaign.scenarios)} scenarios x {campaign.runs} "
           f"runs = {campaign.episodes} episodes; {campaign.episodes - len(todo)} already "
           f"done, {len(todo)} to run on {executor.describe()}; results in {campaign.out}")

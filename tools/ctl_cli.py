@@ -22,7 +22,7 @@ from typing import Any
 from service.errors import InputError, ServiceError
 from service.wire.client import SLOW_COMMANDS, Client, CommandFailed, CommandTimeout, Subscriber
 from service.wire.commands import TABLE
-from tools.stream_cli import add_endpoint_options, client_from, subscriber_from
+from tools.stream_cli import add_endpoint_options, client_from, subscriber_from, unheard_words
 from tools.words import (
     NO_SAFE_MOVE,
     belief_text,
@@ -117,7 +117,7 @@ def cmd_ctl(args: argparse.Namespace) -> int:
         try:  # a timeout given is the user's for every command, a slow one's too
             reply = client.request(args.command, cmd_args, args.timeout)
         except CommandTimeout as exc:
-            print(f"haptic ctl: {exc}; is hapticd running?", file=sys.stderr)
+            print(f"haptic ctl: {exc}; {unheard_words(args, args.cmd)}", file=sys.stderr)
             return NO_REPLY
         if not reply.get("ok"):
             err = reply.get("error") or {}

@@ -74,8 +74,26 @@ def run_one(settings: Any, maps: dict[str, HeightMap], task: Task = on_map) -> O
     try:
         return task(settings, maps)
     except Exception as exc:  # noqa: BLE001 - reported per episode, the rest go on
+        interrupt = _interrupt_behind(exc)
+        if interrupt is not None:
+            raise interrupt from None
         first = str(exc).splitlines()[0] if str(exc) else ""
         return Failed(settings, f"{type(exc).__name__}: {first}", isinstance(exc, InputError))
+
+
+def _interrupt_behind(exc: BaseException) -> KeyboardInterrupt | None:
+    """The Ctrl-C or SIGTERM (`tools.signals`) an exception stands for, if any. One that
+    lands while a compiled kernel runs comes back as a SystemError ("... returned a result
+    with an exception set") caused by it: taken for the episode's own error, it was stored
+    as one, which a resumed campaign never ran again, and the run went on."""
+    seen: set[int] = set()
+    cause: BaseException | None = exc
+    while cause is not None and id(cause) not in seen:
+        if isinstance(cause, KeyboardInterrupt):
+            return cause
+        seen.add(id(cause))
+        cause = cause.__cause__ or cause.__context__
+    return None
 
 
 def _portable(outcome: Outcome) -> Outcome:
@@ -204,6 +222,7 @@ class DaskCluster(Executor):
     def __init__(self, address: str) -> None:
         from distributed import Client
 
+        _check_address(address)
         try:
             self._client = Client(address, timeout=f"{CONNECT_TIMEOUT_S}s",
                                   set_as_default=False)
@@ -222,7 +241,8 @@ class DaskCluster(Executor):
     def run(self, settings, maps, task=on_map):
         from distributed import as_completed
 
-        shared = self._client.scatter(maps, broadcast=True)
+        # a hand's episodes share no map (scattering nothing fails inside Dask)
+        shared = self._client.scatter(maps, broadcast=True) if maps else {}
         index = {}
         for i, s in enumerate(settings):
             future = self._client.submit(_dask_task, s, shared, task, pure=False)
@@ -237,6 +257,25 @@ class DaskCluster(Executor):
 
     def close(self) -> None:
         self._client.close()
+
+
+def _check_address(address: str) -> None:
+    """Refuse a scheduler address Dask cannot parse, before a client is made of it: a
+    client made of one raised a clear error, then hung 20 s on leaving and printed a
+    traceback."""
+    from distributed.comm.addressing import parse_address, parse_host_port
+    from distributed.comm.registry import backends
+
+    try:
+        scheme, location = parse_address(address)
+        if scheme not in backends:
+            raise ValueError(f"Dask speaks {', '.join(sorted(backends))}, not {scheme!r}")
+        if scheme in ("tcp", "tls"):
+            parse_host_port(location)
+    except ValueError as exc:
+        raise ConfigError(f"--scheduler {address!r} is not a Dask scheduler's address "
+                          f"({str(exc).splitlines()[0]}): give tcp://HOST:PORT, as "
+                          "`dask scheduler` prints it") from None
 
 
 def make_executor(workers: int | None, scheduler: str | None) -> Executor:

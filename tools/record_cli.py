@@ -28,6 +28,7 @@ from tools.stream_cli import (
     format_message,
     parse_topics,
     subscriber_from,
+    unheard_words,
 )
 
 DEFAULT_STATE_HZ = 10.0
@@ -78,7 +79,9 @@ def cmd_record(args: argparse.Namespace) -> int:
         except KeyboardInterrupt:
             pass  # Ctrl-C or SIGTERM: finish the file (its summary and index) below
         gaps = sum(sub.gaps.values())
-    print(f"# recorded {rec.count} messages to {args.file} ({gaps} missed)", file=sys.stderr)
+    print(f"# recorded {rec.count} messages to {args.file} ({gaps} missed)"
+          + ("" if rec.count else f"; nothing arrived: {unheard_words(args, args.pub)}"),
+          file=sys.stderr)
     return 0
 
 
@@ -110,6 +113,9 @@ def cmd_replay(args: argparse.Namespace) -> int:
     from tools.recording import read_recording, wire_payload
 
     _, records = read_recording(args.file)
+    if not records:
+        print(f"# '{args.file}' holds no messages: its recorder heard nothing",
+              file=sys.stderr)
     if args.publish is None:
         for index, r in enumerate(records, 1):
             try:

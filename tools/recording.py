@@ -117,7 +117,11 @@ class McapRecorder:
     def __init__(self, path: str | Path) -> None:
         from mcap.writer import CompressionType, Writer
 
-        self._file: IO[bytes] = open(path, "wb")  # noqa: SIM115 (closed in close())
+        try:
+            self._file: IO[bytes] = open(path, "wb")  # noqa: SIM115 (closed in close())
+        except OSError as exc:
+            raise InputError(f"cannot write the recording '{path}': {exc.strerror}; give a "
+                             "path in a folder that exists and you may write to") from None
         self._writer = Writer(self._file, chunk_size=CHUNK_BYTES,
                               compression=CompressionType.ZSTD)
         self._writer.start(profile="", library=LIBRARY)
@@ -173,7 +177,7 @@ def read_recording(path: str | Path) -> tuple[dict[str, Any] | None, list[Record
 def _read_mcap(path: str | Path) -> tuple[dict[str, Any] | None, list[Record]]:
     """Every record in file order, so a recording whose recorder was killed (no summary,
     the last chunk cut) gives what it holds, with a note on standard error."""
-    from mcap.exceptions import McapError
+    from mcap.exceptions import EndOfFile, McapError
     from mcap.records import Channel, Message, Metadata, Schema
     from mcap.stream_reader import StreamReader
 
@@ -198,19 +202,49 @@ def _read_mcap(path: str | Path) -> tuple[dict[str, Any] | None, list[Record]]:
                         schema = schemas.get(channel.schema_id)
                         spec = (json.loads(schema.data) if schema is not None
                                 else SCHEMAS[channel.topic])
-                        records.append(Record(channel.topic, record.log_time, message_from_json(
-                            json.loads(record.data), spec, channel.topic)))
+                        records.append(Record(channel.topic, record.log_time,
+                                              _haptic_message(path, channel, record.data, spec)))
             except (McapError, EOFError, struct.error) as exc:
+                if not schemas and not channels and isinstance(exc, (EndOfFile, EOFError)):
+                    raise InputError(f"'{path}' ends before its first record (it is empty "
+                                     "or was cut at the start): there is nothing in it to "
+                                     "read") from None
                 if not schemas:
                     raise
                 print(f"note: '{path}' ends early, as a recorder stopped without finishing it "
                       f"leaves it ({type(exc).__name__}); read the {len(records)} messages "
                       "before that", file=sys.stderr)
+    except InputError:
+        raise
     except (McapError, ValueError, KeyError, TypeError, EOFError, struct.error) as exc:
         raise InputError(f"'{path}' is not a readable MCAP recording: "
                          f"{type(exc).__name__}: {exc}"[:300]) from None
+    if not any(channel.topic in SCHEMAS for channel in channels.values()):
+        topics = sorted({channel.topic for channel in channels.values()})
+        raise InputError(f"'{path}' holds no haptic-slam stream ("
+                         + (f"its topics: {', '.join(topics)}"[:200] if topics else "no topics")
+                         + "): it was not made by `haptic record`")
     records.sort(key=lambda r: r.t_ns)  # log time, as a player would
     return config, records
+
+
+def _haptic_message(path: str | Path, channel: Any, data: bytes, spec: dict[str, Any]
+                    ) -> wire.Message:
+    """A message of a channel named like one of ours, or InputError saying it is not one of
+    ours (another program's MCAP on the same topic names: a KeyError 'type', or a
+    UnicodeDecodeError from a protobuf)."""
+    try:
+        if channel.message_encoding != "json":
+            raise ValueError(f"encoded as {channel.message_encoding!r}, not JSON")
+        obj = json.loads(data)
+        if not isinstance(obj, dict):
+            raise ValueError("not a JSON object")
+        return message_from_json(obj, spec, channel.topic)
+    except (ValueError, KeyError, TypeError) as exc:
+        why = f"no field {exc}" if isinstance(exc, KeyError) else str(exc).splitlines()[0]
+        raise InputError(f"'{path}' has a {channel.topic} channel whose messages are not "
+                         f"haptic-slam's ({why[:120]}): it was not made by `haptic record`"
+                         ) from None
 
 
 def message_from_json(obj: dict[str, Any], schema: dict[str, Any], topic: str

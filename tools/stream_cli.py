@@ -71,6 +71,16 @@ def socket_options(args: argparse.Namespace) -> dict[int, Any] | None:
         raise InputError(f"cannot read the CurveZMQ keys: {exc}") from None
 
 
+def unheard_words(args: argparse.Namespace, endpoint: str) -> str:
+    """Why a daemon may not be heard at `endpoint`, in words: not running there, or - with
+    CURVE keys - keys it does not take (a refused handshake is silence, never an error)."""
+    words = f"is hapticd running at {endpoint}?"
+    if getattr(args, "curve_server_key", None):
+        words += (" With CURVE, is --curve-server-key the daemon's NAME.key, and is your "
+                  "NAME.key in its authorized_clients folder?")
+    return words
+
+
 def client_from(args: argparse.Namespace, **kwargs: Any) -> Client:
     return Client(args.cmd, socket_options=socket_options(args), **kwargs)
 
@@ -169,7 +179,9 @@ def cmd_watch(args: argparse.Namespace) -> int:
         if sub.rejected:
             print(f"# {sub.rejected} messages could not be read: {sub.rejection}",
                   file=sys.stderr)
-    print(f"# {n} messages, {gaps} missed (sequence gaps)", file=sys.stderr)
+    print(f"# {n} messages, {gaps} missed (sequence gaps)"
+          + ("" if n else f"; nothing arrived: {unheard_words(args, args.pub)}"),
+          file=sys.stderr)
     return 0
 
 

@@ -12,6 +12,9 @@ from service.wire.client import CommandFailed, CommandTimeout
 from tools.signals import interrupted
 from tools.stream_cli import add_endpoint_options, client_from, deadline, subscriber_from
 
+MAP_WAIT_S = 10.0
+"""How long a live view waits for the stream to name the map when no daemon answers."""
+
 
 def register(p: argparse.ArgumentParser) -> None:
     p.description = ("Draw the map, the hypotheses (weighted), the estimate and the finger's "
@@ -49,9 +52,27 @@ def _map_for_view(args: argparse.Namespace, config: dict[str, Any] | None):
                          "with `haptic watch` or `haptic explore`, or draw one with `haptic "
                          "run --object NAME --plot FILE.png`")
     if "map" not in scenario:
-        raise InputError("no map to draw: the daemon did not answer and none was recorded; "
-                         "name it with --map")
+        if args.source is None:
+            return None  # the stream may name it (`_map_from_stream`)
+        raise InputError("no map to draw: none was recorded; name it with --map")
     return load_map(scenario["map"], scenario.get("spacing"))
+
+
+def _map_from_stream(args: argparse.Namespace, sub: Any, view: Any, wait_s: float):
+    """The map the stream's next `episode_started` names, the messages before it given to
+    `view`: a replay (`haptic replay --publish`) has no daemon to ask. None after
+    `wait_s` without one."""
+    end = deadline(wait_s)
+    while time.monotonic() < end and not interrupted():
+        msg = sub.recv(min(0.2, max(0.0, end - time.monotonic())))
+        if msg is None:
+            continue
+        settings = msg.get("settings") if msg.topic == "event" else None
+        if msg.get("event") == "episode_started" and isinstance(settings, dict) \
+                and settings.get("map") and not settings.get("object"):
+            return _map_for_view(args, {"scenario": settings})
+        view.update(msg)
+    return None
 
 
 def has_display() -> bool:
@@ -91,7 +112,15 @@ def cmd_view(args: argparse.Namespace) -> int:
     if not args.png and not has_display():
         raise InputError("no display to open a window on; use --png FILE for a snapshot")
     height_map = _map_for_view(args, None)
-    with subscriber_from(args, ["state", "estimate", "cloud"]) as sub:
+    with subscriber_from(args, ["state", "estimate", "cloud", "event"]) as sub:
+        if height_map is None:  # no daemon answered: a replay's stream names its map
+            print("# no daemon answered for the map: waiting for the stream to name it "
+                  "(an episode's start), or give --map", file=sys.stderr, flush=True)
+            height_map = _map_from_stream(args, sub, view,
+                                          args.duration if args.png else MAP_WAIT_S)
+            if height_map is None:
+                raise InputError("no map to draw: the daemon did not answer and the stream "
+                                 "named none (no episode started); name it with --map")
         if args.png:
             end = deadline(args.duration)
             while time.monotonic() < end and not view.complete:

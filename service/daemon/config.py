@@ -20,7 +20,8 @@ from service.bounds import check_fields, check_keywords, same_as, setting
 from service.daemon.quiet_files import quiet_hand_error
 from service.episode.hand_scenario import HandSettings, hand_for_backend
 from service.episode.scenario import RunSettings, for_backend
-from service.errors import ConfigError
+from service.errors import ConfigError, MapError
+from service.localization.maps import check_map_spec
 from service.registry import BACKENDS
 from service.wire.envelope import MAX_FRAME_BYTES
 
@@ -56,6 +57,13 @@ class BackendConfig:
         bad = sorted(set(self.options) & set(BACKEND_BUILDER_ARGS))
         if bad:
             raise ConfigError(f"backend.options cannot set {', '.join(bad)}: [scenario] does")
+        hand = self.options.get("hand")
+        if isinstance(hand, str):  # the loop needs the hand to know its servos
+            try:
+                load_hand(hand)
+            except HandConfigError as exc:
+                raise ConfigError(f"backend.options.hand: {quiet_hand_error(hand, exc)}"
+                                  ) from None
 
 
 @dataclass(frozen=True)
@@ -100,6 +108,10 @@ class ScenarioConfig:
                 self.run_settings()  # checks localizer_options against the localizer
             except ConfigError as exc:
                 raise ConfigError(f"scenario.localizer_options: {exc}") from None
+            try:  # a preset's name, or a file's spacing; no file is touched here
+                check_map_spec(self.map, self.spacing)
+            except MapError as exc:
+                raise ConfigError(f"scenario.map: {exc}") from None
             return
         if self.start is not None:
             raise ConfigError("scenario.start places a finger on a map; an object's start "
@@ -183,6 +195,23 @@ class EndpointConfig:
             if "://" not in value:
                 raise ConfigError(f"endpoints.{name} must be a ZeroMQ endpoint like "
                                   f"tcp://127.0.0.1:5560, got {value!r}")
+            port = _port_of(value)
+            if port is not None and port != "*" and not (port.isdigit()
+                                                         and 1 <= int(port) <= 65535):
+                # ZeroMQ takes the number modulo 65536: a typed 556000 bound 31712
+                what = f"port {port!r} of {value!r} is not a port" if port else (
+                    f"{value!r} has no port")
+                raise ConfigError(f"endpoints.{name}: {what}: give 1-65535, or * for any "
+                                  "free one")
+
+
+def _port_of(endpoint: str) -> str | None:
+    """The port part of a TCP or WebSocket endpoint (None for ipc:// and the like)."""
+    scheme, _, address = endpoint.partition("://")
+    if scheme not in ("tcp", "ws", "wss"):
+        return None
+    host_port = address.split("/", 1)[0]
+    return host_port.rpartition(":")[2] if ":" in host_port else ""
 
 
 @dataclass(frozen=True)
@@ -318,4 +347,7 @@ def load_config(path: str | Path) -> DaemonConfig:
         raise ConfigError(f"config file '{path}' could not be read: {exc}") from None
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"config file '{path}' is not valid TOML: {exc}") from None
-    return from_dict(data)
+    try:
+        return from_dict(data)
+    except ConfigError as exc:  # which file, as well as which key (a lab may keep several)
+        raise ConfigError(f"{path}: {exc}") from None

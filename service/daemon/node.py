@@ -275,7 +275,7 @@ class Node(CommandHandlers):
         if keyring.revocations != self._revocations_seen:
             self._revocations_seen = keyring.revocations
             self.pub.rebind()
-            _log("key_revoked", level=logging.WARNING)
+            _log("key_revoked", level=logging.WARNING, keys=list(keyring.revoked))
 
     def _read(self) -> HandState | None:
         if self.backend is None or self.lifecycle.state is State.UNCONFIGURED:

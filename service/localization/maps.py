@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from service.errors import MapError
-from service.localization.presets import preset
+from service.localization.presets import parse, preset
 from service.localization.presets.classic import SAMPLES_PER_UNIT, UNIT, bumps, eggcrate, peaks
 from service.localization.surface import HeightMap
 
@@ -36,6 +36,7 @@ def check_map_spec(spec: str, spacing: float | None) -> None:
     if spacing is not None:
         raise MapError("a spacing (`--spacing`, `scenario.spacing`) applies to map files, "
                        "not presets")
+    parse(spec)  # a preset's name, size and seed (nothing built)
 
 
 def load_map(spec: str, spacing: float | None = None) -> HeightMap:
@@ -58,15 +59,41 @@ def load_map(spec: str, spacing: float | None = None) -> HeightMap:
     return HeightMap(heights, spacing, name=path.stem)
 
 
-def load_rows(path: Path, delimiter: str | None) -> np.ndarray:
-    """Rows of numbers (at least 2-D) from a text file, `#` starting a comment. A file with
-    none is a ValueError that says so, not NumPy's warning and an empty array."""
+def load_rows(path: Path, delimiter: str | None, header: bool = False) -> np.ndarray:
+    """Rows of numbers (at least 2-D) from a text file, `#` starting a comment; with
+    `header`, a first row of column names (`x,z`, as spreadsheets write an outline) is
+    skipped (a grid of heights has none: names there mean the file is something else). A
+    file with no numbers is a ValueError that says so, not NumPy's warning and an empty
+    array."""
     with warnings.catch_warnings():
         warnings.simplefilter("error", UserWarning)
         try:
-            return np.loadtxt(path, delimiter=delimiter, comments="#", ndmin=2)
+            return np.loadtxt(path, delimiter=delimiter, comments="#", ndmin=2,
+                              skiprows=_header_lines(path, delimiter) if header else 0)
         except UserWarning:
             raise ValueError("the file holds no numbers") from None
+
+
+def _header_lines(path: Path, delimiter: str | None) -> int:
+    """Lines up to and including a first row of names (every cell a word, none a number),
+    else 0."""
+    with open(path, encoding="utf-8", errors="replace") as f:
+        for index, line in enumerate(f):
+            text = line.split("#", 1)[0].strip()
+            if not text:
+                continue
+            cells = [c.strip() for c in text.split(delimiter)]
+            words = all(re.fullmatch(r"[A-Za-z_][\w ()\[\].-]*", c) for c in cells)
+            return index + 1 if words and not any(_number(c) for c in cells) else 0
+    return 0
+
+
+def _number(text: str) -> bool:
+    try:
+        float(text)
+    except ValueError:
+        return False
+    return True
 
 
 def _unreadable(spec: str, suffix: str, exc: Exception) -> str:

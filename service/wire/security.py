@@ -9,6 +9,7 @@ the directory is read again when it changes, so a removed key is refused from th
 from __future__ import annotations
 
 import ipaddress
+import logging
 import threading
 import time
 from pathlib import Path
@@ -25,6 +26,13 @@ if TYPE_CHECKING:  # clients import this module too: keep it light (no config, n
     from service.daemon.config import SecurityConfig
 
 LOCAL_TRANSPORTS = ("ipc://", "inproc://")
+REFUSAL_LOG_EVERY_S = 60.0
+"""A refused key is logged at most this often: a client that retries would fill the log."""
+log = logging.getLogger("hapticd.security")
+
+
+def _log(event: str, level: int = logging.WARNING, **fields: Any) -> None:
+    log.log(level, event, extra={"fields": fields})
 
 
 def is_loopback(endpoint: str) -> bool:
@@ -80,8 +88,16 @@ class KeyRing:
         self.directory = Path(directory)
         self.min_interval_s = min_interval_s
         self.keys: frozenset[str] = frozenset()
+        self.names: dict[str, str] = {}
+        """Each authorized key's file name, for the log."""
         self.revocations = 0
         """How many times a key has disappeared (the daemon re-binds its stream on a change)."""
+        self.revoked: tuple[str, ...] = ()
+        """The file names of the keys the latest revocation removed."""
+        self._unreadable: set[str] = set()
+        """Files in the directory already warned of as no client's public key."""
+        self._refused: dict[str, float] = {}
+        """When each refused key was last logged."""
         self._stamp: tuple[int, int] | None = None
         self._checked = 0.0
         self._lock = threading.Lock()
@@ -103,18 +119,42 @@ class KeyRing:
             if stamp == self._stamp and not force:
                 return False
             self._stamp = stamp
-            keys = set()
-            for path in sorted(self.directory.glob("*.key")) if stamp[0] >= 0 else ():
-                try:
-                    public, _ = zmq.auth.load_certificate(path)
-                except (OSError, ValueError):
-                    continue  # an unreadable key file authorizes nobody
+            names: dict[str, str] = {}
+            for path in sorted(self.directory.iterdir()) if stamp[0] >= 0 else ():
+                public = self._public_key(path)
                 if public:
-                    keys.add(public.decode("ascii"))
-            removed = bool(self.keys - keys)
-            self.keys = frozenset(keys)
-            self.revocations += removed
-            return removed
+                    names[public] = path.name
+            gone = self.keys - set(names)
+            if gone:
+                self.revoked = tuple(sorted(self.names.get(k, k) for k in gone))
+            self.keys, self.names = frozenset(names), names
+            self.revocations += bool(gone)
+            return bool(gone)
+
+    def _public_key(self, path: Path) -> str | None:
+        """The client public key `path` holds; None, with a warning once, for any other
+        file (a junk file or a secret key put there authorizes nobody, and said nothing)."""
+        if path.suffix != ".key" or not path.is_file():
+            if path.name.endswith(".key_secret") and path.name not in self._unreadable:
+                self._unreadable.add(path.name)
+                _log("client_key_ignored", file=path.name,
+                     why="a secret key: authorized_clients takes clients' public NAME.key "
+                         "files (keep the secret with the client)")
+            return None
+        try:
+            public, _ = zmq.auth.load_certificate(path)
+        except (OSError, ValueError) as exc:
+            public, why = None, str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        else:
+            why = "it holds no public key"
+        if public:
+            self._unreadable.discard(path.name)
+            return public.decode("ascii")
+        if path.name not in self._unreadable:
+            self._unreadable.add(path.name)
+            _log("client_key_ignored", file=path.name,
+                 why=f"not a key file from `haptic keygen` ({why})")
+        return None
 
     def allowed(self, key: str | bytes | None) -> bool:
         if key is None:
@@ -123,8 +163,19 @@ class KeyRing:
         return (key.decode("ascii") if isinstance(key, bytes) else key) in self.keys
 
     def callback(self, domain: str, key: bytes) -> bool:
-        """pyzmq's credentials-provider hook: called by the ZAP handler at each handshake."""
-        return self.allowed(key)
+        """pyzmq's credentials-provider hook: called by the ZAP handler at each handshake.
+        A refused key is logged (at most every `REFUSAL_LOG_EVERY_S`): the client only
+        sees silence, so the log is where a lab finds out why."""
+        allowed = self.allowed(key)
+        if not allowed:
+            text = key.decode("ascii", "replace") if isinstance(key, bytes) else str(key)
+            now = time.monotonic()
+            if now - self._refused.get(text, -float("inf")) >= REFUSAL_LOG_EVERY_S:
+                self._refused[text] = now
+                _log("curve_refused", key=text,
+                     why="this client's public key is not in authorized_clients: add its "
+                         "NAME.key there to admit it")
+        return allowed
 
 
 class CurveServer:

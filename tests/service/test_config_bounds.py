@@ -54,11 +54,37 @@ REPRODUCTIONS = [
 ]
 
 
-@pytest.mark.parametrize("section, key, value", REPRODUCTIONS)
+# A held-out lab's (2026-12-05): a port out of range was bound modulo 65536 (556000 put the
+# stream on 31712); a preset's typo and a hand file that is not there, given to the
+# Dynamixel backend, started a daemon that could never configure.
+HELD_OUT = [
+    ("endpoints", "pub", "tcp://127.0.0.1:556000"),
+    ("endpoints", "cmd", "tcp://127.0.0.1:99999"),
+    ("endpoints", "pub", "tcp://127.0.0.1:0"),
+    ("endpoints", "cmd", "tcp://127.0.0.1"),
+    ("scenario", "map", "peeks"),
+    ("scenario", "map", "bumps:20:x"),
+]
+
+
+@pytest.mark.parametrize("section, key, value", REPRODUCTIONS + HELD_OUT)
 def test_out_of_range_or_mistyped_values_are_config_errors(section: str, key: str,
                                                            value: object) -> None:
     with pytest.raises(ConfigError, match=f"{section}.*{key}|{key}"):
         from_dict({section: {key: value}})
+
+
+def test_a_dynamixel_hand_file_that_is_not_there_is_a_config_error() -> None:
+    with pytest.raises(ConfigError, match="backend.options.hand: hand file "
+                                          "'no-such-hand.toml' cannot be used"):
+        from_dict({"backend": {"name": "dynamixel",
+                               "options": {"port": "/dev/null", "hand": "no-such-hand.toml"}}})
+
+
+@pytest.mark.parametrize("endpoint", ["tcp://127.0.0.1:65535", "tcp://127.0.0.1:*",
+                                      "tcp://[::1]:5560", "ipc:///tmp/hapticd-pub"])
+def test_ports_in_range_and_other_transports_are_taken(endpoint: str) -> None:
+    assert from_dict({"endpoints": {"pub": endpoint}}).endpoints.pub == endpoint
 
 
 def test_the_lease_watchdog_cannot_be_configured_away() -> None:
@@ -144,6 +170,7 @@ TOML_CASES = [
     "[loop]\nstate_every = 9223372036854775807\n",
     "auto_configure = 1\n",
     '[backend]\nname = "dynamixel"\noptions = { port = 3, hand = "planar" }\n',
+    '[scenario]\nmap = "peeks"\n',  # ran on unconfigured (a held-out lab's typo)
 ]
 
 

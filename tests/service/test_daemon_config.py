@@ -73,6 +73,11 @@ def test_load_reports_missing_and_broken_files(tmp_path: Path) -> None:
     bad.write_text("[loop\nrate_hz = 1")
     with pytest.raises(ConfigError, match="not valid TOML"):
         load_config(bad)
+    typo = tmp_path / "typo.toml"  # a lab's typo named its key, not its file
+    typo.write_text("[scenario]\nradious = 0.008\n")
+    with pytest.raises(ConfigError) as err:
+        load_config(typo)
+    assert str(err.value).startswith(f"{typo}: [scenario] has unknown key(s) radious")
 
 
 def test_lifecycle_table() -> None:

@@ -295,7 +295,8 @@ def test_at_start_up_a_bad_hand_file_stops_hapticd_and_a_bad_object_file_does_no
     bad_hand.write_text(f'[scenario]\nobject = "blob"\nhand = "{tmp_path / "nohand.toml"}"\n')
     assert main(["--config", str(bad_hand)]) == 2
     last = capsys.readouterr().err.strip().splitlines()[-1]
-    assert last.startswith("hapticd: error: scenario.hand: hand file") and "nohand" in last
+    assert last.startswith(f"hapticd: error: {bad_hand}: scenario.hand: hand file")
+    assert "nohand" in last
     missing = tmp_path / "part.csv"
     config = loopback_config({"scenario": {"object": str(missing), "hand": "three-finger"}})
     with running_node(config) as node, Controller(node.endpoints["cmd"]) as c:

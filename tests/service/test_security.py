@@ -65,3 +65,33 @@ def test_a_busy_endpoint_is_a_config_error() -> None:
             loopback_config().endpoints, cmd=node.endpoints["cmd"]))
         with pytest.raises(ConfigError, match="cannot bind"), running_node(taken):
             pass
+
+
+def test_refused_keys_and_files_that_authorize_nobody_are_logged(tmp_path: Path,
+                                                                caplog) -> None:
+    """A held-out lab: a stranger's key was refused in silence (the client only times out),
+    a junk file and a secret key put in authorized_clients were ignored without a word,
+    and a revocation's log line named no key."""
+    import logging
+
+    from service.wire.security import KeyRing
+
+    clients = tmp_path / "clients"
+    clients.mkdir()
+    bob_public, bob_secret = generate_keys(tmp_path / "bob", "bob")
+    (clients / "bob.key").write_bytes(bob_public.read_bytes())
+    (clients / "junk.key").write_text("not a key\n")
+    (clients / "oops.key_secret").write_bytes(bob_secret.read_bytes())
+    stranger_public, _ = generate_keys(tmp_path / "stranger", "stranger")
+    stranger = zmq.auth.load_certificate(stranger_public)[0]
+    with caplog.at_level(logging.WARNING, logger="hapticd.security"):
+        ring = KeyRing(clients, min_interval_s=0.0)
+        assert not ring.callback("*", stranger) and not ring.callback("*", stranger)
+    events = [(r.getMessage(), r.fields) for r in caplog.records]
+    ignored = sorted(f["file"] for e, f in events if e == "client_key_ignored")
+    assert ignored == ["junk.key", "oops.key_secret"]
+    refused = [f for e, f in events if e == "curve_refused"]
+    assert len(refused) == 1 and refused[0]["key"] == stranger.decode()  # once, not a flood
+    assert ring.callback("*", zmq.auth.load_certificate(bob_public)[0])
+    (clients / "bob.key").unlink()
+    assert ring.refresh(force=True) and ring.revoked == ("bob.key",)

@@ -118,3 +118,26 @@ def test_a_failure_line_reruns_with_the_start_quality_it_had():
          "min_quality": 0.3}]}, 60, start_n=2.0)
     assert lines == ["DROPPED: --hand three-finger --object blob:4 --seed 4 --noise --max-steps "
                      "60 --start-quality 2 at step 2 (least quality 0.30 N)"]
+
+
+def test_object_files_in_millimetres_run_and_rerun_with_their_units(tmp_path, capsys):
+    """A held-out check: `--objects part_mm.stl` was refused with "give --object-units mm",
+    an option the bench did not have (nor --plane, which a mesh's refusal names)."""
+    import json
+    from pathlib import Path
+
+    import numpy as np
+
+    outline = np.loadtxt(Path(__file__).resolve().parents[1] / "service" / "data"
+                         / "rounded_triangle_near_120.csv", delimiter=",")
+    part = tmp_path / "part_mm.csv"
+    np.savetxt(part, outline * 1000.0, delimiter=",")
+    out = tmp_path / "b6.json"
+    args = ["bench", "grasp", "--objects", str(part), "--hands", "three-finger", "--runs",
+            "1", "--max-steps", "2", "--no-ablation", "--no-single", "--workers", "1"]
+    assert main(args) == 2
+    assert "give --object-units mm" in capsys.readouterr().err
+    assert main([*args, "--object-units", "mm", "--json", str(out)]) == 0
+    rerun = json.loads(out.read_text())["summary"]["quality_min_run"]
+    assert rerun.endswith("--object-units mm"), rerun
+    assert main(["run", *rerun.split()]) in (0, 1)  # the line re-runs the episode

@@ -47,3 +47,40 @@ def test_first_step_figure_is_the_share_of_the_pose_table_the_first_move_rules_o
         "initial_candidates"]
     assert data["summary"]["first_step_elimination_mean"] != pool_cap  # not 20,000 -> 1,000
     assert 0 < data["summary"]["first_step_elimination_mean"] < 0.9
+
+
+def test_progress_shows_on_a_terminal_that_tells_no_size():
+    """A held-out check under a bare pseudo-terminal (0 x 0, as `pty.fork` gives) saw no
+    progress at all: tqdm cut each line to 0 columns and hid the bar below row 0."""
+    import os
+    import pty
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    script = ("from tools.bench_common import progress\n"
+              "with progress(3, 'B0 size') as bar:\n"
+              "    bar.update(3)\n")
+    leader, follower = pty.openpty()  # no size set: the terminal says 0 x 0
+    try:
+        assert os.get_terminal_size(follower).columns == 0
+        proc = subprocess.run([sys.executable, "-c", script], stdin=follower, stdout=follower,
+                              stderr=follower, cwd=Path(__file__).resolve().parents[2],
+                              timeout=60)
+        os.close(follower)
+        follower = -1
+        out = b""
+        while True:
+            try:
+                chunk = os.read(leader, 65536)
+            except OSError:  # the pty is drained once its other end is closed
+                break
+            if not chunk:
+                break
+            out += chunk
+    finally:
+        os.close(leader)
+        if follower >= 0:
+            os.close(follower)
+    assert proc.returncode == 0
+    assert b"B0 size:   0%" in out and b"0/3" in out, out

@@ -152,3 +152,19 @@ def test_a_map_file_is_taken_from_the_campaign_files_folder(tmp_path, monkeypatc
     assert main(["campaign", str(tmp_path / "camp" / "broken.toml"), "--workers", "1"]) == 2
     assert "map 'bad'" in capsys.readouterr().err
     assert not (tmp_path / "camp" / "broken-results").exists()
+
+
+def test_fresh_forgets_nothing_when_the_cluster_cannot_be_reached(tmp_path, capsys,
+                                                                   monkeypatch):
+    """`--fresh --scheduler ADDRESS` with no scheduler there deleted the finished episodes,
+    then failed to connect: the cluster is now reached before anything is forgotten."""
+    from tools import executor
+
+    path = write(tmp_path, runs=1)
+    assert main(["campaign", str(path), "--workers", "1"]) == 0
+    store = tmp_path / "c-results" / "episodes.jsonl"
+    before = store.read_text()
+    monkeypatch.setattr(executor, "CONNECT_TIMEOUT_S", 1.0)
+    assert main(["campaign", str(path), "--fresh", "--scheduler", "tcp://127.0.0.1:9"]) == 2
+    assert "cannot reach the Dask scheduler" in capsys.readouterr().err
+    assert store.read_text() == before

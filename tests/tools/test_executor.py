@@ -46,3 +46,45 @@ def test_an_unreachable_scheduler_is_a_one_line_error(capsys, monkeypatch):
 def test_bad_executor_options(args, message, capsys):
     assert main(["bench", "realistic", "--runs", "1", *args]) == 2
     assert message in capsys.readouterr().err
+
+
+def test_ctrl_c_inside_a_compiled_kernel_stops_the_run_and_is_no_episodes_error():
+    """A held-out check: Ctrl-C (or SIGTERM) that landed while a numba kernel ran came back
+    as "SystemError: CPUDispatcher(...) returned a result with an exception set", which the
+    episode's guard stored as the episode's error; the campaign ran on to the end and a
+    resume never ran that episode again."""
+
+    def interrupted_in_a_kernel(settings, maps):
+        try:
+            raise KeyboardInterrupt
+        except KeyboardInterrupt as exc:
+            raise SystemError("CPUDispatcher(<function search>) returned a result with an "
+                              "exception set") from exc
+
+    with pytest.raises(KeyboardInterrupt):
+        executor.run_one(None, {}, interrupted_in_a_kernel)
+
+    def fails(settings, maps):
+        raise SystemError("a fault of the episode's own")
+
+    assert "fault of the episode's own" in executor.run_one(None, {}, fails).error
+
+
+@pytest.mark.parametrize("address", ["tcp://127.0.0.1", "http://127.0.0.1:8786",
+                                     "tcp://127.0.0.1:port"])
+def test_a_malformed_scheduler_address_is_one_line_and_leaves_nothing_behind(address, capfd):
+    """It was a clear line, then a 20 s wait and a client's traceback on the way out."""
+    assert main(["bench", "realistic", "--runs", "1", "--scheduler", address]) == 2
+    err = capfd.readouterr().err
+    assert "not a Dask scheduler's address" in err and err.count("\n") == 1, err
+
+
+def test_a_hands_bench_runs_on_a_dask_cluster():
+    """`haptic bench grasp --scheduler` scattered its empty map table and failed inside
+    Dask ("not enough values to unpack") every time."""
+    distributed = pytest.importorskip("distributed")
+    with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=True,
+                                  host="127.0.0.1", dashboard_address=None) as cluster:
+        assert main(["bench", "grasp", "--objects", "keyed", "--hands", "three-finger",
+                     "--runs", "1", "--max-steps", "2", "--no-ablation", "--no-single",
+                     "--scheduler", cluster.scheduler_address]) == 0

@@ -284,3 +284,57 @@ def test_a_recorder_killed_outright_leaves_what_it_wrote(tmp_path: Path, capsys)
     assert "ends early" in capsys.readouterr().err
     recorder.close()
     assert len(read_recording(rec)[1]) == sent  # a finished file holds every message
+
+
+def _foreign_mcap(path: Path, topic: str, encoding: str, data: bytes) -> Path:
+    from mcap.writer import Writer
+
+    with path.open("wb") as f:
+        writer = Writer(f)
+        writer.start(profile="", library="someone else's")
+        channel = writer.register_channel(topic=topic, message_encoding=encoding,
+                                          schema_id=0)
+        writer.add_message(channel_id=channel, log_time=1, publish_time=1, data=data)
+        writer.finish()
+    return path
+
+
+@pytest.mark.parametrize("topic, encoding, data, words", [
+    ("/robot/pose", "json", b'{"x": 1}', "holds no haptic-slam stream (its topics: "
+                                         "/robot/pose)"),
+    ("state", "json", b'{"hello": 1}', "state channel whose messages are not haptic-slam's "
+                                       "(no field 'type')"),
+    ("event", "protobuf", b"\x08\x96\x01\xff\xfe", "encoded as 'protobuf', not JSON"),
+])
+def test_another_programs_mcap_is_told_apart(tmp_path: Path, capsys, topic, encoding, data,
+                                             words) -> None:
+    """A held-out check's MCAP files from another program: on other topics `replay`
+    printed nothing and exited 0; on our topic names it answered "KeyError: 'type'" or a
+    UnicodeDecodeError."""
+    path = _foreign_mcap(tmp_path / "other.mcap", topic, encoding, data)
+    for command in (["replay", str(path)], ["export", str(path), "--json", "-"]):
+        assert main(command) == 2
+        err = capsys.readouterr().err
+        assert words in err and "not made by `haptic record`" in err, err
+        assert err.count("\n") == 1
+
+
+def test_a_recording_cut_before_its_first_record_says_so(tmp_path: Path, capsys) -> None:
+    path = tmp_path / "magic.mcap"
+    path.write_bytes(b"\x89MCAP0\r\n")
+    assert main(["replay", str(path)]) == 2
+    assert "ends before its first record" in capsys.readouterr().err  # was "EndOfFile: "
+
+
+def test_recording_where_nothing_can_be_written_or_heard_says_so(tmp_path: Path,
+                                                                 capsys) -> None:
+    """`haptic record /nonexist/x.mcap` was a FileNotFoundError traceback; a recording
+    made with no daemon said only "recorded 0 messages", and its replay nothing at all."""
+    assert main(["record", str(tmp_path / "none" / "x.mcap"), "--duration", "0.1"]) == 2
+    assert "cannot write the recording" in capsys.readouterr().err
+    silent = tmp_path / "silent.mcap"
+    assert main(["record", str(silent), "--duration", "0.3", "--pub",
+                 f"ipc://{tmp_path}/nobody", "--cmd", f"ipc://{tmp_path}/nobody-cmd"]) == 0
+    assert "nothing arrived: is hapticd running at ipc://" in capsys.readouterr().err
+    assert main(["replay", str(silent)]) == 0
+    assert "holds no messages" in capsys.readouterr().err

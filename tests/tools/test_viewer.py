@@ -38,3 +38,32 @@ def test_a_hand_episode_in_a_recording_leaves_the_last_finger_episode_drawn():
     assert sorted(view.path) == [1, 2]
     view.update(_finger_estimate(3, 1))  # a finger again: drawn anew
     assert (view.episode, view.step, len(view.cloud)) == (3, 1, 0)
+
+
+class _Stream:
+    """A subscriber that hands out the given messages, then silence."""
+
+    def __init__(self, messages):
+        self.messages = list(messages)
+
+    def recv(self, timeout_s):
+        return self.messages.pop(0) if self.messages else None
+
+
+def test_a_replays_stream_names_the_map_the_view_draws_on():
+    """A held-out lab: `haptic view --png` on `haptic replay --publish` said "no map to
+    draw: the daemon did not answer", though the stream's `episode_started` names the map."""
+    import argparse
+
+    from tools import view_cli
+
+    args = argparse.Namespace(map=None, source=None)
+    view = ViewModel()
+    started = _msg("event", event="episode_started", episode=1,
+                   settings={"map": "bumps:20:1", "radius": 0.008})
+    stream = _Stream([_msg("state", state="active"), started, _finger_estimate(1, 1)])
+    height_map = view_cli._map_from_stream(args, stream, view, wait_s=5.0)
+    assert height_map is not None and height_map.heights.shape == (201, 201)
+    assert view.state == "active"  # what came before the map was drawn too
+    hand = _msg("event", event="episode_started", episode=2, settings={"object": "blob"})
+    assert view_cli._map_from_stream(args, _Stream([hand]), ViewModel(), wait_s=0.5) is None

@@ -129,7 +129,7 @@ class ObjectElimination(TrackJudged):
 
     def _judge(self) -> None:
         previous = self.fit
-        self.fit, self.converged = None, False
+        self.fit, self.converged, self.leader = None, False, None
         if len(self.poses) == 0:
             return
         score = -np.arange(len(self.poses), dtype=np.float64)  # survivors are equal: any
@@ -151,9 +151,11 @@ class ObjectElimination(TrackJudged):
         if len(self.poses) == 0:
             return Estimate(pose=None, candidates=0, converged=False)
         pos_sd, head_sd = pose_spread(self.poses)
-        return Estimate(pose=tuple(float(v) for v in self.poses[0]),
+        return Estimate(pose=self.leader or tuple(float(v) for v in self.poses[0]),
                         candidates=len(self.poses), converged=False, position_sd=pos_sd,
-                        heading_sd=head_sd, mode_mass=self.mode_mass)
+                        heading_sd=head_sd, mode_mass=self.mode_mass,
+                        runner_up=self.runner_up if self.leader else None,
+                        runner_up_mass=self.runner_up_mass if self.leader else 0.0)
 
     def hypotheses(self, limit: int | None = None) -> Hypotheses:
         """Survivors, weighted by how well they fit the readings since the last carry."""

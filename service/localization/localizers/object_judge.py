@@ -222,6 +222,14 @@ class ObjectVerdict:
     awaiting: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
     """Every other check passed: the leader's readings, radii and sds the whole-object
     check (`confirm`) is still to be run on before the pose is declared."""
+    leader: tuple[float, float, float] | None = None
+    """With no `fit`, the pose `mode_mass` and `runner_up` are reckoned beside (the tracks'
+    heaviest): the estimate shows it, so it is never shown beside itself as its own rival."""
+
+    @property
+    def pose(self) -> tuple[float, float, float] | None:
+        """The pose the verdict leads with: the fit's, else the tracks' leader."""
+        return self.fit.pose if self.fit is not None else self.leader
 
 
 def judge(ctx: ObjectContext, points: np.ndarray, radii: np.ndarray, tracks: ObjectTracks, *,
@@ -327,10 +335,11 @@ def _as_tracked(ctx: ObjectContext, tracks: ObjectTracks) -> ObjectVerdict:
     order = distinct(tracks.centres, total, tol_pos, tol_head)
     share = np.exp(total[order] - total[order[0]])
     share /= share.sum()
+    leader = tuple(float(v) for v in tracks.centres[order[0]])
     if len(order) < 2:
-        return ObjectVerdict(None, float(share[0]), None, 0.0, False)
+        return ObjectVerdict(None, float(share[0]), None, 0.0, False, leader=leader)
     return ObjectVerdict(None, float(share[0]), tuple(float(v) for v in tracks.centres[order[1]]),
-                         float(share[1]), False)
+                         float(share[1]), False, leader=leader)
 
 
 def _reported_instead(ctx: ObjectContext, points: np.ndarray, radii: np.ndarray,
@@ -502,8 +511,12 @@ class TrackJudged:
         self._awaiting = v if v.awaiting is not None else None
         return v
 
+    leader: tuple[float, float, float] | None = None
+    """The pose the latest verdict leads with (`ObjectVerdict.pose`)."""
+
     def _keep_verdict(self, v: ObjectVerdict) -> None:
         self.fit, self.converged, self.mode_mass = v.fit, v.converged, v.mode_mass
+        self.leader = v.pose
         self.runner_up, self.runner_up_mass = v.runner_up, v.runner_up_mass
 
     @property

@@ -317,7 +317,7 @@ class ObjectParticles(TrackJudged):
 
     def _judge(self) -> None:
         previous = self.fit
-        self.fit, self.converged = None, False
+        self.fit, self.converged, self.leader = None, False, None
         if len(self.poses) == 0:
             return
         leaders = self._leaders(self.rivals)
@@ -353,8 +353,8 @@ class ObjectParticles(TrackJudged):
         if self.fit is not None:
             pose = self.fit.pose
             pos_sd, head_sd = self.fit.position_sd, self.fit.heading_sd
-        else:
-            pose = tuple(float(v) for v in self.poses[int(np.argmax(w))])
+        else:  # the pose the judge's share and rival are beside, else the heaviest member
+            pose = self.leader or tuple(float(v) for v in self.poses[int(np.argmax(w))])
             pos_sd, head_sd = pose_spread(self.poses, w)
         return Estimate(pose=pose, candidates=len(self.poses), converged=self.converged,
                         position_sd=pos_sd, heading_sd=head_sd, mode_mass=self.mode_mass,

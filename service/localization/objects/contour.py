@@ -115,8 +115,10 @@ def make_contour(points: np.ndarray, name: str = "object", *, closed: bool = Fal
         raise ObjectError(f"object '{name}': vertices must be rows of two coordinates "
                           f"(x, z in metres), got shape {pts.shape}")
     if not np.all(np.isfinite(pts)):
+        rows = np.flatnonzero(~np.all(np.isfinite(pts), axis=1)) + 1
         raise ObjectError(f"object '{name}': {int(np.sum(~np.isfinite(pts)))} coordinates are "
-                          "not finite numbers")
+                          f"not finite numbers (vertex {', '.join(map(str, rows[:5]))}"
+                          f"{', ...' if len(rows) > 5 else ''}, counting from 1)")
     if closed:
         gap = float(np.hypot(*(pts[-1] - pts[0]))) if len(pts) else 0.0
         if len(pts) < 4 and gap <= CLOSURE_TOLERANCE:  # closed, but too few to enclose
@@ -152,9 +154,8 @@ def make_contour(points: np.ndarray, name: str = "object", *, closed: bool = Fal
     polygon = Polygon(pts)
     ring = LinearRing(pts)
     if not ring.is_simple:
-        where = explain_validity(polygon)
-        raise ObjectError(f"object '{name}': the contour crosses itself ({where}); give a "
-                          "simple closed outline")
+        raise ObjectError(f"object '{name}': the contour crosses itself{_crossing(polygon)}; "
+                          "give a simple closed outline")
     if polygon.area <= (1e-3 * span) ** 2:
         raise ObjectError(f"object '{name}': the contour encloses no area")
     if not ring.is_ccw:
@@ -171,3 +172,16 @@ def check_fits(contour: Contour, radius: float) -> None:
         raise ObjectError(f"object '{contour.name}' is {width * 1e3:.3g} mm wide at its "
                           f"narrowest, less than the fingertip radius {radius * 1e3:.3g} mm: "
                           "too small to explore with this tip")
+
+
+def _crossing(polygon: Polygon) -> str:
+    """Where a contour crosses itself, in millimetres (the geometry library says
+    "Self-intersection[-0.00114509927141637 0.022789475030463]")."""
+    import re
+
+    found = re.findall(r"[-+0-9.eE]+", explain_validity(polygon).partition("[")[2])
+    if len(found) < 2:
+        return ""
+    x, z = (float(v) * 1e3 for v in found[:2])
+    return f" near ({x:.2f}, {z:.2f}) mm"
+

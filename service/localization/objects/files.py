@@ -62,7 +62,7 @@ def load_object(spec: str, *, plane: str | None = None, units: str = "m") -> Con
 
 def _csv(path: Path, scale: float) -> Contour:
     try:
-        points = load_rows(path, ",")
+        points = load_rows(path, ",", header=True)
     except (ValueError, OSError) as exc:
         raise ObjectError(f"object file '{path}' could not be read as x,z rows "
                           f"({numpy_reason(exc)}): each row needs two numbers separated by a "
@@ -126,10 +126,11 @@ def mesh_section(path: Path, plane: str | None, scale: float = 1.0) -> Contour:
 
     try:
         mesh = trimesh.load(str(path), force="mesh")
-    except Exception as exc:  # trimesh raises many kinds on a bad file
-        raise ObjectError(f"object file '{path}' could not be read as a mesh: "
-                          f"{str(exc).splitlines()[0] if str(exc) else type(exc).__name__}"
-                          ) from None
+    except Exception:  # trimesh raises many kinds on a bad file, in its own words
+        # ("cannot access local variable 'prop_pop'" for a garbage .ply): not a user's to read
+        raise ObjectError(f"object file '{path}' could not be read as a "
+                          f"{path.suffix.lstrip('.').upper()} mesh: it is damaged or not "
+                          "one; export it again from the CAD program") from None
     if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
         raise ObjectError(f"object file '{path}' holds no triangles")
     _check_units(np.asarray(mesh.vertices), scale, path)
@@ -146,7 +147,8 @@ def mesh_section(path: Path, plane: str | None, scale: float = 1.0) -> Contour:
                           "normal: choose a plane through its inside")
     if not all(bool(e.closed) for e in section.entities):
         raise ObjectError(f"the section of '{path.name}' is open (the mesh has a hole where "
-                          "the plane cuts it): repair the mesh or choose another --plane")
+                          "the plane cuts it): repair the mesh or choose another plane "
+                          "(--plane, `scenario.plane`)")
     basis = _plane_basis(normal)
     loops = [Polygon((e.discrete(section.vertices) - origin) @ basis.T)
              for e in section.entities]
@@ -154,7 +156,8 @@ def mesh_section(path: Path, plane: str | None, scale: float = 1.0) -> Contour:
     shape = unary_union([loop.buffer(0) for loop in loops])
     if not isinstance(shape, Polygon):
         raise ObjectError(f"the plane cuts '{path.name}' into {len(shape.geoms)} separate "
-                          "pieces; choose a --plane through one part")
+                          "pieces; choose a plane through one part (--plane, "
+                          "`scenario.plane`)")
     contour = make_contour(np.asarray(shape.exterior.coords)[:-1], path.stem)
     # the centroid and the heading's axis in the mesh's own frame, not the plane's
     centre = origin + basis.T @ np.asarray(contour.origin)

@@ -69,6 +69,12 @@ def names() -> list[str]:
 
 def preset(spec: str) -> HeightMap:
     """The surface a spec names, e.g. `plate`, `plate:30:4`, `profile:terrain:20:2`."""
+    return parse(spec)()
+
+
+def parse(spec: str) -> Callable[[], HeightMap]:
+    """What builds the surface a spec names, the spec checked (MapError) but nothing built
+    yet: a configuration is checked whole before any surface is made."""
     name, *args = spec.split(":")
     if name == PROFILE:
         if not args:
@@ -77,17 +83,17 @@ def preset(spec: str) -> HeightMap:
         kind, *args = args
         size, seed = _size_and_seed(spec, args, seeded=True)
         if kind == "smooth":
-            return smooth_profile(size, seed)
+            return lambda: smooth_profile(size, seed)
         if kind not in PRESETS:
             raise MapError(f"map preset '{spec}': unknown profile kind '{kind}'; kinds are "
                            f"smooth, {', '.join(PRESETS)}")
-        return cut(PRESETS[kind].build(size, seed), seed)
+        return lambda: cut(PRESETS[kind].build(size, seed), seed)
     entry = PRESETS.get(name)
     if entry is None:
         raise MapError(f"unknown map preset '{name}'; presets are {', '.join(names())} "
                        "(`haptic map list` describes them)")
     size, seed = _size_and_seed(spec, args, entry.seeded, entry.default_size)
-    return entry.build(size, seed)
+    return lambda: entry.build(size, seed)
 
 
 def _size_and_seed(spec: str, args: list[str], seeded: bool,
