@@ -25,6 +25,7 @@ import difflib
 import hashlib
 import itertools
 import json
+import os
 import tomllib
 from dataclasses import dataclass
 from pathlib import Path
@@ -45,11 +46,18 @@ class Scenario:
     """The grid's choices, e.g. "algorithm=particles, map=plate:20:0"."""
     settings: RunSettings
     choices: dict[str, Any]
+    home: Path | None = None
+    """The campaign file's folder: a map file is keyed by its path from there, so a
+    campaign folder moved or copied elsewhere resumes (keyed by the absolute path, it
+    started over)."""
 
     @property
     def key(self) -> str:
         """Names the scenario's settings (all but the seed) in the episode store."""
         data = dataclasses.replace(self.settings, seed=0).to_json()
+        if self.home is not None and Path(data["map"]).suffix.lower() in MAP_FILE_SUFFIXES:
+            data["map"] = Path(os.path.relpath(Path(data["map"]).resolve(),
+                                               self.home.resolve())).as_posix()
         return hashlib.sha1(json.dumps(data, sort_keys=True).encode()).hexdigest()[:12]
 
 
@@ -124,7 +132,7 @@ def load_campaign(path: Path, out: Path | None = None) -> Campaign:
             settings = RunSettings(**fixed, **choices)
         except ConfigError as exc:
             raise _fail(path, f"scenario {label}: {exc}") from None
-        scenarios.append(Scenario(label, settings, choices))
+        scenarios.append(Scenario(label, settings, choices, path.parent))
     if len(scenarios) * runs > MAX_EPISODES:
         raise _fail(path, f"{len(scenarios)} scenarios x {runs} runs is over "
                           f"{MAX_EPISODES:,} episodes")

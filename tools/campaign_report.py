@@ -117,19 +117,30 @@ def write_figures(folder: Path, grouped) -> list[Path]:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    from tools.plots import plain_log_ticks
+
     folder.mkdir(exist_ok=True)
     paths = []
     colours = {"localized": "tab:green", "not yet": "0.6", "WRONG": "red", "error": "k"}
     for i, (sc, rows) in enumerate(grouped):
         if not rows:
             continue
-        fig, (a, b) = plt.subplots(1, 2, figsize=(11, 4))
+        fig, (a, b) = plt.subplots(1, 2, figsize=(11, 4.4))
         for outcome, colour in colours.items():
             mine = [r for r in rows if r["outcome"] == outcome]
-            a.bar([r["seed"] for r in mine], [r.get("steps") or 0 for r in mine], color=colour,
-                  label=f"{outcome} ({len(mine)})")
+            if not mine:  # an empty category's legend entry came out in default blue
+                continue
+            label = f"{outcome} ({len(mine)})"
+            if outcome == "error":  # no steps to draw: a mark at its seed
+                a.plot([r["seed"] for r in mine], [0] * len(mine), "kx", ms=8, mew=2,
+                       label=label, clip_on=False)
+            else:
+                a.bar([r["seed"] for r in mine], [r.get("steps") or 0 for r in mine],
+                      color=colour, label=label)
         a.set(xlabel="seed", ylabel="steps", title="steps per episode, by outcome")
-        a.legend(fontsize=8)
+        a.xaxis.get_major_locator().set_params(integer=True)  # seeds are whole numbers
+        # below the axes, not over the first bars
+        a.legend(fontsize=8, loc="upper center", bbox_to_anchor=(0.5, -0.16), ncol=4)
         done = [r for r in rows if r["outcome"] != "error"]
         a_first = [r["compute_first_ms"] for r in done]
         med = [r["compute_after_first_median_ms"] for r in done]
@@ -140,7 +151,9 @@ def write_figures(folder: Path, grouped) -> list[Path]:
         b.plot(seeds, p99, "^", color="tab:purple", ms=4, alpha=0.5, label="p99 after it")
         b.set(xlabel="seed", ylabel="ms per update", yscale="log",
               title="localizer compute per episode")
-        b.legend(fontsize=8)
+        plain_log_ticks(b.yaxis)  # 3x10^0, 4x10^0 ... crowded the axis
+        b.xaxis.get_major_locator().set_params(integer=True)
+        b.legend(fontsize=8, loc="upper center", bbox_to_anchor=(0.5, -0.16), ncol=3)
         fig.suptitle(sc.name, fontsize=10)
         fig.tight_layout()
         path = folder / f"{i:02d}-{slug(sc.name)}.png"

@@ -127,7 +127,7 @@ def draw(ax: Any, hm: HeightMap, view: ViewModel) -> Any:
     ax.set_title(f"{hm.name}: episode {view.episode}, step {view.step}: {status} "
                  f"[{view.state}]", fontsize=10)
     if len(view.cloud) or view.pose is not None:
-        ax.legend(loc="upper right", fontsize=7)
+        ax.legend(loc="best", fontsize=7, framealpha=0.85)  # off the path and the cloud
     return filled
 
 

