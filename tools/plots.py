@@ -30,6 +30,7 @@ from service.episode.simulate import EpisodeReport
 from service.localization.localizers.base import Hypotheses, wrap_angle
 from service.localization.models import rotate
 from service.localization.surface import HeightMap
+from tools.words import steps_text
 
 MM = 1e3
 TRUTH, ESTIMATE, CLOUD = "tab:red", "tab:blue", "0.1"
@@ -162,7 +163,7 @@ def _outcome(report: EpisodeReport) -> str:
     if report.result.fault is not None:
         return f"stopped by a hardware fault after {steps} steps"
     if s.success:
-        return f"localized in {steps} steps"
+        return f"localized in {steps_text(steps)}"
     if s.wrong_declaration:
         return f"WRONG pose declared after {steps} steps"
     return f"not localized after {steps} steps"

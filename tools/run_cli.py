@@ -19,7 +19,14 @@ from service.localization.policies.base import MOVE_NAMES
 from service.registry import BACKENDS
 from tools.hand_cli import add_object_options, run_hand
 from tools.scenario_options import add_scenario_options, settings_from_args
-from tools.words import EXIT_FAULT, belief_text, fault_result, pose_text, why_not_converged
+from tools.words import (
+    EXIT_FAULT,
+    belief_text,
+    fault_result,
+    pose_text,
+    steps_text,
+    why_not_converged,
+)
 
 FIGURE_STEPS = (0, 5, 10)
 """Steps whose hypotheses `--plot` shows, besides the last (tools/plots.py)."""
@@ -141,7 +148,7 @@ def _print_summary(report: EpisodeReport) -> None:
     if report.result.fault is not None:
         print(f"result    {fault_result(report.result.fault, steps)}")
     elif s.success:
-        print(f"result    localized in {steps} steps: position error "
+        print(f"result    localized in {steps_text(steps)}: position error "
               f"{s.position_error * 1e3:.2f} mm, "
               f"heading error {math.degrees(s.heading_error):.1f} deg")
     elif s.wrong_declaration:

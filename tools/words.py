@@ -35,6 +35,11 @@ def fault_result(fault: str, steps: int) -> str:
             f"the {steps} step{'' if steps == 1 else 's'} before it stand")
 
 
+def steps_text(count: int) -> str:
+    """'1 step', '8 steps'."""
+    return f"{count} step{'' if count == 1 else 's'}"
+
+
 def mm(value: float | None, spec: str = ".1f") -> str:
     return "?" if value is None or not math.isfinite(value) else f"{value * 1e3:{spec}} mm"
 

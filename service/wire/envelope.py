@@ -205,7 +205,10 @@ def _why(exc: Exception) -> str:
     """What is wrong with bytes msgpack refused, in words rather than the exception's
     class name."""
     if isinstance(exc, msgpack.ExtraData):
-        return "bytes left over after the message"
+        if not isinstance(exc.unpacked, dict):  # b"hello" reads as the int 104, then "ello"
+            return (f"it begins with a msgpack {type(exc.unpacked).__name__} where a map "
+                    f"should be, and {len(exc.extra)} bytes follow it")
+        return f"{len(exc.extra)} bytes left over after the message's map"
     if isinstance(exc, UnicodeDecodeError):
         return "a string that is not UTF-8"
     if isinstance(exc, msgpack.StackError):

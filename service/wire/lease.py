@@ -12,6 +12,7 @@ routing identity is still a stranger).
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -75,6 +76,8 @@ class Lease:
             raise LeaseHeld(f"'{self.holder.name()}' holds the lease on another connection "
                             f"for {(self.expires_ns - now) / 1e9:.1f} s more; the lease "
                             f"belongs to the connection that took it")
+        if self.holder is not None and peer.label is None:  # the holder's label stays
+            peer = dataclasses.replace(peer, label=self.holder.label)  # till it gives one
         self.holder = peer
         self.expires_ns = now + self.ttl_ns
 

@@ -199,3 +199,31 @@ def test_servos_the_hand_does_not_use_are_a_warning_at_open(caplog):
         right.open()
         assert right.warnings == []
         right.close()
+
+
+def test_a_hand_whose_tips_have_no_roll_servo_turns_the_object():
+    """A held-out five-finger hand with no `[fingers.tip_roll]` (the README: optional) ran on
+    the emulator until its first turn, which raised "finger 'f0' has no tip-roll servo" out
+    of `haptic run` and faulted hapticd. A tip without a servo rolls freely."""
+    import dataclasses
+
+    sim = _sim("two-finger")
+    free = dataclasses.replace(sim.hand, fingers=tuple(
+        dataclasses.replace(f, tip_roll=None) for f in sim.hand.fingers))
+    sim = SimulatedHand(free, preset_object("blob:2"), HandSimConfig(pose=POSE),
+                        np.random.default_rng(0))
+    plant = HandPlant(sim)
+    with ServoBus(hand_bus_servos(free, plant), plant=plant) as bus:
+        hand = DynamixelHand(free, bus.port)
+        hand.open()
+        try:
+            hand.set_torque(True)
+            hand.read_hand()
+            turn = HandCommand((FingerMove(dz=0.001, roll=0.02), FingerMove(dz=-0.001,
+                                                                          roll=0.02)))
+            hand.command_hand(turn)
+            state = _finish(hand)
+            assert not state.dropped and len(state.fingers) == 2
+        finally:
+            hand.close()
+        assert not bus.errors, bus.errors

@@ -26,11 +26,15 @@ def test_presets_load_and_classify():
 @pytest.mark.parametrize(("edit", "message"), [
     (lambda d: d["joints"][0].update(id=300), "joint 'yaw': id must be 0..252"),
     (lambda d: d["joints"][1].update(limits=[1.0, -1.0]), "joint 'shoulder': limits"),
+    # a held-out lab's limits in degrees, taken and sent to the servo as -2928 degrees
+    (lambda d: d["joints"][1].update(limits=[-97.0, 40.0]),
+     "limits \\[-97.0, 40.0\\] reach beyond a whole turn: joint angles are radians"),
     (lambda d: d["joints"][2].update(axis=[0, 0, 0]), "joint 'elbow': axis must not be zero"),
     (lambda d: d["joints"][2].update(axis=[0, 1]), "joint 'elbow': axis must be three"),
     (lambda d: d["joints"][0].update(direction=2), "direction must be 1 or -1"),
     (lambda d: d["joints"][0].update(model="XL320"), "unknown servo model 'XL320'"),
-    (lambda d: d["joints"][1].update(id=1), "servo ids must be unique"),
+    (lambda d: d["joints"][1].update(id=1),
+     "servo ids must be unique, got .*id 1: joint 'yaw' and joint 'shoulder'"),
     (lambda d: d.update(home=[0.0, 5.0, 1.1]), "home angle 5.0 of joint 'shoulder'"),
     (lambda d: d.update(home=[0.0]), "home needs 3 angles"),
     (lambda d: d.update(radius=-1), "radius must be > 0"),

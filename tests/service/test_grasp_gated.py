@@ -369,3 +369,24 @@ def test_three_fingers_hold_a_kidney_at_step_40():
     report = simulate_hand(HandSettings(object=str(DATA / "kidney_with_a_dent.csv"),
                                         hand="three-finger", seed=7, noise=True, max_steps=40))
     assert not report.result.dropped
+
+
+def test_a_hand_without_tip_roll_servos_explores_but_never_turns(tmp_path):
+    """A held-out hand with no `[fingers.tip_roll]` turned the object in simulation, where
+    the tips rolled as told; on the servos nothing rolled them, the object went where the
+    motion model did not follow, and the estimate was lost (before that, the first turn
+    raised "no tip-roll servo"). Such a hand now only rolls its fingers along the object."""
+    import re
+
+    text = (Path(__file__).resolve().parents[2] / "firmware_if" / "hands"
+            / "three-finger.toml").read_text()
+    free = re.sub(r"\[fingers\.tip_roll\]\nid = \d+\n", "", text)
+    assert "tip_roll" not in free
+    (tmp_path / "free.toml").write_text(free)
+    settings = HandSettings(object="blob:4", seed=4, noise=True, max_steps=8)
+    turned = simulate_hand(dataclasses.replace(settings, hand="three-finger"))
+    assert any(s.kind == "manipulate" for s in turned.result.steps)  # as a roll servo lets
+    rolled = simulate_hand(dataclasses.replace(settings, hand=str(tmp_path / "free.toml")))
+    assert rolled.result.steps and not any(s.kind == "manipulate"
+                                           for s in rolled.result.steps)
+    assert not rolled.result.dropped

@@ -37,6 +37,18 @@ def test_a_holder_waiting_on_a_slow_request_is_shown_its_whole_lease() -> None:
     assert lease.remaining_s() == 0.0 and lease.expire_due() is not None
 
 
+def test_the_holders_label_stays_when_its_later_requests_carry_none() -> None:
+    """A C client from the docs alone: `activate` labelled "alice", then a request with no
+    label on the same connection: `lease_holder` and the later `lease_expired` said
+    "anonymous"."""
+    lease = Lease(2.0, clock=lambda: 0)
+    lease.claim(Peer(b"conn", fd=7, label="alice"))
+    lease.claim(Peer(b"conn", fd=7))
+    assert lease.holder_name == "alice"
+    lease.claim(Peer(b"conn", fd=7, label="alice-2"))  # a label given is the label
+    assert lease.holder_name == "alice-2"
+
+
 @pytest.fixture()
 def node():
     config = loopback_config({"backend": {"step_duration_s": 0.05},

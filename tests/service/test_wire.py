@@ -59,6 +59,17 @@ def test_unpack_refuses_garbage(data: bytes, code: str) -> None:
     assert "Error" not in str(err.value)  # words, not an exception's class name
 
 
+@pytest.mark.parametrize("data, words", [
+    (b"hello", "it begins with a msgpack int where a map should be, and 4 bytes follow it"),
+    (msgpack.packb({"v": 2}) + b"xy", "2 bytes left over after the message's map"),
+])
+def test_bytes_that_are_not_one_map_are_told_so(data: bytes, words: str) -> None:
+    """A C client from the docs: `hello` was answered "bytes left over after the message"
+    (msgpack reads 'h' as the int 104, then "ello" is left): true, and no help."""
+    with pytest.raises(wire.WireError, match=words):
+        wire.unpack_map(data)
+
+
 @pytest.mark.parametrize(("request_map", "problem", "request_id"), [
     ({"id": "dk", "cmd": "ping", 3: 4}, "map keys must be strings, got int", "dk"),
     ({"id": 7, "args": {b"x": 1}}, "map keys must be strings, got bytes", 7),

@@ -59,3 +59,10 @@ def test_a_run_cut_by_a_fault_names_its_cause_without_the_daemons_way_out(fault,
     words = fault_result(fault, 4)
     assert cause in words and "reset" not in words and "recover" not in words
     assert "during step 5" in words and "the 4 steps before it stand" in words
+
+
+def test_one_step_is_one_step():
+    """A held-out hand localized "in 1 steps"."""
+    from tools.words import steps_text
+
+    assert (steps_text(1), steps_text(0), steps_text(8)) == ("1 step", "0 steps", "8 steps")

@@ -542,6 +542,12 @@ class GraspGatedPolicy:
         readings tell of the modes and its `worth`, or, with one mode (not `ambiguous`), by
         its worth alone - the information a turn seems to bring within one mode is mostly
         the spread its own carrying puts between the poses."""
+        if any(f.tip_roll is None for f in view.fingers):
+            # a turn rolls every tip as planned; a tip with no roll servo would roll (or
+            # slide) as the contact makes it, which the motion model does not follow (a
+            # held-out five-finger hand without them lost the object's pose at its first
+            # turn on the servos, where the simulator had rolled its tips as told)
+            return None
         lead = poses[0]
         h, n = len(poses), len(view.fingers)
         s = max(view.sigma, 1e-4)
