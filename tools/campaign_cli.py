@@ -65,10 +65,14 @@ def run(args: argparse.Namespace) -> int:
           f"done, {len(todo)} to run on {executor.describe()}; results in {campaign.out}")
     settings = [dataclasses.replace(sc.settings, seed=seed) for sc, seed in todo]
     finished = False
+    if not settings:  # all done before: no bar (it printed "18/18, ? left" twice)
+        with executor:
+            _report(campaign, store, complete=True)
+        return 0
     with executor, progress(campaign.episodes, campaign.name, unit="episode",
                             initial=campaign.episodes - len(todo)) as bar:
         try:
-            for index, outcome in executor.run(settings, maps) if settings else ():
+            for index, outcome in executor.run(settings, maps):
                 scenario, seed = todo[index]
                 failed = isinstance(outcome, Failed)
                 store.append({"scenario": scenario.key, "name": scenario.name, "seed": seed,

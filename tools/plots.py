@@ -221,6 +221,10 @@ def summary_axes(fig: Figure, cell: Any, report: EpisodeReport) -> None:
 
 
 # -- one episode on a profile ----------------------------------------------------------------
+PROFILE_INCHES = 9.6
+"""About how wide the profile's panel is drawn (inches, of the figure's 12)."""
+
+
 def profile_figure(report: EpisodeReport, path: Path) -> Figure:
     """A 1-D profile: the profile with the fingertip's path on it; the hypotheses as
     histograms over start position per direction; the summary panels."""
@@ -229,31 +233,37 @@ def profile_figure(report: EpisodeReport, path: Path) -> Figure:
     hm = report.height_map
     surface = surface_for(report.settings, hm)
     panels = _panels(report)
-    fig = Figure(figsize=(12, 4.2 + 1.6 * len(panels) + 3.4))
+    path_x = true_path(report)[:, 0]
+    z0 = surface.height(report.truth.x, 0.0)
+    path_z = z0 + np.array([0.0] + [s.measurement[2] for s in report.result.steps])
+    r = report.settings.radius * MM
+    low = float(hm.heights[0].min()) * MM - 1
+    high = max(float(hm.heights[0].max()) * MM, float(np.max(path_z)) * MM + r) + 2
+    # the profile's panel tall enough to show the whole path at equal scales, so that it
+    # keeps the width of the panels below it (a range fitted to the profile cut off a
+    # path that climbed above it, and its start with it)
+    top = max(2.2, PROFILE_INCHES * (high - low) / (hm.extent[0] * MM) * 1.15)
+    fig = Figure(figsize=(12, 2.0 + top + 1.6 * len(panels) + 3.4))
     grid = fig.add_gridspec(2 + len(panels), 1,
-                            height_ratios=[2.2] + [1.0] * len(panels) + [2.4])
+                            height_ratios=[top] + [1.0] * len(panels) + [2.4])
     ax = fig.add_subplot(grid[0])
     xs = np.linspace(0, hm.extent[0], hm.shape[1])
     ax.fill_between(xs * MM, hm.heights[0] * MM, hm.heights[0].min() * MM - 1, color="0.85")
     ax.plot(xs * MM, hm.heights[0] * MM, color="0.3", lw=1, label="profile (surface)")
-    path_x = true_path(report)[:, 0]
-    z0 = surface.height(report.truth.x, 0.0)
-    path_z = z0 + np.array([0.0] + [s.measurement[2] for s in report.result.steps])
     ax.plot(path_x * MM, path_z * MM, "-o", color=TRUTH, ms=3, lw=1.2,
             label="fingertip centre, step by step (truth)")
     ax.plot(path_x[0] * MM, path_z[0] * MM, "s", color=TRUTH, mfc="none", ms=7,
             label="start")
-    r = report.settings.radius * MM
     ax.add_patch(Circle((path_x[-1] * MM, path_z[-1] * MM), r, fill=False,
                             color=TRUTH, lw=1.2, label="fingertip now"))
     est = report.result.estimate
     if est is not None and est.pose is not None:
         ax.axvline(est.pose[0] * MM, color=ESTIMATE, lw=1.2, ls="--",
                    label="estimated start")
-    ax.set(xlim=(0, hm.extent[0] * MM), xlabel="x (mm)", ylabel="height (mm)",
-           title=f"{report.settings.map}: {_outcome(report)}")
+    ax.set(xlim=(0, hm.extent[0] * MM), ylim=(low, high), xlabel="x (mm)",
+           ylabel="height (mm)", title=f"{report.settings.map}: {_outcome(report)}")
     ax.set_aspect("equal", adjustable="datalim")  # the fingertip drawn round
-    ax.legend(fontsize=7, loc="upper right", ncol=2)
+    ax.legend(fontsize=7, loc="best", ncol=2)  # off the path where there is room
     bins = np.linspace(0, hm.extent[0] * MM, 81)
     for i, (k, hyp) in enumerate(panels):
         hax = fig.add_subplot(grid[1 + i], sharex=ax)

@@ -21,7 +21,7 @@ from service.daemon.quiet_files import quiet_hand_error
 from service.episode.hand_scenario import HandSettings, hand_for_backend
 from service.episode.scenario import RunSettings, for_backend
 from service.errors import ConfigError, MapError
-from service.localization.maps import check_map_spec
+from service.localization.maps import MAP_FILE_SUFFIXES, check_map_spec
 from service.registry import BACKENDS
 from service.wire.envelope import MAX_FRAME_BYTES
 
@@ -286,6 +286,8 @@ class DaemonConfig:
             if name not in sections:
                 raise ConfigError(f"section '{name}' cannot be changed here; changeable: "
                                   f"{', '.join(sections)}")
+            if name == "scenario":
+                values = _preset_drops_spacing(values)
             parts[name] = _section(type(getattr(self, name)), name, values,
                                    base=getattr(self, name))
         scenario = parts.get("scenario")
@@ -296,6 +298,17 @@ class DaemonConfig:
                               f"to a hand holding an object; to switch to a finger, set "
                               f"object (and hand) to nil in the same change")
         return dataclasses.replace(self, **parts)
+
+
+def _preset_drops_spacing(values: Any) -> Any:
+    """A change of `map` to a preset, with no `spacing` of its own, drops the map file's
+    spacing: kept, it refused the preset ("a spacing applies to map files"), and the way out
+    (`spacing=null` beside it) was written nowhere."""
+    if (isinstance(values, dict) and isinstance(values.get("map"), str)
+            and "spacing" not in values
+            and Path(values["map"]).suffix.lower() not in MAP_FILE_SUFFIXES):
+        return {**values, "spacing": None}
+    return values
 
 
 SECTIONS = {f.name: f for f in dataclasses.fields(DaemonConfig)}

@@ -131,3 +131,15 @@ def test_a_hand_name_that_is_no_preset_is_told_so(hand, said):
         loopback_config({"scenario": {"object": "blob", "hand": hand}})
     assert said in str(refused.value) and "two-finger" in str(refused.value)
     assert "cannot be used" not in str(refused.value)
+
+
+def test_a_preset_after_a_map_file_needs_no_spacing_undone() -> None:
+    """A new user's daemon, left unconfigured by a map file that would not load, refused
+    `configure scenario.map=peaks`: "a spacing ... applies to map files, not presets" (the
+    file's spacing stayed); the way out, `scenario.spacing=null` beside it, was written
+    nowhere."""
+    on_file = DaemonConfig().updated({"scenario": {"map": "nosuch.npy", "spacing": 0.001}})
+    back = on_file.updated({"scenario": {"map": "peaks"}})
+    assert (back.scenario.map, back.scenario.spacing) == ("peaks", None)
+    with pytest.raises(ConfigError, match="applies to map files, not presets"):
+        on_file.updated({"scenario": {"map": "peaks", "spacing": 0.001}})  # given: refused

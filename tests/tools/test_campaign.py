@@ -212,3 +212,14 @@ def test_a_campaign_folder_moved_elsewhere_resumes(tmp_path, capsys):
     capsys.readouterr()
     assert main(["campaign", str(Path(moved) / "c.toml"), "--workers", "1"]) == 0
     assert "2 already done, 0 to run" in capsys.readouterr().out
+
+
+def test_a_finished_campaign_run_again_shows_no_progress_bar(tmp_path, capsys):
+    """A new user re-ran a finished campaign: "18/18 episodes, 00:00 elapsed, ? left", twice."""
+    path = write(tmp_path, runs=1)
+    assert main(["campaign", str(path), "--workers", "1"]) == 0
+    capsys.readouterr()
+    assert main(["campaign", str(path), "--workers", "1"]) == 0
+    printed = capsys.readouterr()
+    assert "2 already done, 0 to run" in printed.out and "2 of 2 episodes finished" in printed.out
+    assert "elapsed" not in printed.err

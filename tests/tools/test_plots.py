@@ -53,6 +53,24 @@ def test_a_profile_gets_a_profile_figure(tmp_path: Path) -> None:
         assert needed in text, needed
 
 
+def test_a_profiles_figure_shows_the_whole_path_aligned_with_its_panels(tmp_path: Path):
+    """A new user's `haptic run --map profile:smooth --noise --plot`: the fingertip's path
+    climbed above the profile's panel (its range fitted to the surface at equal scales),
+    start marker and all. The panel is now as tall as the path needs, as wide as the
+    histograms below it."""
+    report = simulate(RunSettings(map="profile:smooth", noise=True, seed=0),
+                      snapshot_steps=(0,))
+    fig = episode_figure(report, tmp_path / "p.png")
+    fig.canvas.draw()  # the aspect is applied when drawn
+    top, below = fig.axes[0], fig.axes[1]
+    heights = [line.get_ydata() for line in top.get_lines()
+               if line.get_label().startswith("fingertip centre")][0]
+    low, high = top.get_ylim()
+    assert low <= min(heights) and max(heights) + report.settings.radius * 1e3 <= high
+    np.testing.assert_allclose(top.get_position().x0, below.get_position().x0, atol=1e-3)
+    np.testing.assert_allclose(top.get_position().x1, below.get_position().x1, atol=1e-3)
+
+
 def test_bench_figures_mark_the_paper_errors_and_outcomes(tmp_path: Path) -> None:
     reports = [simulate(RunSettings(seed=s, max_steps=30)) for s in range(3)]
     text = _texts(b1_figure(reports, {}, tmp_path / "b1.png", "B1"))
