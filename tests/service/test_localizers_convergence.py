@@ -356,10 +356,14 @@ def test_turns_other_than_quarter_turns_are_found_and_their_images_read_alike(he
     assert not np.any(np.abs(symmetries(contact_surface(peaks(), 0.008))[:, 0] % 1) > 0)
 
 
-NOT_YET = {("knurl12_map", 298), ("knurl12_map", 270), ("knurl12_map", 155)}
+NOT_YET = {("knurl12_map", 298), ("knurl12_map", 270), ("knurl12_map", 155),
+           ("knurl_map", 237), ("knurl_map", 55)}
 """Episodes that end "not yet" with the leader on the truth. 155: since the turned check
 runs between steps its path differs, and at 60 readings the refined fit's rms is 1.306
-sensor sds against the rule's 1.3 (0.33 mm and 0.1 degrees from the truth)."""
+sensor sds against the rule's 1.3 (0.33 mm and 0.1 degrees from the truth). knurl_map 237
+and 55 (0.6 and 0.4 mm from the truth): the certificate of the whole map runs out of room
+on the knurl's lattice, and a declaration now waits for one that does not (the other checks
+alone let a held-out worn knurl's wrong poses through)."""
 
 
 @pytest.mark.parametrize("surface, seed, was", [

@@ -52,7 +52,7 @@ LEAF = 0.15
 LEAF_TURN = np.deg2rad(1.5)
 MAX_BOXES = 2_000_000
 """Most boxes a certificate judges; past it (or `MAX_LEAVES`) the map does not rule out
-enough, and the certificate decides nothing (`Certificate.overflowed`)."""
+enough, and the certificate holds the declaration back (`Certificate.overflowed`)."""
 MAX_LEAVES = 100_000
 POLISH = 20
 """Gauss-Newton steps a fine box's centre takes onto the readings."""
@@ -96,7 +96,7 @@ _PYRAMIDS: weakref.WeakKeyDictionary[ContactSurface, Pyramid] = weakref.WeakKeyD
 class Certificate:
     """A search of the whole map for rivals of one declared pose, on the readings of its
     time (`certify`): its rivals, and whether it ran out of room (then it certifies
-    nothing)."""
+    nothing, and the declaration waits)."""
 
     pose: np.ndarray
     readings: int
