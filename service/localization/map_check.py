@@ -521,10 +521,14 @@ def _warnings(r: MapReport) -> list[str]:
     size = f"{x:.4g} m profile" if r.is_profile else f"{x:.4g} x {y:.4g} m map"
     warnings = []
     if relief > MAX_PLAUSIBLE_RELIEF or relief > max(x, y) or r.steep_share > MM_STEEP_SHARE:
+        # in millimetres the relief would still outspan the map: micrometres (a scan's
+        # integer heights were told "divide them by 1000")
+        unit, factor = (("micrometres", "1,000,000") if relief / 1000 > max(x, y)
+                        else ("millimetres", "1000"))
         warnings.append(
             f"heights span {relief:.4g} m over a {size}, {r.steep_share:.0%} "
-            "of it steeper than 87 deg: they look like millimetres; heights must be in metres "
-            "(divide them by 1000)")
+            f"of it steeper than 87 deg: they look like {unit}; heights must be in metres "
+            f"(divide them by {factor})")
     if max(x, y) > MAX_PLAUSIBLE_EXTENT:
         warnings.append(f"the map spans {size.removesuffix(' map')}: is --spacing in millimetres? "
                         f"It is in metres ({r.spacing:g} mm would be {r.spacing / 1000:g})")
@@ -538,6 +542,11 @@ def _warnings(r: MapReport) -> list[str]:
                         f"({shorter * 1e3:g} mm): every contact height depends on ground "
                         "beyond its edges, which it takes to continue the edge's heights; "
                         "give a wider map or a smaller tip")
+    starts = x if r.is_profile else min(x, y)
+    if starts <= 4 * r.step:  # as `scenario.check_start` refuses a run with noise
+        warnings.append(f"the map ({starts * 1e3:g} mm across) is too small for a step of "
+                        f"{r.step * 1e3:g} mm: `haptic run --noise` draws starts two steps "
+                        "inside every edge, which leaves none; use a smaller --step")
     if r.step < r.spacing:
         warnings.append(f"a step ({r.step * 1e3:g} mm) is shorter than the sample spacing "
                         f"({r.spacing * 1e3:g} mm)")

@@ -37,6 +37,24 @@ def test_a_whole_map_in_millimetres_warns_about_the_spacing():
     assert warned(report, "spans under two samples")
 
 
+def test_a_map_in_micrometres_is_told_so():
+    """A held-out scan in integer micrometres was told "they look like millimetres ...
+    divide them by 1000", which left them a thousand times too high."""
+    m = load_map("bumps:20:1")
+    report = check_map(HeightMap(m.heights * 1e6, m.spacing, name="um"), 0.008)
+    assert warned(report, "look like micrometres") and warned(report, "1,000,000")
+    assert not warned(report, MM_WARNING)
+
+
+def test_a_map_too_small_for_the_step_is_told_before_a_run_refuses_it():
+    """A held-out 30 mm map passed `haptic map check`, and every `haptic run --noise` on it
+    was refused: starts are drawn two steps inside every edge."""
+    small = HeightMap(np.random.default_rng(0).normal(size=(31, 31)) * 1e-3, 0.001,
+                      name="small")
+    assert warned(check_map(small, 0.008, step=0.01), "too small for a step of 10 mm")
+    assert not warned(check_map(small, 0.002, step=0.005), "too small for a step")
+
+
 @pytest.mark.parametrize("radius, message", [(0.3, "does not fit"), (8.0, "give 0.008")])
 def test_a_radius_the_map_cannot_take_is_refused(radius, message):
     with pytest.raises(MapError, match=message):
