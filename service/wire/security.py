@@ -87,9 +87,8 @@ class KeyRing:
     def __init__(self, directory: str | Path, min_interval_s: float = 0.2) -> None:
         self.directory = Path(directory)
         self.min_interval_s = min_interval_s
-        self.keys: frozenset[str] = frozenset()
         self.names: dict[str, str] = {}
-        """Each authorized key's file name, for the log."""
+        """Each authorized public key (z85), with its file's name for the log."""
         self.revocations = 0
         """How many times a key has disappeared (the daemon re-binds its stream on a change)."""
         self.revoked: tuple[str, ...] = ()
@@ -124,10 +123,10 @@ class KeyRing:
                 public = self._public_key(path)
                 if public:
                     names[public] = path.name
-            gone = self.keys - set(names)
+            gone = self.names.keys() - names.keys()
             if gone:
                 self.revoked = tuple(sorted(self.names.get(k, k) for k in gone))
-            self.keys, self.names = frozenset(names), names
+            self.names = names
             self.revocations += bool(gone)
             return bool(gone)
 
@@ -160,7 +159,7 @@ class KeyRing:
         if key is None:
             return False
         self.refresh()
-        return (key.decode("ascii") if isinstance(key, bytes) else key) in self.keys
+        return (key.decode("ascii") if isinstance(key, bytes) else key) in self.names
 
     def callback(self, domain: str, key: bytes) -> bool:
         """pyzmq's credentials-provider hook: called by the ZAP handler at each handshake.

@@ -19,11 +19,7 @@ from service.localization.localizers.base import Hypotheses
 from service.localization.objects.field import contact_field
 from service.localization.objects.presets import preset_object
 from service.localization.policies import grasp_gated
-from service.localization.policies.grasp_gated import (
-    GraspGatedPolicy,
-    HandView,
-    _best_allowed,
-)
+from service.localization.policies.grasp_gated import GraspGatedPolicy, HandView
 from service.localization.policies.guarded_poses import (
     COVER,
     COVER_LENGTH,
@@ -31,6 +27,7 @@ from service.localization.policies.guarded_poses import (
     with_cover,
     with_spread,
 )
+from service.localization.policies.hand_view import best_allowed
 from sim_backend.hand import HandSimConfig, SimulatedHand
 
 DATA = Path(__file__).parent / "data"
@@ -282,7 +279,7 @@ def test_the_best_allowed_option_is_argmax_over_the_allowed(scores, allowed):
         asked.append(k)
         return allowed[k]
 
-    best = _best_allowed(score, check)
+    best = best_allowed(score, check)
     ok = [k for k in range(len(score)) if allowed[k]]
     assert best == (ok[int(np.argmax(score[ok]))] if ok else None)
     assert len(set(asked)) == len(asked) and (best is None or asked[-1] == best)

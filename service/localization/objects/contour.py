@@ -8,6 +8,7 @@ not cross itself), of plausible size in metres.
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -177,8 +178,6 @@ def check_fits(contour: Contour, radius: float) -> None:
 def _crossing(polygon: Polygon) -> str:
     """Where a contour crosses itself, in millimetres (the geometry library says
     "Self-intersection[-0.00114509927141637 0.022789475030463]")."""
-    import re
-
     found = re.findall(r"[-+0-9.eE]+", explain_validity(polygon).partition("[")[2])
     if len(found) < 2:
         return ""

@@ -34,10 +34,10 @@ bringing contour the fingers could not reach under them.
   members 0-99 instead of 99, and on a held-out hexagon with one chamfered corner the
   changed path dropped the object. Weighing moves against the most there: 86.) With the
   gate off (the ablation), only reach limits moves.
-* Manipulation: turns of the object about its centroid in place (`rolling.plan_turn` under
-  the leading pose), each checked the same way at every substep of its rolling motion for
-  every plausible pose (`rolling.carry`); the safe turn whose readings tell most, or that
-  brings the most unfelt contour under the fingers, wins.
+* Manipulation (`grasp_turns.py`): turns of the object about its centroid in place
+  (`rolling.plan_turn` under the leading pose), each checked the same way at every substep
+  of its rolling motion for every plausible pose (`rolling.carry`); the safe turn whose
+  readings tell most, or that brings the most unfelt contour under the fingers, wins.
 * Precision, for three fingers or more: once one mode is left, a move is also worth what
   its readings would pin the leader's spread by, their shared error and a turn's motion
   error counted (`contour_precision`), and a turn is taken once the rolls are spent
@@ -61,28 +61,28 @@ With nothing safe left to do, the decision says so (`stuck`) and the episode end
 
 from __future__ import annotations
 
-import dataclasses
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
 from typing import ClassVar
 
 import numpy as np
 
 from firmware_if.backend import FingerMove, HandCommand
-from firmware_if.hand import Finger
 from service.localization import chain_kernels
-from service.localization.grasp import GraspSpec, hand_quality
-from service.localization.localizers.base import Hypotheses
+from service.localization.grasp import hand_quality
 from service.localization.localizers.object_judge import to_object
 from service.localization.objects import kinks, rolling
-from service.localization.objects.field import ContactField
 from service.localization.policies import guarded_poses
 from service.localization.policies.contour_precision import ContourSpread
+from service.localization.policies.grasp_turns import Turns
+from service.localization.policies.hand_view import (
+    NOVELTY,
+    HandDecision,
+    HandView,
+    best_allowed,
+)
 from service.localization.policies.info_gain import information
 from service.localization.policies.worlds_worst import WorldsWorst, worlds_worst
 
-NOVELTY = 0.05
-"""Nats credited to a move whose fingertip lands on contour not felt yet."""
 FELT = 0.003
 """Metres: contour within this of a felt point counts as felt. Readings closer than the
 world's mismatch length share their error, so a mode is pinned down by new stretches of
@@ -122,66 +122,7 @@ STEP_PARTS = (1.0, 0.5, 0.25, 0.1)
 safe under every plausible pose; as it narrows, longer ones become safe."""
 
 
-@dataclass(frozen=True)
-class HandView:
-    """What the policy may look at."""
-
-    hypotheses: Hypotheses
-    centres: np.ndarray
-    """(n, 2) every fingertip centre now."""
-    joints: tuple[np.ndarray, ...]
-    """Joint angles of each finger now."""
-    field: ContactField
-    fingers: tuple[Finger, ...]
-    torque: float
-    """N m each joint pushes with (goal current times torque per ampere)."""
-    grasp: GraspSpec
-    step_length: float
-    sigma: float
-    """Reading noise (metres) the localizer assumes."""
-    fixed: bool = False
-    """The object is clamped: nothing to drop, nothing to manipulate."""
-    blocked: frozenset[tuple[int, int]] = field(default_factory=frozenset)
-    """(finger, direction) moves found out of reach from here."""
-    spread: tuple[float, float] = (0.0, 0.0)
-    """The leading pose's own uncertainty (position sd in metres, heading sd in radians)."""
-    slope_sd: float = 0.0
-    """Sd (radians) of the slope by which the world's outline differs from the model's
-    (`NoiseSpec.surface_slope_sd`); 0: the model is the world."""
-    motion: rolling.TwistNoise = rolling.EXACT
-    """How a carried object's motion strays from the rolling model (`HandSettings`' B2 step
-    noise): what a turn adds to the leading pose's spread."""
-    mismatch: tuple[float, float] = (0.0, 0.0)
-    """Sd and correlation length (metres) of the world's outline's difference from the
-    model's (`NoiseSpec.surface_sigma`, `surface_correlation`): readings near each other
-    share it (`contour_precision`)."""
-
-
-@dataclass(frozen=True)
-class HandDecision:
-    command: HandCommand | None
-    kind: str
-    """'explore', 'manipulate', or 'stuck' (no safe move: the episode ends)."""
-    finger: int | None = None
-    direction: int = 0
-    predicted_quality: float = float("nan")
-    """Least quality predicted over the plausible poses along the move (newtons)."""
-    gain: float = 0.0
-    """Expected information (nats) of the move's readings about the pose."""
-    novel: bool = False
-    """The move feels contour not felt yet."""
-    precision: float = 0.0
-    """Nats by which the move's readings would shrink the leading pose's spread, their
-    shared error counted (`contour_precision`), times the leading mode's weight."""
-
-    @property
-    def worth(self) -> float:
-        """What the move is worth to the one mode there is: how it pins the leader's spread,
-        and a credit for new contour."""
-        return self.precision + NOVELTY * self.novel
-
-
-class GraspGatedPolicy:
+class GraspGatedPolicy(Turns):
     name: ClassVar[str] = "grasp-gated"
 
     def __init__(self, gate: bool = True, plausible: int = 96, min_gain: float = 0.02,
@@ -381,7 +322,7 @@ class GraspGatedPolicy:
     # -- exploring -------------------------------------------------------------------------
     def _explore(self, view: HandView, poses: np.ndarray, weights: np.ndarray,
                  radii: np.ndarray, last_resort: bool = False) -> HandDecision | None:
-        """The best move of one finger that is in reach and safe (`_best_allowed`: reach
+        """The best move of one finger that is in reach and safe (`best_allowed`: reach
         and the gate are checked best first, only as far as the choice needs); as a
         `last_resort`, safe with the weightless guards kept only off the margin
         (`_safe`)."""
@@ -450,7 +391,7 @@ class GraspGatedPolicy:
             lead_after = np.array([quality_of(k, slice(0, 1))[0] if reach_of(k)[0] else 0.0
                                    for k in range(len(options))])
             score = score + RECOVERY * (lead_after - self._now[0]) / view.grasp.threshold_n
-        k = _best_allowed(score, lambda k: reach_of(k)[0] and (
+        k = best_allowed(score, lambda k: reach_of(k)[0] and (
             not gated or self._safe(view, quality_of(k), weights, last_resort,
                                     lambda: quality_of(k, self._counted, worst=True))))
         if k is None:
@@ -535,92 +476,6 @@ class GraspGatedPolicy:
         hit = np.unique(labels[near & (labels >= 0)])
         return float(weights[np.isin(labels, hit) | (near & (labels < 0))].sum())
 
-    # -- manipulating ----------------------------------------------------------------------
-    def _manipulate(self, view: HandView, poses: np.ndarray, weights: np.ndarray,
-                    radii: np.ndarray, ambiguous: bool = True) -> HandDecision | None:
-        """The best turn in reach that the gate allows (checked best first): by what its
-        readings tell of the modes and its `worth`, or, with one mode (not `ambiguous`), by
-        its worth alone - the information a turn seems to bring within one mode is mostly
-        the spread its own carrying puts between the poses."""
-        if any(f.tip_roll is None for f in view.fingers):
-            # a turn rolls every tip as planned; a tip with no roll servo would roll (or
-            # slide) as the contact makes it, which the motion model does not follow (a
-            # held-out five-finger hand without them lost the object's pose at its first
-            # turn on the servos, where the simulator had rolled its tips as told)
-            return None
-        lead = poses[0]
-        h, n = len(poses), len(view.fingers)
-        s = max(view.sigma, 1e-4)
-        weighed = weights > 0  # weightless poses add nothing to the information
-        turns: list[tuple[HandDecision, list[tuple[np.ndarray, np.ndarray]], list[np.ndarray]]]
-        turns, scores = [], []
-        for turn in self.turns:
-            moves, rolls = rolling.plan_turn(view.field, lead, view.centres, radii, turn,
-                                             self.substeps)
-            if not all(self._reach(view, f, (view.centres[f] + moves[f])[None])[0]
-                       for f in range(n)):
-                continue
-            tips = np.broadcast_to(view.centres, (h, n, 2))
-            states = [(p.copy(), c.copy()) for p, c in rolling.carry_steps(
-                view.field, poses, tips, radii, moves, rolls, self.substeps)]
-            final_poses, final = states[-1]
-            angles = self._turn_angles(view, states)
-            if angles is None:
-                continue
-            gain = float(information(final[weighed].reshape(1, -1, 2 * n), weights[weighed],
-                                     s)[0])
-            novel = float(np.mean([self._novel(final[:1, f], final_poses[0])
-                                   for f in range(n)]))
-            precision = self._precision(to_object(final[0], final_poses[0]), radii,
-                                        _turn_error(view.motion, turn, self.substeps))
-            command = HandCommand(tuple(
-                FingerMove(dx=float(m[0]), dz=float(m[1]), roll=float(r))
-                for m, r in zip(moves, rolls, strict=True)))
-            turns.append((HandDecision(command, "manipulate", None, int(np.sign(turn)),
-                                       gain=gain, novel=novel >= 0.5, precision=precision),
-                          states, angles))
-            scores.append(gain * (ambiguous or not self._precise) + precision + NOVELTY * novel
-                          + 1e-3 * abs(turn))  # ties: the larger turn
-        quality: dict[int, np.ndarray] = {}
-
-        def allowed(k: int) -> bool:
-            quality[k] = self._turn_quality(view, *turns[k][1:])
-            return not self.gate or self._safe(
-                view, quality[k], weights,
-                at_worst=lambda: self._turn_quality(view, *turns[k][1:], worst=True,
-                                                    rows=self._counted))
-
-        k = _best_allowed(np.array(scores), allowed)
-        if k is None:
-            return None
-        return dataclasses.replace(turns[k][0], predicted_quality=float(quality[k].min()))
-
-    def _turn_angles(self, view: HandView, states: list[tuple[np.ndarray, np.ndarray]]
-                     ) -> list[np.ndarray] | None:
-        """Each finger's joint angles (substeps, joints) at every substep of a turn, taken
-        from where the leading pose puts its tip; None when out of reach."""
-        lead_tips = np.stack([c[0] for _, c in states])  # (substeps, n, 2)
-        angles = []
-        for f in range(len(view.fingers)):
-            ok, q = self._reach(view, f, lead_tips[:, f])
-            if not ok:
-                return None
-            angles.append(q)
-        return angles
-
-    def _turn_quality(self, view: HandView, states: list[tuple[np.ndarray, np.ndarray]],
-                      angles: list[np.ndarray], worst: bool = False,
-                      rows: slice | np.ndarray = slice(None)) -> np.ndarray:
-        """Least quality over every substep of a turn, per plausible pose (of `rows`; with
-        `worst`, at the world's worst: `WorldsWorst`)."""
-        if worst:
-            return np.min([self._worst.quality(view, p[rows], c[rows],
-                                               tuple(q[i] for q in angles))
-                           for i, (p, c) in enumerate(states)], axis=0)
-        return np.min([hand_quality(view.field, p[rows], c[rows], view.fingers,
-                                    tuple(q[i] for q in angles), view.torque, view.grasp)
-                       for i, (p, c) in enumerate(states)], axis=0)
-
     # -- felt contour ----------------------------------------------------------------------
     def _remember(self, centres: np.ndarray, lead: np.ndarray, radii: np.ndarray) -> None:
         self._felt.extend(to_object(centres, lead))
@@ -642,22 +497,3 @@ def _settled(view: HandView, poses: np.ndarray, centres: np.ndarray) -> np.ndarr
     return rolling.settle(view.field, poses,
                           np.broadcast_to(centres, (len(poses), *np.shape(centres))).copy(),
                           radii)
-
-
-def _best_allowed(score: np.ndarray, allowed: Callable[[int], bool]) -> int | None:
-    """`np.argmax` of `score` over the indices `allowed` accepts (NaN counts highest; ties:
-    the lower index), asking `allowed` best first and only until one passes: reach and the
-    gate cost most of a decision, and the best option is usually allowed."""
-    nan = np.isnan(score)
-    rest = np.flatnonzero(~nan)
-    for k in np.concatenate([np.flatnonzero(nan), rest[np.argsort(-score[rest], kind="stable")]]):
-        if allowed(int(k)):
-            return int(k)
-    return None
-
-
-def _turn_error(motion: rolling.TwistNoise, turn: float, substeps: int) -> np.ndarray:
-    """(3, 3) covariance of the pose error a turn by `turn` radians in `substeps` adds: each
-    substep's size strays by `motion.fraction` on its own; a turn about the centroid in place
-    moves it little, so its position error is left out."""
-    return np.diag([0.0, 0.0, (motion.fraction * turn) ** 2 / substeps])
