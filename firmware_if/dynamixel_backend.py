@@ -22,6 +22,7 @@ import numpy as np
 
 from firmware_if import kinematics as kin
 from firmware_if.backend import FingerState, HandOfOne, StepCommand, check_can_step
+from firmware_if.bus_diagnosis import late_words
 from firmware_if.dxl_bus import DxlBus, ServoReading
 from firmware_if.errors import (
     BusTimeoutError,
@@ -69,6 +70,15 @@ class StepSettings:
             raise HandConfigError("failure_tolerance must be at least 1")
 
 
+def check_cycle_budget(cycle_budget_s: object) -> None:
+    """HandConfigError unless `cycle_budget_s` is a bus cycle's budget the loop can keep:
+    checked where a config names it, before any bus is built (hapticd answered a bad one
+    only after its compute process had set the scenario up, 1-2 s on)."""
+    if isinstance(cycle_budget_s, bool) or not isinstance(cycle_budget_s, (int, float)) \
+            or not 0.002 <= cycle_budget_s <= 0.5:
+        raise HandConfigError(f"cycle_budget_s must be 0.002 .. 0.5 s, got {cycle_budget_s!r}")
+
+
 class DynamixelBackend(HandOfOne):
     """A finger of Dynamixel servos on one bus, implementing `firmware_if.backend.Backend`."""
 
@@ -105,8 +115,7 @@ class DynamixelBackend(HandOfOne):
         if abs(h.radius - radius) > 1e-9:
             raise HandConfigError(f"--radius {radius} m does not match the hand's fingertip "
                                   f"radius {h.radius} m; pass --radius {h.radius}")
-        if not 0.002 <= cycle_budget_s <= 0.5:
-            raise HandConfigError(f"cycle_budget_s must be 0.002 .. 0.5 s, got {cycle_budget_s}")
+        check_cycle_budget(cycle_budget_s)
         return cls(h, port, StepSettings(cycle_budget_s=cycle_budget_s))
 
     def centre_sigma(self) -> np.ndarray:
@@ -236,6 +245,9 @@ class DynamixelBackend(HandOfOne):
                         "and every servo's cable, then reset again", exc.servo_ids) from exc
                 if attempt == 1 or isinstance(exc, PortLost):
                     raise
+        if words := late_words(self.bus):  # servos that would fail the next cycles
+            self._fault = f"reset failed: {words}"
+            raise HardwareFault(f"{self._fault}; reset again once they answer in time")
         self._fault, self._port_lost = None, False
         return rebooted
 

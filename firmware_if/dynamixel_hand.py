@@ -30,7 +30,7 @@ from firmware_if.backend import (
     check_hand_command,
 )
 from firmware_if.dxl_bus import ServoReading
-from firmware_if.dynamixel_backend import DynamixelBackend, StepSettings
+from firmware_if.dynamixel_backend import DynamixelBackend, StepSettings, check_cycle_budget
 from firmware_if.errors import HandConfigError, HardwareFault, NotReadyError
 from firmware_if.hand import Finger, Hand, joint_ticks, load_hand
 from firmware_if.registers import RAD_PER_TICK, amp_to_current, rad_to_ticks, ticks_to_rad
@@ -65,8 +65,7 @@ class DynamixelHand(PlanarHand, DynamixelBackend):  # type: ignore[misc]
     def from_cli(cls, *, port: str, hand: str,
                  cycle_budget_s: float = StepSettings.cycle_budget_s) -> DynamixelHand:
         """Build from `haptic run --object` options (no I/O: that happens in `open`)."""
-        if not 0.002 <= cycle_budget_s <= 0.5:
-            raise HandConfigError(f"cycle_budget_s must be 0.002 .. 0.5 s, got {cycle_budget_s}")
+        check_cycle_budget(cycle_budget_s)
         return cls(load_hand(hand), port,
                    StepSettings(press=HAND_PRESS, cycle_budget_s=cycle_budget_s))
 

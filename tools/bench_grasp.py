@@ -69,9 +69,20 @@ def _check(args: argparse.Namespace) -> None:
     for path in (args.json, args.plot):
         if path is not None and not path.resolve().parent.is_dir():
             raise ConfigError(f"cannot write {path}: folder {path.parent} does not exist")
+    from firmware_if.errors import HandConfigError
+    from firmware_if.hand import load_hand
     from service.errors import ObjectError
     from service.localization.objects.files import load_object
 
+    for hand in args.hands.split(","):  # before any episode (one raised it, exit 1)
+        try:
+            load_hand(hand)
+        except HandConfigError as exc:
+            raise ConfigError(f"--hands: {exc}") from None
+    if args.plane is not None and not any(_plane_for(name, args.plane)
+                                          for name in args.objects.split(",")):
+        raise ConfigError("--plane cuts mesh files (.stl, .obj, .ply) of --objects, and "
+                          "none is one")  # as `haptic run --plane` refuses an outline
     for name in args.objects.split(","):
         if name in OBJECTS:
             continue

@@ -14,14 +14,16 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from firmware_if.dynamixel_backend import check_cycle_budget
 from firmware_if.errors import HandConfigError
 from firmware_if.hand import load_hand
 from service.bounds import check_fields, check_keywords, same_as, setting
 from service.daemon.quiet_files import quiet_hand_error
 from service.episode.hand_scenario import HandSettings, hand_for_backend
 from service.episode.scenario import RunSettings, for_backend
-from service.errors import ConfigError, MapError
+from service.errors import ConfigError, MapError, ObjectError
 from service.localization.maps import MAP_FILE_SUFFIXES, check_map_spec
+from service.localization.objects.files import check_object_spec
 from service.registry import BACKENDS
 from service.wire.envelope import MAX_FRAME_BYTES
 
@@ -57,6 +59,11 @@ class BackendConfig:
         bad = sorted(set(self.options) & set(BACKEND_BUILDER_ARGS))
         if bad:
             raise ConfigError(f"backend.options cannot set {', '.join(bad)}: [scenario] does")
+        if "cycle_budget_s" in self.options:  # refused at once, not once the bus is built
+            try:
+                check_cycle_budget(self.options["cycle_budget_s"])
+            except HandConfigError as exc:
+                raise ConfigError(f"backend.options.{exc}") from None
         hand = self.options.get("hand")
         if isinstance(hand, str):  # the loop needs the hand to know its servos
             try:
@@ -119,6 +126,10 @@ class ScenarioConfig:
         if self.localizer_options:
             raise ConfigError("scenario.localizer_options apply to a finger on a map, not "
                               "to a hand holding an object")
+        try:  # a preset's name and seed, a plane and units for a file; no file is touched
+            check_object_spec(self.object, plane=self.plane, units=self.object_units)
+        except ObjectError as exc:
+            raise ConfigError(f"scenario.object: {exc}") from None
         try:
             load_hand(self.hand_name)
         except HandConfigError as exc:

@@ -142,6 +142,7 @@ class CommandHandlers:
         except HardwareFault as exc:  # e.g. the bus went away while touching down
             self._fault(f"activate failed: {exc}")
             raise
+        self._read_now()
         self._transition("activate")
         return {"state": self.lifecycle.state.value}
 

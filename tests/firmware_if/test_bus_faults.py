@@ -206,6 +206,28 @@ def test_a_misbehaving_servo_faults_the_bus_and_reset_recovers(rig, inject: str)
     assert ram(bus) == opened
 
 
+def test_a_reset_with_a_servo_still_answering_late_stays_in_fault(tmp_path: Path) -> None:
+    """A held-out fault campaign: with a servo answering after 10 ms (past a cycle's read,
+    within the setup's timeout), `reset` answered ok and the bus faulted again 0.2 s
+    later. The reset now times every servo's answer and keeps the fault, naming it."""
+    settings = StepSettings(cycle_budget_s=0.03)  # a cycle's read waits 15 ms
+    with emulator(link=tmp_path / "ttyDXL") as bus, \
+            DynamixelBackend(HAND, str(tmp_path / "ttyDXL"), settings) as backend:
+        plan = bus.fault(3)
+        plan.mute = True
+        for _ in range(settings.failure_tolerance):
+            state = backend.read_state()
+        assert state.fault
+        plan.mute, plan.late_s = False, 0.025  # past a cycle's read, within the setup's
+        with pytest.raises(HardwareFault, match="reset failed: servo 3 answers a ping "
+                           "only after .* reset again once they answer in time"):
+            backend.clear_fault()
+        assert backend.read_state().fault
+        plan.late_s = 0.0
+        backend.clear_fault()
+        assert backend.read_state().fault is None
+
+
 def test_one_corrupt_reply_is_forgiven(rig) -> None:
     backend, bus, _ = rig
     bus.fault(1).corrupt = 1

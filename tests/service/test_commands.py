@@ -429,3 +429,17 @@ def test_a_fault_names_its_first_cause_and_the_latest_few() -> None:
         fault = _with_cause(fault, f"estop {k}")
     causes = fault.split("; then ")
     assert len(causes) == CAUSES and causes[0] == "stop now" and causes[-1] == "estop 9"
+
+
+def test_status_right_after_a_torque_command_tells_what_it_did() -> None:
+    """A held-out client asked `status` the moment `deactivate` answered and read torque on
+    in 4 of 5 tries, though "every command's effect is complete when its reply arrives":
+    the state it reported was the loop's last read, from before. A slow loop makes that
+    read old every time."""
+    config = loopback_config({"loop": {"rate_hz": 10.0}})
+    with running_node(config) as node, Client(node.endpoints["cmd"], timeout_s=10) as ctl:
+        for _ in range(2):
+            ctl.call("activate")
+            assert ctl.status()["torque_on"] is True
+            ctl.call("deactivate")
+            assert ctl.status()["torque_on"] is False

@@ -361,3 +361,33 @@ def test_a_length_in_millimetres_is_told_in_metres() -> None:
     with pytest.raises(ConfigError) as err:
         Bound("float", 1e-6, 0.1, unit="m").check("--spacing", 500)  # 0.5 m: still too big
     assert "mm give" not in str(err.value)
+
+
+def test_an_object_preset_the_daemon_does_not_know_is_a_config_error() -> None:
+    """A held-out check: `object = "teapot"` (or a seed that is no number, or a plane for a
+    CSV outline) started a daemon that could never configure, where `map = "teapot"` was
+    one line and exit 2; and on a finger's Dynamixel backend `configure
+    scenario.object=teapot` was told about `backend.options.hand`, never about teapot."""
+    for scenario, words in (({"object": "teapot"}, "unknown object 'teapot'"),
+                            ({"object": "keyed:x"}, "seed must be a whole number"),
+                            ({"object": "outline.csv", "plane": "z=0.01"}, "not a CSV"),
+                            ({"object": "blob", "object_units": "mm"}, "not presets")):
+        with pytest.raises(ConfigError, match=f"scenario.object: .*{words}"):
+            from_dict({"scenario": scenario})
+    with pytest.raises(ConfigError, match="unknown object 'teapot'"):
+        from_dict({"backend": {"name": "dynamixel",
+                               "options": {"port": "/dev/null", "hand": "spatial"}},
+                   "scenario": {"object": "teapot"}})
+
+
+def test_a_bus_cycle_budget_out_of_range_is_refused_at_once() -> None:
+    """A held-out check: `configure backend.options={..., "cycle_budget_s": 99}` was
+    answered `bad_config` only once the compute process had set the scenario up (1-2 s);
+    a bad value is refused before anything is built."""
+    for budget in (99, -1, 0.001):
+        with pytest.raises(ConfigError, match="backend.options.cycle_budget_s must be "
+                                              "0.002 .. 0.5 s"):
+            from_dict({"backend": {"name": "dynamixel", "options": {
+                "port": "/dev/null", "hand": "spatial", "cycle_budget_s": budget}}})
+    assert from_dict({"backend": {"name": "dynamixel", "options": {
+        "port": "/dev/null", "hand": "spatial", "cycle_budget_s": 0.02}}})

@@ -54,6 +54,18 @@ def test_bench_grasp_refuses_an_unknown_family(capsys):
         capsys.readouterr().err
 
 
+def test_bench_grasp_refuses_a_hand_it_has_not_and_a_plane_with_no_mesh(capsys):
+    """A held-out check: `--hands four-finger` failed in the first episode, as an episode's
+    error with exit 1 (a wrong declaration's status), and `--plane` beside outlines only was
+    taken without a word, where `haptic run` refuses it."""
+    assert main(["bench", "grasp", "--objects", "blob", "--hands", "four-finger",
+                 "--runs", "1", "--workers", "1"]) == 2
+    assert "--hands: no hand preset or file 'four-finger'" in capsys.readouterr().err
+    assert main(["bench", "grasp", "--objects", "blob", "--plane", "z=0.01",
+                 "--runs", "1", "--workers", "1"]) == 2
+    assert "--plane cuts mesh files" in capsys.readouterr().err
+
+
 def test_bench_grasp_holds_an_object_of_ones_own_in_every_run(tmp_path, capsys):
     """A researcher's outline was refused: "unknown family"."""
     outline = tmp_path / "part.csv"

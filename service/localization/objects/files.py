@@ -27,7 +27,7 @@ from service.localization.objects.contour import (
     Contour,
     make_contour,
 )
-from service.localization.objects.presets import preset_object
+from service.localization.objects.presets import preset_name_and_seed, preset_object
 
 MESH_SUFFIXES = {".stl", ".obj", ".ply"}
 OBJECT_FILE_SUFFIXES = frozenset(MESH_SUFFIXES | {".csv"})
@@ -35,12 +35,14 @@ OBJECT_FILE_SUFFIXES = frozenset(MESH_SUFFIXES | {".csv"})
 UNITS = {"m": 1.0, "mm": 0.001}
 
 
-def load_object(spec: str, *, plane: str | None = None, units: str = "m") -> Contour:
-    """A preset (`keyed:3`) or a file (see the module docstring)."""
+def check_object_spec(spec: str, *, plane: str | None = None, units: str = "m") -> None:
+    """ObjectError for an object spec, plane and units that cannot go together, or a preset
+    that is not one, before any file is touched (so hapticd may refuse its own config file
+    at start-up, as it does a map preset it does not know, and tell a client nothing about
+    its files)."""
     if units not in UNITS:
         raise ObjectError(f"object units must be one of {', '.join(UNITS)}, got '{units}'")
-    path = Path(spec)
-    suffix = path.suffix.lower()
+    suffix = Path(spec).suffix.lower()
     if suffix not in OBJECT_FILE_SUFFIXES:
         if plane is not None:
             raise ObjectError("a plane (`--plane`, `scenario.plane`) applies to mesh files "
@@ -49,13 +51,22 @@ def load_object(spec: str, *, plane: str | None = None, units: str = "m") -> Con
             raise ObjectError("units (`--object-units`, `scenario.object_units`) apply to "
                               "object files (.csv, .stl, .obj, .ply), not presets: presets "
                               "are in metres")
+        preset_name_and_seed(spec)
+    elif suffix == ".csv" and plane is not None:
+        raise ObjectError("a plane (`--plane`, `scenario.plane`) applies to mesh files, "
+                          "not a CSV outline")
+
+
+def load_object(spec: str, *, plane: str | None = None, units: str = "m") -> Contour:
+    """A preset (`keyed:3`) or a file (see the module docstring)."""
+    check_object_spec(spec, plane=plane, units=units)
+    path = Path(spec)
+    suffix = path.suffix.lower()
+    if suffix not in OBJECT_FILE_SUFFIXES:
         return preset_object(spec)
     if not path.is_file():
         raise ObjectError(f"object file '{spec}' does not exist")
     if suffix == ".csv":
-        if plane is not None:
-            raise ObjectError("a plane (`--plane`, `scenario.plane`) applies to mesh files, "
-                              "not a CSV outline")
         return _csv(path, UNITS[units])
     return mesh_section(path, plane, UNITS[units])
 

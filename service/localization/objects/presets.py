@@ -95,6 +95,13 @@ DISAMBIGUATED = ("rounded", "blob", "keyed")
 
 def preset_object(spec: str) -> Contour:
     """`NAME` or `NAME:SEED`, e.g. `keyed:7`."""
+    name, seed = preset_name_and_seed(spec)
+    return PRESETS[name](seed)
+
+
+def preset_name_and_seed(spec: str) -> tuple[str, int]:
+    """The family and seed of a preset object's spec, or ObjectError saying what is wrong
+    (nothing is built)."""
     name, _, seed_text = spec.partition(":")
     if name not in PRESETS:
         raise ObjectError(f"unknown object '{spec}': presets are "
@@ -107,4 +114,4 @@ def preset_object(spec: str) -> Contour:
                           f"{name}:3") from None
     if seed < 0:
         raise ObjectError(f"object '{spec}': the seed must be >= 0")
-    return PRESETS[name](seed)
+    return name, seed
