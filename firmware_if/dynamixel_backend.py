@@ -242,7 +242,8 @@ class DynamixelBackend(HandOfOne):
                 if isinstance(exc, CommunicationError) and attempt == 1:
                     raise CommunicationError(  # what to do, not only what the SDK said
                         f"reset failed: a servo does not answer ({exc}); check the bus power "
-                        "and every servo's cable, then reset again", exc.servo_ids) from exc
+                        "and every servo's cable, then reset again (`haptic bus scan` lists "
+                        "the servos on the port: another hand's bus?)", exc.servo_ids) from exc
                 if attempt == 1 or isinstance(exc, PortLost):
                     raise
         if words := late_words(self.bus):  # servos that would fail the next cycles
