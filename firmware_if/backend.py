@@ -106,6 +106,10 @@ class Backend(Protocol):
     def read_hand(self) -> HandState:
         """Read every finger now, in one bus read."""
 
+    def finger_names(self) -> tuple[str, ...]:
+        """Each finger's name, in the order `read_hand` gives them (a hand file's names; a
+        simulated finger's "finger"): a client shows them beside each finger's state."""
+
     def command_hand(self, command: HandCommand) -> None:
         """Start a step of the fingers that move (the others hold); completion shows as
         `moving=False` in a later state. Refused with a clear error while faulted, with
@@ -165,6 +169,9 @@ class PlanarHand:
         raise ValueError(f"hand '{self.hand.name}' moves in its x-z plane: step it with "  # type: ignore[attr-defined]
                          "command_hand (a FingerMove per finger)")
 
+    def finger_names(self) -> tuple[str, ...]:
+        return tuple(f.name for f in self.hand.fingers)  # type: ignore[attr-defined]
+
 
 class HandOfOne:
     """`read_hand` and `command_hand` for a backend of one finger, in terms of its
@@ -173,6 +180,9 @@ class HandOfOne:
     def read_hand(self) -> HandState:
         state = self.read_state()  # type: ignore[attr-defined]
         return HandState(t_ns=state.t_ns, fingers=(state,))
+
+    def finger_names(self) -> tuple[str, ...]:
+        return ("finger",)
 
     def command_hand(self, command: HandCommand) -> None:
         if len(command.moves) != 1:

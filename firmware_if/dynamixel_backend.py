@@ -253,6 +253,10 @@ class DynamixelBackend(HandOfOne):
         return rebooted
 
     # -- I/O -------------------------------------------------------------------------------
+    def finger_names(self) -> tuple[str, ...]:
+        """The hand file's name of its finger."""
+        return tuple(f.name for f in self.hand.fingers)
+
     def read_state(self) -> FingerState:
         state = self._poll()
         if state is None:

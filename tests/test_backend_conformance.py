@@ -248,6 +248,9 @@ def test_a_hand_reads_every_finger_and_steps(hand_rig):
     backend.open()
     first = backend.read_hand()
     assert len(first.fingers) == len(hand_rig.command.moves)
+    names = backend.finger_names()  # one each, told apart (a client shows them)
+    assert len(names) == len(first.fingers) == len(set(names))
+    assert all(isinstance(n, str) and n for n in names)
     assert not first.dropped and not first.moving
     with pytest.raises(NotReadyError):  # torque off
         backend.command_hand(hand_rig.command)

@@ -345,12 +345,20 @@ class Node(CommandHandlers):
         self.pub.publish("state", "state", {
             **self._lifecycle_fields(),
             "fingers": [] if s is None else [
-                {"centre": list(f.centre), "joints": list(f.joints), "moving": f.moving,
-                 "blocked": f.blocked} for f in s.fingers],
+                {"name": name, "centre": list(f.centre), "joints": list(f.joints),
+                 "moving": f.moving, "blocked": f.blocked}
+                for name, f in zip(self._finger_names(len(s.fingers)), s.fingers,
+                                   strict=True)],
             "moving": bool(s and s.moving), "dropped": bool(s and s.dropped),
             "steps_done": 0 if s is None else s.fingers[0].steps_done,
             "lease_holder": self.lease.holder_name,
             "timing": self._timing_cache}, t_mono_ns=tick.start_ns)
+
+    def _finger_names(self, count: int) -> tuple[str | None, ...]:
+        """The backend's names of its `count` fingers (None where it has none to give: the
+        last state read outlives a backend that failed to open again)."""
+        names = () if self.backend is None else self.backend.finger_names()
+        return names if len(names) == count else (None,) * count
 
     def _lifecycle_fields(self) -> dict[str, Any]:
         """What the stream's `state` and the `status` reply both say of the lifecycle and

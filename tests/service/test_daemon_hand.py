@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 import zmq
 
+from firmware_if.hand import load_hand
 from service.daemon.config import DaemonConfig
 from service.daemon.harness import loopback_config, running_node
 from service.daemon.node import Node
@@ -100,6 +101,9 @@ def test_a_client_follows_a_hand_episode_to_convergence(node: Node) -> None:
         state = sub.wait_for(lambda m: m.topic == "state" and m["fingers"], 10)
         assert len(state["fingers"]) == 3 and not state["dropped"]
         assert all(len(f["centre"]) == 3 and len(f["joints"]) == 2 for f in state["fingers"])
+        # each finger by its hand file's name (a client could not tell them but by order)
+        assert [f["name"] for f in state["fingers"]] == [
+            f.name for f in load_hand(HAND["hand"]).fingers]
         c.call("activate")
         assert c.call("start_exploration")["candidates"] > 0
         steps, estimates, done = [], [], None
