@@ -33,6 +33,10 @@ from tools.words import (
 )
 
 NO_REPLY = 3
+FAULTED = 4
+"""`haptic explore`'s status when the daemon is or goes in fault: a script tells a fault,
+which needs a person, from an honest end without a pose (1; a held-out fault campaign
+could not tell them apart)."""
 """Exit status when hapticd does not answer."""
 PING_S = 1.0
 """How often `explore` renews the lease (the daemon's default lease lasts 3 s)."""
@@ -151,7 +155,8 @@ def register_explore(p: argparse.ArgumentParser) -> None:
         "one connection: wait for the daemon, "
         "take the lease, activate, start an episode and print each step until it ends, then "
         "stop, turn torque off and release the lease. Exit status: 0 converged, 1 ended "
-        "without a pose (the reason is printed), 3 no daemon.")
+        "without a pose (the reason is printed), 3 no daemon, 4 the daemon is or went in "
+        "fault (torque off; the fault is printed).")
     p.add_argument("--client", metavar="NAME", help="a name for this controller, shown as "
                    "the lease holder (default: explore-PID)")
     p.add_argument("--wait", type=float, default=60.0, metavar="S",
@@ -165,6 +170,10 @@ def register_explore(p: argparse.ArgumentParser) -> None:
 class ExploreFailed(ServiceError):
     """The daemon could not be brought to explore (fault, no reply, lease never free)."""
 
+    def __init__(self, message: str, *, faulted: bool = False) -> None:
+        super().__init__(message)
+        self.faulted = faulted
+
 
 def cmd_explore(args: argparse.Namespace) -> int:
     client = client_from(args, client_id=args.client or f"explore-{os.getpid()}")
@@ -174,6 +183,8 @@ def cmd_explore(args: argparse.Namespace) -> int:
             started = _start(client, sub, args.wait)
         except ExploreFailed as exc:
             print(f"haptic explore: {exc}", file=sys.stderr)
+            if exc.faulted:
+                return FAULTED
             return NO_REPLY if isinstance(exc.__cause__, CommandTimeout) else 1
         try:
             return Follower(client, sub, started, quiet=args.quiet).run()
@@ -192,7 +203,7 @@ def _start(client: Client, sub: Subscriber, wait_s: float) -> dict[str, Any]:
             state = status["state"]
             if state == "fault":
                 raise ExploreFailed(f"hapticd is in fault: {status['fault']}; clear it with "
-                                    "`haptic ctl reset`, then explore again")
+                                    "`haptic ctl reset`, then explore again", faulted=True)
             if status.get("configuring"):  # hapticd's own start-up configure, say
                 _say(said, "configuring", "waiting: hapticd is configuring")
                 last = ExploreFailed("hapticd was still configuring")
@@ -334,7 +345,7 @@ class Follower:
             why = ev.get("reason") or ev.get("state")
             said = {"fault": "faulted", "stopped": "stopped", "shutdown": "shut down"}[name]
             print(f"haptic explore: the daemon {said}: {why}", file=sys.stderr)
-            return 1
+            return FAULTED if name == "fault" else 1
         return None
 
     def _outcome(self, est: dict[str, Any]) -> int:

@@ -88,10 +88,28 @@ def test_explore_twice_and_after_another_controller_left(node: Node, capsys) -> 
 def test_explore_says_why_it_cannot_start(node: Node, capsys) -> None:
     with Client(node.endpoints["cmd"]) as c:
         c.call("estop", reason="drill")
-    assert main(["explore", *endpoints(node), "--wait", "2"]) == 1
+    # 4, not 1 as for an end without a pose: a script tells a fault that needs a person
+    assert main(["explore", *endpoints(node), "--wait", "2"]) == 4
     assert "fault" in capsys.readouterr().err
     assert main(["explore", "--cmd", "tcp://127.0.0.1:1", "--pub", "tcp://127.0.0.1:2",
                  "--wait", "0.5"]) == 3
+
+
+def test_explore_tells_a_fault_mid_episode_by_its_status(capsys) -> None:
+    """A held-out fault campaign: `haptic explore` ended 1 on a fault as on an honest end
+    without a pose, and a script could not tell the two apart."""
+    config = loopback_config({"backend": {"step_duration_s": 0.2}})
+    with running_node(config) as n, Subscriber(n.endpoints["pub"], ["event"]) as sub:
+        status: list[int] = []
+        runner = threading.Thread(target=lambda: status.append(
+            main(["explore", *endpoints(n), "--quiet"])))
+        runner.start()
+        assert sub.wait_for(lambda m: m["event"] == "episode_started", 30)
+        with Client(n.endpoints["cmd"]) as c:
+            c.call("estop", reason="drill")
+        runner.join(30)
+    assert status == [4]
+    assert "the daemon faulted: " in capsys.readouterr().err
 
 
 def test_explore_a_run_that_runs_out_of_steps_says_why(capsys) -> None:
