@@ -195,7 +195,7 @@ class DxlBus:
             raise
         except PORT_ERRORS as exc:
             port.is_using = False  # the SDK leaves its busy flag set when a call raises
-            self.fault = f"serial port {self.port_name} failed ({what}: {exc})"
+            self.fault = f"serial port {self.port_name} failed ({what}: {_port_error(exc)})"
             raise PortLost(f"bus on {self.port_name}: {self.fault}; torque is off as far as "
                            f"the bus allows; reset (or configure another port) to recover"
                            ) from None
@@ -515,6 +515,17 @@ class DxlBus:
         self.stats.consecutive_failures = 0
         self._anchor()  # a rebooted servo's clock starts again
         return rebooted
+
+
+def _port_error(exc: BaseException) -> str:
+    """A port error in one form whichever layer raised it: termios.error carries (errno,
+    text) and printed "(5, 'Input/output error')" where an OSError printed "[Errno 5]
+    Input/output error" (the same lost port, a finger's and a hand's words, a held-out
+    campaign)."""
+    args = exc.args
+    if not isinstance(exc, OSError) and len(args) == 2 and isinstance(args[0], int):
+        return f"[Errno {args[0]}] {args[1]}"
+    return str(exc)
 
 
 def _reading(data: bytes, error: int) -> ServoReading:

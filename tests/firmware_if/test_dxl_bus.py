@@ -306,3 +306,14 @@ def test_a_reset_after_a_late_servo_is_cleared_reboots_nothing(emulator, bus):
     assert bus.reset() == []
     assert [emulator.servos[i].get("hardware_error_status") for i in IDS] == [0, 0, 0]
     assert emulator.servos[1].get("goal_current") == 123  # not rebooted
+
+
+def test_a_lost_port_reads_the_same_whichever_layer_noticed():
+    """A held-out campaign: the same pulled port read "[Errno 5] Input/output error" in a
+    finger's fault and "(5, 'Input/output error')" in a hand's (termios.error's tuple)."""
+    import termios
+
+    from firmware_if.dxl_bus import _port_error
+
+    lost = OSError(5, "Input/output error")
+    assert _port_error(termios.error(5, "Input/output error")) == str(lost) == _port_error(lost)
