@@ -105,7 +105,10 @@ def draw(ax: Any, hm: HeightMap, view: ViewModel) -> Any:
     """Draw one frame on a matplotlib Axes (cleared first); returns the surface's mappable
     for a colour bar."""
     ax.clear()
-    filled = draw_surface(ax, hm) if not hm.is_profile else None
+    if hm.is_profile:
+        _draw_profile(ax, hm, view)
+        return None
+    filled = draw_surface(ax, hm)
     now = view.path.get(view.cloud_step, (0.0, 0.0))
     if len(view.cloud):
         draw_hypotheses(ax, Hypotheses(view.cloud, view.weights), now, 0.006)
@@ -123,12 +126,50 @@ def draw(ax: Any, hm: HeightMap, view: ViewModel) -> Any:
         ax.plot(*path[-1], "x", color=ESTIMATE, ms=10, mew=2.5,
                 label="finger now (estimate)")
     ax.set_ylabel("y (mm)")
+    _title_and_legend(ax, hm, view)
+    return filled
+
+
+def _title_and_legend(ax: Any, hm: HeightMap, view: ViewModel) -> None:
     status = "CONVERGED" if view.converged else view.belief or "waiting for an estimate"
     ax.set_title(f"{hm.name}: episode {view.episode}, step {view.step}: {status} "
                  f"[{view.state}]", fontsize=10)
     if len(view.cloud) or view.pose is not None:
         ax.legend(loc="best", fontsize=7, framealpha=0.85)  # off the path and the cloud
-    return filled
+
+
+def _draw_profile(ax: Any, hm: HeightMap, view: ViewModel) -> None:
+    """A profile side on, heights against x, with each hypothesis, the path and the
+    estimate where they put the finger along it (a held-out check: drawn as a map seen
+    from above, a profile was a line at y = 0 on an axis of micrometres)."""
+    xs = np.linspace(0.0, hm.extent[0], hm.shape[1]) * MM
+    heights = hm.heights[0] * MM
+    ax.fill_between(xs, heights, heights.min() - 1.0, color="0.85")
+    ax.plot(xs, heights, color="0.3", lw=1, label="profile (surface)")
+
+    def on_profile(x: np.ndarray) -> np.ndarray:
+        return np.column_stack([x, np.interp(x, xs, heights)])
+
+    now = view.path.get(view.cloud_step, (0.0, 0.0))
+    if len(view.cloud):
+        w = np.asarray(view.weights) / max(float(np.max(view.weights)), 1e-300)
+        where = on_profile(finger_positions(np.asarray(view.cloud), now)[:, 0] * MM)
+        colours = np.zeros((len(w), 4))
+        colours[:, 3] = 0.05 + 0.95 * w
+        ax.scatter(where[:, 0], where[:, 1], s=3 + 30 * w, c=colours, linewidths=0)
+        ax.plot([], [], ".", color=CLOUD,
+                label=f"hypotheses: finger now ({len(view.cloud)} of {view.total})")
+    path, _ = view.path_on_map()
+    if len(path):
+        path = on_profile(path[:, 0] * MM)
+        ax.plot(path[:, 0], path[:, 1], "o-", color=ESTIMATE, ms=3, lw=1.2,
+                label="path under the estimate (steps seen)")
+        start = on_profile(np.array([view.pose[0] * MM]))[0]
+        ax.plot(*start, "s", color=ESTIMATE, mfc="none", ms=7, label="estimated start")
+        ax.plot(*path[-1], "x", color=ESTIMATE, ms=10, mew=2.5,
+                label="finger now (estimate)")
+    ax.set(xlim=(0.0, xs[-1]), xlabel="x (mm)", ylabel="height (mm)")
+    _title_and_legend(ax, hm, view)
 
 
 def save_png(path: str, hm: HeightMap, view: ViewModel) -> None:

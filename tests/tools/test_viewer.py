@@ -67,3 +67,27 @@ def test_a_replays_stream_names_the_map_the_view_draws_on():
     assert view.state == "active"  # what came before the map was drawn too
     hand = _msg("event", event="episode_started", episode=2, settings={"object": "blob"})
     assert view_cli._map_from_stream(args, _Stream([hand]), ViewModel(), wait_s=0.5) is None
+
+
+def test_a_profile_is_drawn_side_on():
+    """A held-out check: `haptic view` on a planar finger's profile drew a map seen from
+    above, a line at y = 0 on an axis of micrometres. A profile is drawn as `--plot` draws
+    it: heights against x, the path and the hypotheses on it."""
+    from matplotlib.figure import Figure
+
+    from service.localization.maps import load_map
+    from tools.viewer import draw
+
+    hm = load_map("profile:smooth")
+    view = ViewModel()
+    for step in (1, 2, 3):
+        view.update(_finger_estimate(1, step))
+    view.update(_cloud(1, 3, 4))
+    ax = Figure().add_subplot(1, 1, 1)
+    assert draw(ax, hm, view) is None
+    assert ax.get_ylabel() == "height (mm)" and ax.get_xlabel() == "x (mm)"
+    low, high = ax.get_ylim()
+    assert low < float(hm.heights.min()) * 1e3 and float(hm.heights.max()) * 1e3 < high
+    path = next(line for line in ax.get_lines()
+                if line.get_label().startswith("path under the estimate"))
+    np.testing.assert_allclose(path.get_xdata(), [110.0, 120.0, 130.0])  # 0.1 m + 10 mm steps
