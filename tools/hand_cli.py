@@ -15,6 +15,7 @@ from service.localization.objects.files import OBJECT_FILE_SUFFIXES
 from tools.words import (
     EXIT_FAULT,
     NO_SAFE_MOVE,
+    command_record,
     fault_result,
     hand_step_text,
     pose_text,
@@ -151,7 +152,7 @@ def run_hand(args: argparse.Namespace) -> int:
     if args.json:
         import json
 
-        Path(args.json).write_text(json.dumps(report.to_json(), indent=1))
+        Path(args.json).write_text(json.dumps(command_record(report), indent=1))
         print(f"episode written to {args.json}")
     if args.plot:
         from tools.hand_plots import hand_figure

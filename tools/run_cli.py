@@ -22,6 +22,7 @@ from tools.scenario_options import add_scenario_options, settings_from_args
 from tools.words import (
     EXIT_FAULT,
     belief_text,
+    command_record,
     fault_result,
     pose_text,
     steps_text,
@@ -96,7 +97,7 @@ def run(args: argparse.Namespace) -> int:
     _print_summary(report)
     failed = report.score.wrong_declaration
     if args.json:
-        args.json.write_text(json.dumps(report.to_json(), indent=1))
+        args.json.write_text(json.dumps(command_record(report), indent=1))
         print(f"episode written to {args.json}")
     if args.plot:
         from tools.plots import episode_figure

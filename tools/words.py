@@ -1,7 +1,7 @@
 """Poses, beliefs and outcomes as a person reads them: millimetres, degrees, percentages.
 
 `haptic run`, `haptic explore` and `haptic watch` print through these, so one episode
-reads the same whichever way it ran. Only `math` is imported.
+reads the same whichever way it ran. Only the standard library is imported.
 """
 
 from __future__ import annotations
@@ -9,6 +9,7 @@ from __future__ import annotations
 import math
 import re
 from collections.abc import Sequence
+from typing import Any
 
 NO_SAFE_MOVE = ("no safe move left (under a pose the readings still allow, every roll "
                 "and turn in reach would weaken the grasp below its threshold)")
@@ -24,12 +25,25 @@ DAEMON_WAY_OUT = re.compile(r"(,? then|[;,]) reset\b(?! failed)[^;.?]*")
 configure another port) to recover`), which a command that has ended cannot take."""
 
 
+def fault_cause(fault: str) -> str:
+    """A latched fault in a command's words: its own cause, without the advice for a
+    daemon (`reset`, `configure`) that a command that has ended cannot take."""
+    return "; ".join(part for part in DAEMON_WAY_OUT.sub("", fault).split("; ")
+                     if part and not part.startswith(("torque off", "torque is off")))
+
+
+def command_record(report: Any) -> dict[str, Any]:
+    """An episode's JSON as a command writes it (`--json`): its fault in the command's
+    words (a held-out campaign read "reset to recover" in a `haptic run` file)."""
+    data = report.to_json()
+    if data.get("fault"):
+        data["fault"] = fault_cause(data["fault"])
+    return data
+
+
 def fault_result(fault: str, steps: int) -> str:
-    """The result line of a run a latched fault cut, in a command's words: the fault's own
-    cause, without the advice for a daemon (`reset`, `configure`) that a command that has
-    ended cannot take."""
-    cause = "; ".join(part for part in DAEMON_WAY_OUT.sub("", fault).split("; ")
-                      if part and not part.startswith(("torque off", "torque is off")))
+    """The result line of a run a latched fault cut, in a command's words (`fault_cause`)."""
+    cause = fault_cause(fault)
     return (f"stopped by a hardware fault during step {steps + 1}, torque off: {cause}. "
             f"Fix what it names (the servo's cable and power, the port) and run again; "
             f"the {steps} step{'' if steps == 1 else 's'} before it stand")

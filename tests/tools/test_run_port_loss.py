@@ -94,6 +94,7 @@ def test_a_lost_port_mid_run_ends_it_with_what_it_found(make_bus, argv, mid_epis
     assert "reset" not in result  # a daemon's way out; a command that ended has none
     episode = json.loads(out.read_text())
     assert "serial port" in episode["fault"]
+    assert "reset" not in episode["fault"]  # the file too (a held-out campaign's finding)
     assert episode["estimate"] is not None  # what the steps before found is kept
 
 
@@ -108,3 +109,20 @@ def test_a_missing_port_is_refused_before_the_run_prints(argv, tmp_path, capsys)
     assert captured.out == ""
     assert captured.err.count("\n") == 1 and "ttyUSB9" in captured.err
     assert "adapter plugged in" in captured.err
+
+
+def test_a_runs_file_gives_its_fault_in_a_commands_words():
+    """A held-out fault campaign read "reset to recover" in `haptic run --json`'s fault: a
+    daemon's way out, which a command that has ended cannot take."""
+    from tools.words import command_record
+
+    class Report:
+        def to_json(self):
+            return {"fault": "bus on /dev/pts/3: 3 consecutive failed cycles (last: fast "
+                             "sync read); servo 2 does not answer a ping: check its cable and "
+                             "power; torque off sent to every servo, reset to recover",
+                    "steps": []}
+
+    fault = command_record(Report())["fault"]
+    assert "reset" not in fault and "torque off" not in fault
+    assert fault.endswith("servo 2 does not answer a ping: check its cable and power")
