@@ -170,7 +170,7 @@ class PlanarHand:
                          "command_hand (a FingerMove per finger)")
 
     def finger_names(self) -> tuple[str, ...]:
-        return tuple(f.name for f in self.hand.fingers)  # type: ignore[attr-defined]
+        return self.hand.finger_names  # type: ignore[attr-defined]
 
 
 class HandOfOne:

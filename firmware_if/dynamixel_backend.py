@@ -255,7 +255,7 @@ class DynamixelBackend(HandOfOne):
     # -- I/O -------------------------------------------------------------------------------
     def finger_names(self) -> tuple[str, ...]:
         """The hand file's name of its finger."""
-        return tuple(f.name for f in self.hand.fingers)
+        return self.hand.finger_names
 
     def read_state(self) -> FingerState:
         state = self._poll()

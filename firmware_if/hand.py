@@ -202,7 +202,7 @@ class Hand:
     def __post_init__(self) -> None:
         if not self.fingers:
             raise HandConfigError(f"hand '{self.name}': needs at least one finger")
-        names = [f.name for f in self.fingers]
+        names = list(self.finger_names)
         if len(set(names)) != len(names):
             raise HandConfigError(f"hand '{self.name}': finger names must be unique, "
                                   f"got {names}")
@@ -254,6 +254,11 @@ class Hand:
     def ids(self) -> tuple[int, ...]:
         """Every servo id on the bus, finger by finger."""
         return tuple(i for f in self.fingers for i in f.ids)
+
+    @property
+    def finger_names(self) -> tuple[str, ...]:
+        """Every finger's name, in order (the backends' `finger_names`)."""
+        return tuple(f.name for f in self.fingers)
 
     @property
     def finger(self) -> Finger:

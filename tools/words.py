@@ -46,7 +46,7 @@ def fault_result(fault: str, steps: int) -> str:
     cause = fault_cause(fault)
     return (f"stopped by a hardware fault during step {steps + 1}, torque off: {cause}. "
             f"Fix what it names (the servo's cable and power, the port) and run again; "
-            f"the {steps} step{'' if steps == 1 else 's'} before it stand")
+            f"the {steps_text(steps)} before it stand")
 
 
 def steps_text(count: int) -> str:

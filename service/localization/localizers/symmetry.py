@@ -61,40 +61,58 @@ def symmetry_matches(surface: ContactSurface, threshold: float = 0.85,
     localizer tests the images of the motions found without it, as its whole-map
     certificate stands for the rest: with them, on `haptic bench objects --families
     shell,terrain` 93 of 120 runs localized instead of 96, and none declared wrong either
-    way (BENCHMARKS.md, twenty-second session)."""
-    return kept(surface, ("symmetries", threshold, min_overlap, limit, relative),
-                lambda: _find(surface, threshold, min_overlap, limit, relative))
+    way (BENCHMARKS.md, twenty-second session). Both lists come of one search (the same
+    transforms), kept together: `haptic run` asks for both, and found each on its own at
+    first (twice the search: the localizer's list after the map check's took 0.34 and
+    0.48 s more on `peaks` in two throwaway timings, 0 s now)."""
+    return kept(surface, ("symmetries", threshold, min_overlap, limit),
+                lambda: _find(surface, threshold, min_overlap, limit))[relative]
 
 
-def _find(surface: ContactSurface, threshold: float, min_overlap: float, limit: int,
-          relative: bool) -> np.ndarray:
+KINDS = (False, True)
+"""The correlations every search finds at once: absolute (about the map's mean), relative
+(each copy about its own mean over the overlap: `symmetry_matches`)."""
+
+
+def _find(surface: ContactSurface, threshold: float, min_overlap: float, limit: int
+          ) -> dict[bool, np.ndarray]:
+    """Each kind's (S, 5) motions (`KINDS`)."""
     a = surface.centre_heights
     if surface.map.is_profile or min(a.shape) < 8:
-        return np.empty((0, 5))
+        return {relative: np.empty((0, 5)) for relative in KINDS}
     step = max(1, int(np.ceil(max(a.shape) / 160)))  # coarse is plenty to find a period
     a = a[::step, ::step]
     a = a - a.mean()
     h = surface.map.spacing * step
     turns = (0, 1, 2, 3) if a.shape[0] == a.shape[1] else (0, 2)
     ones = np.ones_like(a)
-    found = []
+    found: dict[bool, list] = {relative: [] for relative in KINDS}
     for k in turns:
-        ncc, overlap = _masked_ncc(a, np.rot90(a, k), ones, min_overlap, relative)
-        peaks = (ncc >= min(threshold, LATTICE[0])) & (ncc == ndimage.maximum_filter(ncc, size=5))
-        u, v = np.nonzero(peaks)
-        shift_y, shift_x = u - (a.shape[0] - 1), v - (a.shape[1] - 1)
-        if k == 0:  # the identity is no rival
-            keep = (shift_x != 0) | (shift_y != 0)
-            u, v, shift_x, shift_y = u[keep], v[keep], shift_x[keep], shift_y[keep]
-        for i in range(len(u)):  # peaks are few
-            found.append((k, -shift_x[i] * h, -shift_y[i] * h, ncc[u[i], v[i]],
-                          overlap[u[i], v[i]] / a.size))
-    found.sort(key=lambda f: -f[3])
+        nccs, overlap = _masked_ncc(a, np.rot90(a, k), ones, min_overlap)
+        for relative, ncc in nccs.items():
+            peaks = ((ncc >= min(threshold, LATTICE[0]))
+                     & (ncc == ndimage.maximum_filter(ncc, size=5)))
+            u, v = np.nonzero(peaks)
+            shift_y, shift_x = u - (a.shape[0] - 1), v - (a.shape[1] - 1)
+            if k == 0:  # the identity is no rival
+                keep = (shift_x != 0) | (shift_y != 0)
+                u, v, shift_x, shift_y = u[keep], v[keep], shift_x[keep], shift_y[keep]
+            found[relative] += [(k, -shift_x[i] * h, -shift_y[i] * h, ncc[u[i], v[i]],
+                                 overlap[u[i], v[i]] / a.size) for i in range(len(u))]
     # other turns keep a share of the room: a lattice's shifts and half turns alone
     # correlate better and would fill it; a surface of revolution keeps every turn. (On
     # a long rectangle a turned copy overlaps too little to tell a turn from chance.)
-    others = _other_turns(surface.centre_heights, surface.map.spacing, surface.map.extent,
-                          threshold, min_overlap, relative) if a.shape[0] == a.shape[1] else []
+    others = (_other_turns(surface.centre_heights, surface.map.spacing, surface.map.extent,
+                           threshold, min_overlap) if a.shape[0] == a.shape[1]
+              else {relative: [] for relative in KINDS})
+    return {relative: _ranked(found[relative], others[relative], limit)
+            for relative in KINDS}
+
+
+def _ranked(found: list, others: list, limit: int) -> np.ndarray:
+    """At most `limit` motions, best first: quarter turns and shifts (`found`) beside the
+    other turns (`others`), which keep a share of the room."""
+    found = sorted(found, key=lambda f: -f[3])
     # the most overlap first: their images land on the map, near the truth's
     others = _each_turn_a_share(sorted(others, key=lambda f: -f[3] * f[4]),
                                 max(limit // 4, len({round(f[0] * 90.0) for f in others})))
@@ -116,8 +134,7 @@ def _each_turn_a_share(found: list, room: int) -> list:
 
 
 def _other_turns(a: np.ndarray, h: float, extent: tuple[float, float], threshold: float,
-                 min_overlap: float, relative: bool = False
-                 ) -> list[tuple[float, float, float, float, float]]:
+                 min_overlap: float) -> dict[bool, list[tuple[float, float, float, float, float]]]:
     """Near symmetries under turns that are not quarter turns (a hexagonal grid of bumps
     under 60 degrees, a gear under its teeth's pitch), as motions with a fractional count
     of quarter turns. Each turn of `OTHER_TURN_STEP` degrees is tried; one counts where the
@@ -127,7 +144,8 @@ def _other_turns(a: np.ndarray, h: float, extent: tuple[float, float], threshold
     `LATTICE`'s first where it falls below its second between them. A turn that counts is
     refined to a tenth of a degree and its shifts to a fraction of a sample, so its images
     land within a polish of the poses they stand for. A held-out check of ours found 7
-    wrong declarations in 5,000 runs on such surfaces, each the truth turned so."""
+    wrong declarations in 5,000 runs on such surfaces, each the truth turned so. Each kind
+    of correlation (`KINDS`) has its own list, of one set of turned copies."""
     coarse = max(1, int(np.ceil(max(a.shape) / OTHER_TURN_SIDE)))
     # samples spread evenly about the map's centre, which the turns are about (`images`)
     first = ((a.shape[0] - 1) % coarse) // 2
@@ -138,13 +156,27 @@ def _other_turns(a: np.ndarray, h: float, extent: tuple[float, float], threshold
     angles = np.arange(0.0, 360.0, OTHER_TURN_STEP)
     # a quarter turn: found exactly, a wall between peaks
     tried = np.array([deg % 90.0 != 0.0 for deg in angles])
-    best = np.ones(len(angles))
-    peak: dict[int, tuple[float, float, float, float, float]] = {}
+    best = {relative: np.ones(len(angles)) for relative in KINDS}
+    peak: dict[bool, dict[int, tuple[float, float, float, float, float]]] = {
+        relative: {} for relative in KINDS}
     for i in np.flatnonzero(tried):
-        ncc, overlap = _turned_ncc(a, angles[i], min_overlap, relative)
-        u, v = np.unravel_index(int(np.argmax(ncc)), ncc.shape)
-        best[i] = ncc[u, v]
-        peak[i] = _motion(ncc, overlap, u, v, angles[i], a.shape, h)
+        nccs, overlap = _turned_ncc(a, angles[i], min_overlap)
+        for relative, ncc in nccs.items():
+            u, v = np.unravel_index(int(np.argmax(ncc)), ncc.shape)
+            best[relative][i] = ncc[u, v]
+            peak[relative][i] = _motion(ncc, overlap, u, v, angles[i], a.shape, h)
+    return {relative: _turns_that_count(a, h, extent, threshold, min_overlap, angles, tried,
+                                        best[relative], peak[relative], relative)
+            for relative in KINDS}
+
+
+def _turns_that_count(a: np.ndarray, h: float, extent: tuple[float, float],
+                      threshold: float, min_overlap: float, angles: np.ndarray,
+                      tried: np.ndarray, best: np.ndarray,
+                      peak: dict[int, tuple[float, float, float, float, float]],
+                      relative: bool) -> list[tuple[float, float, float, float, float]]:
+    """`_other_turns` of one kind, from each coarse turn's `best` correlation and its
+    `peak` motion; a turn that counts refined on `a`, the coarse map."""
     if np.all(best[tried] >= threshold):
         # the surface repeats under every turn, each about one centre: a surface of
         # revolution (a turned part, rings, a bowl), whose truth lies at any turn of a pose
@@ -168,9 +200,9 @@ def _other_turns(a: np.ndarray, h: float, extent: tuple[float, float], threshold
         if bar is None:
             continue
         fine = deg + np.arange(-1.0, 1.01, 0.1) * OTHER_TURN_STEP / 2
-        turns = [_turned_ncc(a, d, min_overlap, relative) for d in fine]
-        k = int(np.argmax([t[0].max() for t in turns]))
-        ncc, overlap = turns[k]
+        turns = [_turned_ncc(a, d, min_overlap) for d in fine]
+        k = int(np.argmax([t[0][relative].max() for t in turns]))
+        ncc, overlap = turns[k][0][relative], turns[k][1]
         peaks = (ncc >= bar) & (ncc == ndimage.maximum_filter(ncc, size=5))
         found += [_motion(ncc, overlap, u, v, fine[k], a.shape, h)
                   for u, v in zip(*np.nonzero(peaks), strict=True)]
@@ -187,15 +219,15 @@ def _motion(ncc: np.ndarray, overlap: np.ndarray, u: int, v: int, deg: float,
             float(ncc[u, v]), float(overlap[u, v]) / (shape[0] * shape[1]))
 
 
-def _turned_ncc(a: np.ndarray, deg: float, min_overlap: float, relative: bool = False
-                ) -> tuple[np.ndarray, np.ndarray]:
+def _turned_ncc(a: np.ndarray, deg: float, min_overlap: float
+                ) -> tuple[dict[bool, np.ndarray], np.ndarray]:
     """Normalized correlation of `a` with itself turned by `deg` degrees (about its centre)
     at every shift, -1 where they overlap on less than `min_overlap` of it; and the
     overlaps, in samples."""
     mask = (ndimage.rotate(np.ones_like(a), deg, reshape=False, order=1) > 0.999
             ).astype(np.float64)
     return _masked_ncc(a, mask * ndimage.rotate(a, deg, reshape=False, order=1), mask,
-                       min_overlap, relative)
+                       min_overlap)
 
 
 FEATURED = 0.02
@@ -205,15 +237,14 @@ while part of a dome varies far less than the whole dome does (at 0.1 two shells
 symmetry; at this share every preset keeps every one it had)."""
 
 
-def _masked_ncc(a: np.ndarray, b: np.ndarray, mask: np.ndarray, min_overlap: float,
-                relative: bool = False) -> tuple[np.ndarray, np.ndarray]:
+def _masked_ncc(a: np.ndarray, b: np.ndarray, mask: np.ndarray, min_overlap: float
+                ) -> tuple[dict[bool, np.ndarray], np.ndarray]:
     """Normalized correlation of `a` (mean zero) with `b` (zero off `mask`, where it is
-    defined) at every shift (with `relative`, of each about its own mean over the overlap:
-    `symmetry_matches`), -1 where they overlap on less than `min_overlap` of `a` or
-    where either varies too little over the overlap (`FEATURED`); and the overlaps, in
-    samples. Two plains correlate perfectly: on a plate with one hole, turned copies that
-    missed the hole named the wrong axis of revolution, and a flat map "every turn about"
-    an arbitrary point."""
+    defined) at every shift, of each kind (`KINDS`), -1 where they overlap on less than
+    `min_overlap` of `a` or where either varies too little over the overlap (`FEATURED`);
+    and the overlaps, in samples. Two plains correlate perfectly: on a plate with one hole,
+    turned copies that missed the hole named the wrong axis of revolution, and a flat map
+    "every turn about" an arbitrary point."""
     shape = [2 * n - 1 for n in a.shape]
     padded = [fft.next_fast_len(n, real=True) for n in shape]
 
@@ -230,16 +261,16 @@ def _masked_ncc(a: np.ndarray, b: np.ndarray, mask: np.ndarray, min_overlap: flo
     n = np.maximum(overlap, 1.0)
     sum_a, sum_b = back(f_a * f_mask), back(f_ones * f_b)
     varied_a, varied_b = ss_a - sum_a ** 2 / n, ss_b - sum_b ** 2 / n
-    if relative:  # each copy about its own mean over the overlap
-        ncc = (back(f_a * f_b) - sum_a * sum_b / n) / np.sqrt(
-            np.maximum(varied_a * varied_b, 1e-300))
-    else:
-        ncc = back(f_a * f_b) / np.sqrt(np.maximum(ss_a * ss_b, 1e-300))
+    product = back(f_a * f_b)
+    nccs = {False: product / np.sqrt(np.maximum(ss_a * ss_b, 1e-300)),
+            True: (product - sum_a * sum_b / n) / np.sqrt(  # each about its own mean
+                np.maximum(varied_a * varied_b, 1e-300))}
     featured = ((varied_a >= FEATURED * n / a.size * np.sum(a * a))
                 & (varied_b >= FEATURED * n / max(mask.sum(), 1.0) * np.sum(b * b))
                 & (varied_a > 0) & (varied_b > 0))
-    ncc[(overlap < min_overlap * a.size) | ~featured] = -1.0
-    return ncc, overlap
+    for ncc in nccs.values():
+        ncc[(overlap < min_overlap * a.size) | ~featured] = -1.0
+    return nccs, overlap
 
 
 def _subsample(ncc: np.ndarray, u: int, v: int) -> tuple[float, float]:
