@@ -71,17 +71,20 @@ def why_cycles_failed(bus: DxlBus, last: CommunicationError) -> str:
     return (_late_words(late, bus.cycle_budget_s)
             + _silent_words(silent, len(bus.ids), bus.baud))
 
-def answer_times(bus: DxlBus, tries: int = 1) -> dict[int, float]:
-    """{id: ms from its ping to its answer} for every servo that answers; one that answers
-    later than a cycle's read waits is timed again alone, on a quiet line, up to `tries`
-    times, keeping its quickest (a host's hiccup is late once, a late servo every time)."""
+def answer_times(bus: DxlBus, tries: int = 3) -> dict[int, float]:
+    """{id: ms from its ping to its answer} for every servo that answers. One that answers
+    later than a cycle's read waits is timed again alone, on a quiet line, keeping its
+    quickest: a late servo is as late again, and is timed no more; one that only waited
+    behind another's late replies, or met a host's hiccup, comes sooner, and is timed up
+    to `tries` times (under load, a healthy servo timed once more at 15 ms was named late
+    beside the late one)."""
     answered = ping_times(bus, bus.ids)
     half_cycle_ms = bus.cycle_budget_s * 1e3 / 2
     for sid in [s for s, ms in answered.items() if ms > half_cycle_ms]:
         for _ in range(tries):
-            again = ping_times(bus, (sid,)).get(sid, answered[sid])
-            answered[sid] = min(answered[sid], again)
-            if answered[sid] <= half_cycle_ms:
+            before = answered[sid]
+            answered[sid] = min(before, ping_times(bus, (sid,)).get(sid, before))
+            if answered[sid] <= half_cycle_ms or answered[sid] >= before / 2:
                 break
     return answered
 
@@ -91,7 +94,7 @@ def late_words(bus: DxlBus) -> str:
     in a fault's words, without the leading "; "), or "" when every one does: a reset
     checks it (a held-out check: with a servo answering after 10 ms, `reset` answered ok
     and the bus faulted again 0.2 s later)."""
-    answered = answer_times(bus, tries=3)
+    answered = answer_times(bus)
     late = {sid: ms for sid, ms in answered.items() if ms > bus.cycle_budget_s * 1e3 / 2}
     silent = [sid for sid in bus.ids if sid not in answered]
     return (_late_words(late, bus.cycle_budget_s)
@@ -107,8 +110,9 @@ def ping_times(bus: DxlBus, ids: Sequence[int]) -> dict[int, float]:
     sent: dict[int, int] = {}
     got: dict[int, float] = {}
     for sid in ids:
-        port.writePort(list(packet(sid, INST_PING)))  # not txPacket: it would settle,
-        sent[sid] = time.monotonic_ns()  # dropping the answers still awaited
+        sent[sid] = time.monotonic_ns()  # before the write: a host descheduled after it
+        port.writePort(list(packet(sid, INST_PING)))  # timed a 100 ms servo at 98 ms
+        # (not txPacket: it would settle, dropping the answers still awaited)
         _take_answers(bus, sent, got, SETUP_TIMEOUT_MS, until=sid)
     _take_answers(bus, sent, got, LATE_LIMIT_S * 1e3)
     return got

@@ -81,11 +81,14 @@ def test_a_lost_port_mid_run_ends_it_with_what_it_found(make_bus, argv, mid_epis
         reached, status = _lose_the_port_mid_run(make_bus(), argv, mid_episode(), out)
         if reached:
             break
-        # a loaded host missed the opening's cycles (a fault of its own, before any step:
-        # status 2, as a port that is not there): not the run under test; try again
-        assert status == [2], status
+        # a loaded host missed the cycles before the port went (the emulator answers from a
+        # thread of this process): while opening (status 2, as a port that is not there)
+        # or at a step (status 3, a fault that names no port; `make test` beside benches,
+        # twice): not the run under test; try again
+        assert status == [2] or (status == [EXIT_FAULT] and "serial port"
+                                 not in json.loads(out.read_text())["fault"]), status
         capsys.readouterr()
-    assert reached, "three runs in a row faulted while opening"
+    assert reached, "three runs in a row faulted before the port was lost"
     assert status == [EXIT_FAULT]
     captured = capsys.readouterr()
     assert "Traceback" not in captured.err
