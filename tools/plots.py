@@ -54,21 +54,30 @@ def finger_positions(poses: np.ndarray, displacement: Sequence[float]) -> np.nda
     return np.column_stack([poses[:, 0] + dx, poses[:, 1] + dy])
 
 
+def hypothesis_ink(weights: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Which hypotheses to draw, in drawing order (the likeliest last, on top), their
+    weights scaled to the most probable, and their colours: the more probable, the darker;
+    thousands of equals a haze, not ink. One rule for maps and profiles, figures and the
+    viewer."""
+    order = np.argsort(weights)
+    w = weights[order] / max(float(weights.max(initial=0.0)), 1e-300)
+    keep = w >= 1e-4  # below that a hypothesis holds no belief worth ink
+    order, w = order[keep], w[keep]
+    crowd = float(np.clip(300 / max(len(w), 1), 0.08, 1.0))
+    colours = np.zeros((len(w), 4))
+    colours[:, 3] = crowd * (0.05 + 0.95 * w)
+    return order, w, colours
+
+
 def draw_hypotheses(ax: Axes, hyp: Hypotheses, displacement: Sequence[float],
                     tick: float) -> None:
     """Each hypothesis as a dot where it puts the finger now, with a tick along its
-    heading; the more probable, the darker (weights scaled to the most probable)."""
+    heading (`hypothesis_ink`'s shades)."""
     if len(hyp.poses) == 0:
         return
-    order = np.argsort(hyp.weights)  # the likeliest drawn last, on top
-    poses, w = hyp.poses[order], hyp.weights[order] / hyp.weights.max()
-    keep = w >= 1e-4  # below that a hypothesis holds no belief worth ink
-    poses, w = poses[keep], w[keep]
+    order, w, colours = hypothesis_ink(np.asarray(hyp.weights))
+    poses = hyp.poses[order]
     where = finger_positions(poses, displacement) * MM
-    crowd = float(np.clip(300 / len(w), 0.08, 1.0))  # thousands of equals: a haze, not ink
-    alpha = crowd * (0.05 + 0.95 * w)
-    colours = np.zeros((len(w), 4))
-    colours[:, 3] = alpha
     heads = np.column_stack([np.cos(poses[:, 2]), np.sin(poses[:, 2])]) * tick * MM
     ax.add_collection(LineCollection(np.stack([where, where + heads], axis=1),
                                      colors=colours, linewidths=0.7))

@@ -18,7 +18,15 @@ import numpy as np
 from service.localization.localizers.base import Hypotheses
 from service.localization.surface import HeightMap
 from service.wire.envelope import Message
-from tools.plots import CLOUD, ESTIMATE, MM, draw_hypotheses, draw_surface, finger_positions
+from tools.plots import (
+    CLOUD,
+    ESTIMATE,
+    MM,
+    draw_hypotheses,
+    draw_surface,
+    finger_positions,
+    hypothesis_ink,
+)
 from tools.words import belief_text
 
 
@@ -152,10 +160,8 @@ def _draw_profile(ax: Any, hm: HeightMap, view: ViewModel) -> None:
 
     now = view.path.get(view.cloud_step, (0.0, 0.0))
     if len(view.cloud):
-        w = np.asarray(view.weights) / max(float(np.max(view.weights)), 1e-300)
-        where = on_profile(finger_positions(np.asarray(view.cloud), now)[:, 0] * MM)
-        colours = np.zeros((len(w), 4))
-        colours[:, 3] = 0.05 + 0.95 * w
+        order, w, colours = hypothesis_ink(np.asarray(view.weights))
+        where = on_profile(finger_positions(np.asarray(view.cloud)[order], now)[:, 0] * MM)
         ax.scatter(where[:, 0], where[:, 1], s=3 + 30 * w, c=colours, linewidths=0)
         ax.plot([], [], ".", color=CLOUD,
                 label=f"hypotheses: finger now ({len(view.cloud)} of {view.total})")
