@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import time
 from collections import Counter, OrderedDict
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -217,11 +218,22 @@ class CommandServer:
 
     def poll(self, timeout_ms: float = 0, max_requests: int = 16) -> int:
         """Answer up to `max_requests` waiting requests, waiting up to `timeout_ms` for one."""
-        if timeout_ms > 0 and not self._poller.poll(timeout_ms):
-            self._disconnects()
+        if timeout_ms > 0 and not self.wait(timeout_ms):
             return 0
+        return self.answer(max_requests=max_requests)
+
+    def wait(self, timeout_ms: float) -> bool:
+        """Wait up to `timeout_ms` for a request; whether one is waiting."""
+        if self._poller.poll(timeout_ms):
+            return True
+        self._disconnects()
+        return False
+
+    def answer(self, until_ns: int | None = None, max_requests: int = 16) -> int:
+        """Answer the requests waiting, up to `max_requests`, and none once the monotonic
+        clock reads `until_ns`: the rest wait for the loop's next turn."""
         n = 0
-        while n < max_requests:
+        while n < max_requests and (until_ns is None or time.monotonic_ns() < until_ns):
             try:
                 frames = self._sock.recv_multipart(flags=zmq.NOBLOCK, copy=False)
             except zmq.Again:
