@@ -120,12 +120,17 @@ class ScenarioConfig:
             except MapError as exc:
                 raise ConfigError(f"scenario.map: {exc}") from None
             return
+        # a change merges into the running scenario: a finger's setting given earlier
+        # stays unless the same change clears it (a held-out client was refused a hand
+        # for options it had set long before, and not told how to go on)
         if self.start is not None:
             raise ConfigError("scenario.start places a finger on a map; an object's start "
-                              "is drawn from scenario.seed")
+                              "is drawn from scenario.seed: set start to nil in the same "
+                              "change (changes merge into the running scenario)")
         if self.localizer_options:
             raise ConfigError("scenario.localizer_options apply to a finger on a map, not "
-                              "to a hand holding an object")
+                              "to a hand holding an object: set localizer_options to {} in "
+                              "the same change (changes merge into the running scenario)")
         try:  # a preset's name and seed, a plane and units for a file; no file is touched
             check_object_spec(self.object, plane=self.plane, units=self.object_units)
         except ObjectError as exc:

@@ -183,7 +183,8 @@ class RateLoop:
         """Timing for the state stream (recent window) or a report (whole run)."""
         period, work = self.period.summary_ms(window), self.work.summary_ms(window)
         return {
-            "rate_hz": 1e9 / self.period_ns, "ticks": self.ticks, "overruns": self.overruns,
+            "rate_hz": float(f"{1e9 / self.period_ns:.6g}"),  # 900, not 900.00009 (whole ns)
+            "ticks": self.ticks, "overruns": self.overruns,
             "skipped": self.skipped,
             "period_p50_ms": period["p50"], "period_p99_ms": period["p99"],
             "period_max_ms": period["max"],

@@ -67,9 +67,9 @@ def test_garbage_gets_error_replies_and_changes_nothing(node: Node, raw: zmq.Soc
             (msgpack.packb({"v": 1, "type": "request", "id": 1, "cmd": "estop"}),
              "bad_version"),
             (request(cmd="format_disk", client="x"), "unknown_command"),
-            (request(cmd="estop", args={"reason": 3}), "bad_args"),
-            (request(cmd="estop", args={"force": True}), "bad_args"),
-            (request(cmd="estop", args=[1]), "bad_args"),
+            (request(cmd="reset", args={"force": True}), "bad_args"),
+            (request(cmd="start_exploration", args={"repeat": "yes"}), "bad_args"),
+            (request(cmd="set_map", args=[1]), "bad_args"),
             (request(cmd="set_map", client="intruder", args={}), "bad_args"),
             (request(cmd="deactivate", client="intruder"), "lease_held"),
             (request(cmd="activate"), "lease_held"),  # another connection holds it
@@ -144,6 +144,31 @@ def test_lease_is_exclusive_and_estop_is_for_everyone(node: Node) -> None:
             # activation needs a fresh reading after the reset: wait for one to stream
             assert sub.wait_for(lambda m: m["state"] == "inactive", 5.0)
             assert b.call("activate")["state"] == "active"
+
+
+@pytest.mark.parametrize(("args", "client", "words"), [
+    ({"reason": "y" * 4097}, "me", "estop: " + "y" * 4096),
+    ({"reason": 3}, "me", "estop: 3"),
+    ({"reason": "smoke", "force": True}, "me", "estop: smoke"),
+    ([1], "me", "estop: estop"),
+    ({"reason": "smoke"}, "x" * 200, "estop: smoke"),
+])
+def test_an_estop_is_never_refused_for_its_arguments(node: Node, raw: zmq.Socket, args,
+                                                     client, words) -> None:
+    """A held-out client's estop with a 4,097-character reason was refused ("must be
+    str"), and the finger went on: a stop with odd arguments is still a stop."""
+    with Client(node.endpoints["cmd"]) as ctl:
+        ctl.call("activate")
+        reply = ask(raw, request(cmd="estop", client=client, args=args))
+        assert reply["ok"] and reply["result"]["state"] == "fault", reply
+        status = ctl.status()
+        assert status["fault"] == words and status["state"] == "fault"
+
+
+def test_a_refused_argument_says_what_it_must_be(node: Node, raw: zmq.Socket) -> None:
+    reply = ask(raw, request(cmd="set_map", args={"map": "m" * 4097}))
+    assert reply["error"]["message"] == ("'set_map' argument 'map' must be a string of at "
+                                         "most 4096 characters")
 
 
 def test_an_estop_in_fault_keeps_the_first_cause(node: Node) -> None:

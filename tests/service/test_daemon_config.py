@@ -66,6 +66,20 @@ def test_a_hand_refuses_what_only_a_finger_uses(change: dict) -> None:
     assert finger.scenario.object is None and finger.scenario.map == "bumps:20:3"
 
 
+@pytest.mark.parametrize(("earlier", "clear"), [
+    ({"localizer_options": {"work": 1000000}}, {"localizer_options": {}}),
+    ({"start": [0.1, 0.1, 0.0]}, {"start": None}),
+])
+def test_a_fingers_setting_left_from_earlier_says_how_to_clear_it(earlier, clear) -> None:
+    """A held-out client set localizer options, and long after was refused a hand for them
+    ("apply to a finger on a map"), with no word of how to go on: changes merge."""
+    finger = DaemonConfig().updated({"scenario": earlier})
+    hand = {"object": "keyed", "hand": "two-finger"}
+    with pytest.raises(ConfigError, match=f"set {next(iter(clear))} to .* in the same change"):
+        finger.updated({"scenario": hand})
+    assert finger.updated({"scenario": {**hand, **clear}}).scenario.object == "keyed"
+
+
 def test_load_reports_missing_and_broken_files(tmp_path: Path) -> None:
     with pytest.raises(ConfigError, match="does not exist"):
         load_config(tmp_path / "none.toml")

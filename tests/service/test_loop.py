@@ -50,6 +50,13 @@ def test_deadlines_are_absolute_so_jitter_does_not_accumulate() -> None:
     assert s["period_p50_ms"] == pytest.approx(5.0) and s["work_max_ms"] == pytest.approx(1.3)
 
 
+@pytest.mark.parametrize("rate_hz", [900.0, 333.33, 200.0, 2000.0])
+def test_the_rate_reads_as_configured(rate_hz: float) -> None:
+    """`timing.rate_hz` read 900.000090000009 for 900 (the period is whole nanoseconds)."""
+    loop = RateLoop(int(round(1e9 / rate_hz)), lambda tick: None)
+    assert loop.summary()["rate_hz"] == rate_hz
+
+
 def test_skip_policy_counts_overruns_and_resumes_on_the_grid() -> None:
     loop, t, ticks = make([1, 12, 1, 1])  # tick 1 overruns by 2.4 periods
     for _ in range(4):
