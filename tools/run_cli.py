@@ -77,7 +77,7 @@ def run(args: argparse.Namespace) -> int:
         print(f"warning: {warning}")
     backend_factory: Callable[[Truth], Backend] | None = None
     if args.backend != "sim":
-        settings = for_backend(settings, args.backend)
+        settings = for_backend(settings, args.backend, args.hand)
         cls = BACKENDS.load(args.backend)
 
         def backend_factory(truth: Truth) -> Backend:

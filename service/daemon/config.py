@@ -287,7 +287,7 @@ class DaemonConfig:
         settings = self.scenario.settings()
         if isinstance(settings, HandSettings):
             return hand_for_backend(settings, self.backend.name)
-        return for_backend(settings, self.backend.name)
+        return for_backend(settings, self.backend.name, self.backend.options.get("hand"))
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)

@@ -248,7 +248,8 @@ class FingerEpisode:
                                displacement=self.displacement[:2].copy(),
                                blocked=frozenset(self.blocked_here), surface=sc.surface,
                                step_length=sc.settings.step, rng=self.policy_rng,
-                               walls=sc.settings.walls, estimate=est)
+                               walls=sc.settings.walls, estimate=est,
+                               planar=sc.settings.planar)
             self.move = int(self.policy.next_move(view))
             self.policy_ms = (time.perf_counter() - t1) * 1e3
             dx, dy = MOVES[self.move] * sc.settings.step

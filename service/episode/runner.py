@@ -91,7 +91,7 @@ def execute_step(backend: Backend, step: StepCommand, timeout_s: float = 10.0) -
 
 def run_episode(backend: Backend, localizer: Localizer, policy: Policy, *,
                 surface: ContactSurface, step_length: float, max_steps: int,
-                rng: np.random.Generator, walls: bool = False,
+                rng: np.random.Generator, walls: bool = False, planar: bool = False,
                 on_step: Callable[[StepRecord], None] | None = None,
                 on_start: Callable[[], None] | None = None) -> EpisodeResult:
     """Explore until the localizer converges or `max_steps` steps are taken."""
@@ -111,7 +111,7 @@ def run_episode(backend: Backend, localizer: Localizer, policy: Policy, *,
         view = PolicyInput(hypotheses=localizer.hypotheses(), displacement=displacement[:2],
                            blocked=frozenset(blocked_here), surface=surface,
                            step_length=step_length, rng=rng, walls=walls,
-                           estimate=estimate)
+                           estimate=estimate, planar=planar)
         move = policy.next_move(view)
         policy_ms = (time.perf_counter() - t0) * 1e3
         t0 = time.perf_counter()

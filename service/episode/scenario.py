@@ -6,6 +6,7 @@ finger, localizer and policy through here, so a setting means the same thing eve
 
 from __future__ import annotations
 
+import contextlib
 from dataclasses import asdict, dataclass, replace
 from typing import Any
 
@@ -48,6 +49,9 @@ class RunSettings:
     """A blocked step means the map's edge stopped it (the simulated world); on hardware a
     joint limit can too, so there it is no evidence about the pose (`for_backend`)."""
     localizer_options: dict[str, Any] = setting({}, "options")
+    planar: bool = False
+    """The finger moves in its plane only (a planar chain on servos, `for_backend`): the
+    policy offers it no +-y step."""
 
     def __post_init__(self) -> None:
         check_fields(self, flags=True)  # errors name `haptic run`'s options
@@ -80,13 +84,22 @@ def surface_for(settings: RunSettings, height_map: HeightMap | None = None) -> C
     return contact_surface(height_map, settings.radius)
 
 
-def for_backend(settings: RunSettings, backend: str) -> RunSettings:
-    """`settings` for a run on `backend`: on hardware, unless told otherwise, the localizer
-    assumes the encoders' rounding as noise (`HARDWARE_SENSOR_SIGMA`; exact readings
-    would eliminate the truth), and a blocked step is no evidence of the map's edge."""
+def for_backend(settings: RunSettings, backend: str, hand: str | None = None
+                ) -> RunSettings:
+    """`settings` for a run on `backend` with the finger `hand` (a preset or a file): on
+    hardware, unless told otherwise, the localizer assumes the encoders' rounding as noise
+    (`HARDWARE_SENSOR_SIGMA`; exact readings would eliminate the truth), a blocked step is
+    no evidence of the map's edge, and a planar finger is offered no +-y step."""
     if backend == "sim":
         return settings
-    return replace(settings, walls=False, sensor_sigma=(
+    planar = settings.planar
+    if hand is not None:
+        from firmware_if.errors import HandConfigError
+        from firmware_if.hand import load_hand
+
+        with contextlib.suppress(HandConfigError):  # opening the backend tells what is wrong
+            planar = load_hand(hand).planar
+    return replace(settings, walls=False, planar=planar, sensor_sigma=(
         HARDWARE_SENSOR_SIGMA if settings.sensor_sigma is None else settings.sensor_sigma))
 
 

@@ -110,7 +110,8 @@ def simulate(settings: RunSettings, height_map: HeightMap | None = None, *,
         finger.set_torque(True)
         result = run_episode(finger, localizer, build_policy(settings), surface=surface,
                              step_length=settings.step, max_steps=settings.max_steps,
-                             rng=policy_rng, walls=settings.walls, on_step=record,
+                             rng=policy_rng, walls=settings.walls,
+                             planar=settings.planar, on_step=record,
                              on_start=lambda: snapshot(0))
     finally:
         finger.close()

@@ -330,3 +330,32 @@ def test_precision_counts_the_error_nearby_readings_share(surface):
     assert np.all(alone > 0) and np.all(shared <= alone)
     kept = shared / alone
     assert kept[:2].max() < 0.6 < kept[2:].min()
+
+
+@pytest.mark.parametrize("policy", ["info-gain", "paper", "random"])
+def test_a_planar_finger_on_a_map_is_offered_no_sideways_step(surface, policy):
+    """A held-out lab's planar finger on `peaks` (servos) spent 36 of its 100 steps on +-y
+    moves, every one blocked: its chain moves only in its plane."""
+    from service.registry import POLICIES
+
+    rng = np.random.default_rng(5)
+    poses = np.column_stack([rng.uniform(0.05, 0.15, 60), rng.uniform(0.05, 0.15, 60),
+                             rng.uniform(-np.pi, np.pi, 60)])
+    chooser = POLICIES.load(policy)()
+    for k in range(12):
+        view = PolicyInput(hypotheses=Hypotheses(poses, np.full(60, 1 / 60)),
+                           displacement=np.array([0.01 * (k % 5), 0.0]), blocked=frozenset(),
+                           surface=surface, step_length=0.01, rng=rng, planar=True)
+        assert chooser.next_move(view) in (0, 2)
+
+
+def test_a_planar_chain_on_servos_makes_a_planar_run():
+    from service.episode.scenario import for_backend
+
+    assert for_backend(RunSettings(), "dynamixel", "planar").planar
+    assert not for_backend(RunSettings(), "dynamixel", "spatial").planar
+    assert not for_backend(RunSettings(), "sim").planar
+    from service.daemon.config import DaemonConfig  # hapticd's finger too
+
+    servos = {"name": "dynamixel", "options": {"port": "/dev/ttyUSB0", "hand": "planar"}}
+    assert DaemonConfig().updated({"backend": servos}).run_settings().planar

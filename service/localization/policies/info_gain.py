@@ -131,7 +131,7 @@ class InfoGainPolicy:
         if far is not None:  # a place beyond reach tells the main modes apart far faster
             self._target = far
             return self._toward(view, here, far, moves, poses, weights, s, spread)
-        offsets = _diamond(self.reach, view.surface.map.is_profile)
+        offsets = _diamond(self.reach, view.along_x_only)
         value = self._value(view, poses, weights, offsets, s, spread)
         dist = np.abs(offsets).sum(axis=1)
         reachable = self._reachable(here, offsets)
@@ -139,7 +139,7 @@ class InfoGainPolicy:
         best = int(np.argmax(rate))
         target = (here[0] + int(offsets[best, 0]), here[1] + int(offsets[best, 1]))
         if not rate[best] > 0:  # nothing in reach tells anything: to the nearest new place
-            target = self._nearest_unread(here, view.surface.map.is_profile) or target
+            target = self._nearest_unread(here, view.along_x_only) or target
         if self._target is not None and self._target != here:
             kept = np.flatnonzero((offsets[:, 0] == self._target[0] - here[0])
                                   & (offsets[:, 1] == self._target[1] - here[1]))
@@ -187,7 +187,7 @@ class InfoGainPolicy:
             self._far = None
             return None
         p, w = poses[keep], weights[keep] / weights[keep].sum()
-        profile = view.surface.map.is_profile
+        profile = view.along_x_only
 
         def telling(offsets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
             """Mask of the places (offsets from here), unread and not known out of reach,
