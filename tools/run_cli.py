@@ -162,7 +162,10 @@ def _print_summary(report: EpisodeReport) -> None:
             mode_mass=None if est is None else est.mode_mass,
             runner_up=None if est is None else est.runner_up,
             runner_up_mass=None if est is None else est.runner_up_mass,
-            held_back="" if est is None else est.held_back)
+            held_back="" if est is None else est.held_back,
+            where=("of its pose table (a start between the table's poses fits none: `particles` "
+                   "searches the whole map)" if report.settings.algorithm == "elimination"
+                   else "on this map"))
         print(f"result    not localized after {steps} steps: {why}")
         if est is not None and est.pose is not None and s.position_error is not None:
             print(f"          (the leading pose is {s.position_error * 1e3:.1f} mm / "
