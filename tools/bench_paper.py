@@ -60,10 +60,18 @@ def first_step_summary(reports: list[EpisodeReport]) -> dict[str, Any]:
             "first_step_elimination_max": float(np.max(drops)) if drops else None}
 
 
+def on_papers_map(settings: RunSettings) -> bool:
+    """Whether a run is on the paper's own map, the only one its results can stand beside
+    (a held-out researcher's own map was shown beside the paper's `peaks` figures)."""
+    return settings.map == "peaks"
+
+
 def b1_figure(reports: list[EpisodeReport], summary: dict[str, Any], path, title: str):
     from tools.plots import bench_figure
 
-    return bench_figure(reports, summary, path, title, reference_steps=PAPER_STEPS)
+    papers = bool(reports) and on_papers_map(reports[0].settings)
+    return bench_figure(reports, summary, path, title,
+                        reference_steps=PAPER_STEPS if papers else None)
 
 
 def _pct(v: float | None) -> str:
@@ -93,6 +101,10 @@ def print_table(s: dict, base: RunSettings) -> None:
     ]
     print(f"B1 paper: {base.algorithm} + {base.policy} on {base.map}, {s['runs']} runs")
     width = max(len(r[0]) for r in rows)
+    if not on_papers_map(base):  # the paper's figures are of peaks alone
+        for name, ours, _ in rows:
+            print(f"{name:<{width}}  {ours}")
+        return
     print(f"{'':{width}}  {'haptic-slam':<52}  paper (Algorithm III)")
     for name, ours, theirs in rows:
         print(f"{name:<{width}}  {ours:<52}  {theirs}")

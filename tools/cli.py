@@ -173,8 +173,25 @@ def _name(argv: list[str]) -> str:
     return next((w for w in argv if not w.startswith("-")), "")
 
 
+COMMA_VALUES = ("--start",)
+"""Options whose value is numbers separated by commas, which may begin with a minus."""
+
+
+def _glued(argv: list[str]) -> list[str]:
+    """`--start -0.01,0.05,0` as `--start=-0.01,0.05,0`: argparse takes a value that starts
+    with "-" and is no plain number for an option, and said only "expected one argument"
+    (a held-out researcher's start beside the map's edge)."""
+    out: list[str] = []
+    for token in argv:
+        if (out and out[-1] in COMMA_VALUES and token.startswith("-") and "," in token):
+            out[-1] = f"{out[-1]}={token}"
+        else:
+            out.append(token)
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
-    argv = sys.argv[1:] if argv is None else list(argv)
+    argv = _glued(sys.argv[1:] if argv is None else list(argv))
     try:  # around the set-up too: a signal can land while the handlers are being installed
         with signals_interrupt(), _one_blas_thread():
             args = build_parser().parse_args(argv)

@@ -108,7 +108,7 @@ def parse_start(text: str | None) -> tuple[float, float, float] | None:
                           f"got '{text}'") from None
     if not all(math.isfinite(v) for v in (x, y, heading_deg)):
         raise ConfigError(f"--start values must be finite, got '{text}'")
-    return (x, y, math.radians(heading_deg))
+    return (x, y, math.radians(heading_deg % 360.0))  # 60000 deg was echoed as 1047 rad
 
 
 def parse_localizer_options(items: list[str]) -> dict[str, Any]:

@@ -435,8 +435,11 @@ def plains(surface: ContactSurface, step: float, tilt: tuple[float, float] = (0.
 
 def _even(surface: ContactSurface, step: float, tilt: tuple[float, float]) -> np.ndarray:
     """Mask of the points within a step's reach of which the contact height departs from an
-    even slope of `tilt` by less than PLAIN_TOLERANCE of a step."""
-    k = int(round(step / surface.map.spacing))
+    even slope of `tilt` by less than PLAIN_TOLERANCE of a step. A step shorter than half
+    a sample is judged over one sample, at that sample's share (its window was the point
+    alone, and every map "100 % plain" at `--step 0.0005` on 1 mm)."""
+    k = max(1, int(round(step / surface.map.spacing)))
+    reach = max(step, k * surface.map.spacing)
     size = (1, 2 * k + 1) if surface.map.is_profile else (2 * k + 1, 2 * k + 1)
     c = surface.centre_heights
     if tilt != (0.0, 0.0):
@@ -444,7 +447,7 @@ def _even(surface: ContactSurface, step: float, tilt: tuple[float, float]) -> np
         h = surface.map.spacing
         c = c - (tilt[0] * h * np.arange(cols)[np.newaxis, :]
                  + tilt[1] * h * np.arange(rows)[:, np.newaxis])
-    return _span(c, size) < PLAIN_TOLERANCE * step
+    return _span(c, size) < PLAIN_TOLERANCE * reach
 
 
 def _span(c: np.ndarray, size: tuple[int, int]) -> np.ndarray:

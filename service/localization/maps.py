@@ -69,7 +69,8 @@ def load_rows(path: Path, delimiter: str | None, header: bool = False) -> np.nda
         warnings.simplefilter("error", UserWarning)
         try:
             return np.loadtxt(path, delimiter=delimiter, comments="#", ndmin=2,
-                              skiprows=_header_lines(path, delimiter) if header else 0)
+                              skiprows=_header_lines(path, delimiter) if header else 0,
+                              encoding="utf-8-sig")  # a spreadsheet's byte-order mark
         except UserWarning:
             raise ValueError("the file holds no numbers") from None
 
@@ -77,7 +78,7 @@ def load_rows(path: Path, delimiter: str | None, header: bool = False) -> np.nda
 def _header_lines(path: Path, delimiter: str | None) -> int:
     """Lines up to and including a first row of names (every cell a word, none a number),
     else 0."""
-    with open(path, encoding="utf-8", errors="replace") as f:
+    with open(path, encoding="utf-8-sig", errors="replace") as f:
         for index, line in enumerate(f):
             text = line.split("#", 1)[0].strip()
             if not text:

@@ -53,8 +53,11 @@ class HeightMap:
             )
         if not np.all(np.isfinite(heights)):
             bad = int(np.count_nonzero(~np.isfinite(heights)))
+            row, col = (int(i) for i in np.argwhere(~np.isfinite(heights))[0])
             raise MapError(
-                f"map '{self.name}' has {bad} non-finite heights (NaN or inf); fill or crop them"
+                f"map '{self.name}' has {bad} non-finite height{'s' if bad > 1 else ''} (NaN "
+                f"or inf), the first in row {row}, column {col} (counting from 0); fill or "
+                "crop them"
             )
         if not (np.isfinite(self.spacing) and self.spacing > 0):
             raise MapError(f"map spacing must be a positive number of metres, got {self.spacing}")

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from service.errors import MapError
-from service.localization.maps import load_map, peaks
+from service.localization.maps import load_map, load_rows, peaks
 
 
 def test_peaks_matches_the_benchmark_definition():
@@ -101,3 +101,25 @@ def test_a_text_grid_that_does_not_parse_is_told_plainly(tmp_path):
             with pytest.raises(MapError, match=re.escape(words)) as refused:
                 load_map(str(path), 0.001)
             assert "not semicolons" in str(refused.value)
+
+
+def test_a_spreadsheets_csv_with_a_byte_order_mark_loads(tmp_path):
+    """A held-out CSV saved by a spreadsheet as "UTF-8 with BOM" was refused: "could not
+    convert string '\\ufeff-6.42e-12'"; outlines share the reader."""
+    grid = np.arange(12, dtype=float).reshape(3, 4) * 1e-4
+    text = "\n".join(",".join(repr(float(v)) for v in row) for row in grid)
+    (tmp_path / "bom.csv").write_bytes("\ufeff".encode() + text.encode())
+    np.testing.assert_array_equal(load_map(str(tmp_path / "bom.csv"), spacing=0.001).heights,
+                                  grid)
+    (tmp_path / "named.csv").write_bytes("\ufeffx,z\n0,0\n0.04,0\n0.04,0.04\n".encode())
+    assert load_rows(tmp_path / "named.csv", ",", header=True).shape == (3, 2)
+
+
+def test_a_non_finite_height_is_found_for_the_lab(tmp_path):
+    """"has 1 non-finite heights" named neither where nor in good grammar."""
+    grid = np.zeros((5, 6))
+    grid[3, 2] = np.nan
+    np.save(tmp_path / "hole.npy", grid)
+    with pytest.raises(MapError, match=r"has 1 non-finite height \(NaN or inf\), the first in "
+                                       r"row 3, column 2 \(counting from 0\)"):
+        load_map(str(tmp_path / "hole.npy"), spacing=0.001)

@@ -28,6 +28,21 @@ def test_bench_paper_writes_summary_and_figure(tmp_path, capsys):
     assert any(line.startswith("B1 elimination + paper: 6/6 runs") for line in lines)
 
 
+def test_the_papers_figures_stand_only_beside_its_own_map(tmp_path, capsys):
+    """A held-out researcher's own map was tabled beside the paper's `peaks` results
+    ("103/103 (as reported)", "23.6 +/- 8.7") and its figure shaded the paper's band."""
+    import numpy as np
+
+    waves = np.add.outer(np.sin(np.arange(150) / 9.0), np.cos(np.arange(150) / 7.0))
+    np.save(tmp_path / "own.npy", 0.004 * waves)
+    assert main(["bench", "paper", "--runs", "2", "--map", str(tmp_path / "own.npy"),
+                 "--spacing", "0.001", "--algorithm", "elimination", "--policy", "paper",
+                 "--workers", "1"]) == 0
+    printed = capsys.readouterr().out
+    assert "successes" in printed and "/2 (wrong declarations" in printed
+    assert "as reported" not in printed and "23.6" not in printed
+
+
 def test_bench_rejects_zero_runs(capsys):
     assert main(["bench", "paper", "--runs", "0"]) == 2
     assert "--runs" in capsys.readouterr().err

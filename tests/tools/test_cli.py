@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 import os
 import signal
 import subprocess
@@ -248,3 +249,16 @@ def test_ctrl_c_during_a_bus_exchange_waits_for_it_and_ends_cleanly(monkeypatch,
     assert main(["bus", "read", "--port", "/dev/null", "--hand", "spatial"]) == 130
     assert exchanges == ["sent", "answered"]
     assert capsys.readouterr().err.strip() == "haptic bus: interrupted"
+
+
+def test_a_start_with_a_minus_or_many_turns_is_taken_as_typed(tmp_path, capsys):
+    """A held-out researcher's `--start -0.01,0.05,0` was "expected one argument" (argparse
+    took it for an option), and `--start 0.1,0.05,60000` was refused in radians it never
+    typed ("got (0.1, 0.05, 1047.19...)")."""
+    assert main(["run", "--start", "-0.01,0.05,0", "--max-steps", "1", "--quiet"]) == 2
+    assert "start (-0.01, 0.05) m" in capsys.readouterr().err  # read, then found off the map
+    out = tmp_path / "run.json"
+    assert main(["run", "--start", "0.1,0.05,60000", "--max-steps", "1", "--quiet",
+                 "--json", str(out)]) == 0
+    assert json.loads(out.read_text())["truth"]["heading"] == pytest.approx(
+        math.radians(60000 % 360))
