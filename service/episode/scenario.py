@@ -129,6 +129,21 @@ def check_start(settings: RunSettings, height_map: HeightMap) -> None:
                            or (not height_map.is_profile and y_max <= 2 * margin)):
         raise ConfigError("the map is too small for starts two steps inside its edge; "
                           "use a smaller --step")
+    if not settings.noise:
+        try:
+            grid_positions(height_map, settings.step)
+        except ConfigError:
+            raise _no_room(settings, height_map) from None
+
+
+def _no_room(settings: RunSettings, height_map: HeightMap) -> ConfigError:
+    """No start to draw noise-free. Not the localizer's table (a held-out check's particles
+    run was told of "a pose table"): the one the starts are drawn on."""
+    x_max, y_max = height_map.extent
+    return ConfigError(f"the map ({x_max:.4g} x {y_max:.4g} m) has no room for the starts a "
+                       "noise-free run draws (poses a step apart, a step in from its edges, "
+                       f"at --step {settings.step:g} m): give --start (`scenario.start`), a "
+                       "shorter --step, or --noise")
 
 
 def draw_truth(settings: RunSettings, height_map: HeightMap, rng: np.random.Generator) -> Truth:
@@ -141,7 +156,10 @@ def draw_truth(settings: RunSettings, height_map: HeightMap, rng: np.random.Gene
         x, y, heading = settings.start
         return Truth(float(x), 0.0 if height_map.is_profile else float(y), float(heading))
     if not settings.noise:
-        xs, ys = grid_positions(height_map, settings.step)
+        try:
+            xs, ys = grid_positions(height_map, settings.step)
+        except ConfigError:  # `check_start` tells it first
+            raise _no_room(settings, height_map) from None
         headings = (np.array([0.0, np.pi]) if height_map.is_profile
                     else np.arange(settings.headings) * 2 * np.pi / settings.headings)
         return Truth(float(rng.choice(xs)), float(rng.choice(ys)), float(rng.choice(headings)))

@@ -109,6 +109,7 @@ def test_plot_is_written(tmp_path):
     (["--radius", "-1"], "--radius"),
     (["--start", "1,2"], "--start"),
     (["--start", "5,5,0"], "outside the map"),
+    (["--step", "0.09"], "no room for the starts a noise-free run draws"),
     (["--json", "/no/such/dir/x.json"], "does not exist"),
     (["--sweep", "full", "--algorithm", "elimination", "--max-steps", "0"], "--max-steps"),
     (["--localizer-option", "work"], "NAME=VALUE"),

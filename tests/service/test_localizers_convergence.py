@@ -514,6 +514,10 @@ def test_no_near_miss_on_shell_42_seed_14():
     ({"max_abs_shared": 4.0}, "its fit: a reading lies 4.00 sds off it"),
     ({"position_sd": 0.0011}, "its spread: position sd 1.10 mm, of at most 0.80 mm"),
     ({"heading_sd": np.deg2rad(2.0)}, "its spread: heading sd 2.00 deg, of at most 1.50 deg"),
+    # as the estimate line says it (a held-out cliff map: "spread over 1 m" above
+    # "position sd 18473.21 mm", and "inf mm" under "unbounded")
+    ({"position_sd": 18.47321}, "its spread: position sd over 1 m, of at most 0.80 mm"),
+    ({"position_sd": np.inf}, "position sd unbounded (the readings lie on a plain)"),
 ])
 def test_a_rule_that_does_not_hold_names_the_first_condition_it_misses(change, words):
     """A held-out check: "not yet confirmed: its fit to every reading, its spread, or

@@ -194,11 +194,15 @@ class ConvergenceRule:
             return (f"its fit: a reading lies {worst if noisy else fit.max_abs:.2f} sds off "
                     f"it, of at most {bar:.2f}")
         largest = (self.max_position_sd if noisy else self.max_position_sd_exact) * step_length
-        if not fit.position_sd <= largest:
-            return (f"its spread: position sd {fit.position_sd * 1e3:.2f} mm, of at most "
-                    f"{largest * 1e3:.2f} mm")
+        if not fit.position_sd <= largest:  # in the estimate line's words past a metre
+            sd = ("unbounded (the readings lie on a plain)" if not np.isfinite(fit.position_sd)
+                  else "over 1 m" if fit.position_sd > 1.0
+                  else f"{fit.position_sd * 1e3:.2f} mm")
+            return f"its spread: position sd {sd}, of at most {largest * 1e3:.2f} mm"
         if not fit.heading_sd <= self.max_heading_sd:
-            return (f"its spread: heading sd {np.degrees(fit.heading_sd):.2f} deg, of at most "
+            sd = ("unbounded" if not np.isfinite(fit.heading_sd) else "over 180 deg"
+                  if fit.heading_sd > np.pi else f"{np.degrees(fit.heading_sd):.2f} deg")
+            return (f"its spread: heading sd {sd}, of at most "
                     f"{np.degrees(self.max_heading_sd):.2f} deg")
         return ""
 
