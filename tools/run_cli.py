@@ -16,6 +16,7 @@ from service.errors import ConfigError
 from service.localization.map_check import check_map
 from service.localization.maps import load_map
 from service.localization.policies.base import MOVE_NAMES
+from service.localization.surface import check_radius
 from service.registry import BACKENDS
 from tools.hand_cli import add_object_options, run_hand
 from tools.scenario_options import add_scenario_options, settings_from_args
@@ -72,6 +73,7 @@ def run(args: argparse.Namespace) -> int:
             raise ConfigError(f"--backend {args.backend} needs --port and --hand")
         check_port_exists(args.port)
     height_map = load_map(settings.map, settings.spacing)
+    check_radius(height_map, settings.radius)  # the tip first: it names a profile's one row
     check_start(settings, height_map)
     for warning in check_map(height_map, settings.radius, settings.step).warnings:
         print(f"warning: {warning}")
