@@ -113,7 +113,9 @@ KIND_WORDS = {"str": f"a string of at most {MAX_STR} characters", "bool": "true 
 def _estop_reason(args: dict[str, Any]) -> str:
     """An estop's reason as given, whatever it is: words cut to `MAX_STR` characters, else
     its repr (an estop is never refused for its arguments)."""
-    reason = args.get("reason", "estop")
+    reason = args.get("reason")
+    if reason is None:  # nil is absent, as for every field (it read "estop: None")
+        reason = "estop"
     return (reason if isinstance(reason, str) else repr(reason))[:MAX_STR]
 
 

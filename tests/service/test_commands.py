@@ -151,6 +151,7 @@ def test_lease_is_exclusive_and_estop_is_for_everyone(node: Node) -> None:
     ({"reason": 3}, "me", "estop: 3"),
     ({"reason": "smoke", "force": True}, "me", "estop: smoke"),
     ([1], "me", "estop: estop"),
+    ({"reason": None}, "me", "estop: estop"),
     ({"reason": "smoke"}, "x" * 200, "estop: smoke"),
 ])
 def test_an_estop_is_never_refused_for_its_arguments(node: Node, raw: zmq.Socket, args,
