@@ -20,6 +20,8 @@ import math
 import numba
 import numpy as np
 
+from service.localization.surface import BORDER_ROUNDING
+
 _JIT = {"cache": True, "nogil": True}
 
 EDGE_STEP_SLACK = 0.1
@@ -87,8 +89,9 @@ def sample(grid: np.ndarray, spacing: float, x: np.ndarray, y: np.ndarray
 @numba.njit(**_JIT)
 def _inside(x: float, y: float, extent: tuple[float, float], profile: bool,
             margin: float) -> bool:
-    on_x = -margin <= x <= extent[0] + margin
-    return on_x if profile else on_x and -margin <= y <= extent[1] + margin
+    m = margin + BORDER_ROUNDING
+    on_x = -m <= x <= extent[0] + m
+    return on_x if profile else on_x and -m <= y <= extent[1] + m
 
 
 @numba.njit(**_JIT)

@@ -20,6 +20,12 @@ from scipy import ndimage
 from service.errors import MapError
 from service.localization.memo import kept
 
+BORDER_ROUNDING = 1e-9
+"""Metres a point on the map's border may stray by rounding alone and still be on it: a
+pose turned by -180 degrees, not +180, put three readings on the border just off it, and
+`grid` weighed a held-out map's exact half-turn image at nothing (declared 180 degrees
+off)."""
+
 
 @dataclass(frozen=True, eq=False)
 class HeightMap:
@@ -85,6 +91,7 @@ class HeightMap:
         """Mask of points inside the map (its border counts), allowing `margin` metres
         beyond it for hypotheses whose positions carry measurement noise."""
         x_max, y_max = self.extent
+        margin = margin + BORDER_ROUNDING  # a point on the border, give or take rounding
         x = np.asarray(x)
         mask = (x >= -margin) & (x <= x_max + margin)
         if not self.is_profile:

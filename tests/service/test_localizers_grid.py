@@ -82,3 +82,18 @@ def test_grid_localizers_say_not_yet_on_a_map_with_a_half_turned_twin(algorithm,
                                   max_steps=60), twin)
     assert not report.result.converged
     assert report.result.estimate.runner_up is not None  # the twin, named
+
+
+def test_an_exact_image_on_the_maps_border_is_weighed_as_the_leader():
+    """A held-out map, a wave and a bump plus their half turn about its centre, from its
+    centre turned 180 degrees: `grid` declared the half-turned pose. Its exact image had
+    been turned by -180 degrees, which put three readings on the map's border a rounding
+    off it, each weighed as a reading off the map."""
+    x, y = np.meshgrid(np.arange(201) * 1e-3, np.arange(201) * 1e-3)
+    z = (0.005 * np.sin(2 * np.pi * x / 0.2) * np.cos(np.pi * y / 0.1)
+         + 0.003 * np.exp(-((x - 0.05) ** 2 + (y - 0.07) ** 2) / 0.02**2))
+    settings = RunSettings(map="held-out", spacing=0.001, algorithm="grid",
+                           start=(0.1, 0.1, np.pi), max_steps=60)
+    report = simulate(settings, HeightMap(z + z[::-1, ::-1], 0.001))
+    assert not report.score.wrong_declaration
+    assert report.result.estimate.mode_mass == pytest.approx(0.5, abs=0.01)
