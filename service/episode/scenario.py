@@ -156,10 +156,7 @@ def draw_truth(settings: RunSettings, height_map: HeightMap, rng: np.random.Gene
         x, y, heading = settings.start
         return Truth(float(x), 0.0 if height_map.is_profile else float(y), float(heading))
     if not settings.noise:
-        try:
-            xs, ys = grid_positions(height_map, settings.step)
-        except ConfigError:  # `check_start` tells it first
-            raise _no_room(settings, height_map) from None
+        xs, ys = grid_positions(height_map, settings.step)  # room for them: `check_start`
         headings = (np.array([0.0, np.pi]) if height_map.is_profile
                     else np.arange(settings.headings) * 2 * np.pi / settings.headings)
         return Truth(float(rng.choice(xs)), float(rng.choice(ys)), float(rng.choice(headings)))

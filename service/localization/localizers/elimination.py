@@ -371,9 +371,7 @@ class Elimination:
             twins = gauss_newton(surface, twins, self.history, np.ones(len(self.history)),
                                  iterations=SWEEP_STEPS, max_move=0.25 * self.ctx.step_length)
             # heights only: where the map's edges stop a step is no part of its symmetry
-            # (the half turn's image at the map's centre was let go on a blocked step)
-            stepped = readings[:, 3:].any(axis=1) if readings.shape[1] > 3 else np.zeros(
-                len(readings), dtype=bool)
+            stepped = readings[:, 3:].any(axis=1)  # a blocked step's command (`reading_row`)
             r, _ = residuals(surface, twins, readings[~stepped, :3], margin)
             fits = (np.abs(r) <= IMAGE_FIT * self.ctx.step_length).all(axis=1)
             if fits.any():
