@@ -40,9 +40,9 @@ def print_table(s: dict, base: RunSettings) -> None:
         ("wrong declarations", str(s["wrong_declarations"])),
         ("steps", f"median {fmt(s['steps_median'], 'g')}, p90 {fmt(s['steps_p90'], 'g')}, "
                   f"max {s['steps_max']}"),
-        ("final position error", f"median {_mm(s['final_position_error_median'])}, "
+        ("declared pose's error", f"position median {_mm(s['final_position_error_median'])}, "
                                  f"p90 {_mm(s['final_position_error_p90'])}"),
-        ("final heading error", f"median {fmt(s['final_heading_error_deg_median'], '.2f')} deg, "
+        ("", f"heading median {fmt(s['final_heading_error_deg_median'], '.2f')} deg, "
                                 f"p90 {fmt(s['final_heading_error_deg_p90'], '.2f')} deg"),
         ("compute per step", f"first {fmt(s['compute_ms_first_median'])} ms (median), "
                              f"after it median {fmt(s['compute_ms_after_first_median'])} ms, "

@@ -317,6 +317,9 @@ def bench_figure(reports: Sequence[EpisodeReport], summary: dict[str, Any], path
     a.hist(steps, bins=np.arange(0, steps.max() + 2) - 0.5, color="tab:blue", alpha=0.8)
     a.axvline(steps.mean(), color="tab:blue", lw=2,
               label=f"here: {steps.mean():.1f} ± {steps.std(ddof=min(1, len(steps) - 1)):.1f}")
+    # the bench's text gives the median: the figure shows it too
+    a.axvline(float(np.median(steps)), color="tab:orange", lw=2, ls=":",
+              label=f"median {np.median(steps):g}")
     if reference_steps is not None:
         mean, sd = reference_steps
         a.axvspan(mean - sd, mean + sd, color="0.6", alpha=0.3)

@@ -73,3 +73,21 @@ def test_a_half_step_median_is_printed_as_it_is(capsys):
     print_table(summary, RunSettings())
     line = next(x for x in capsys.readouterr().out.splitlines() if x.startswith("steps"))
     assert "median 14.5, p90 18.7, max 19" in line
+
+
+def test_the_final_errors_are_those_of_declared_poses():
+    """The noticed defect: the final position error's median counted the leading guess of
+    runs that declared nothing beside the declared poses."""
+    from service.episode.scenario import RunSettings
+    from service.episode.simulate import simulate
+    from tools.bench_common import summarize
+
+    declared = [simulate(RunSettings(seed=s, max_steps=30)) for s in (0, 1)]
+    undeclared = [simulate(RunSettings(seed=s, max_steps=1)) for s in (2, 3, 4)]
+    assert all(r.result.converged for r in declared)
+    assert not any(r.result.converged for r in undeclared)
+    assert all(r.score.position_error is not None for r in declared + undeclared)
+    mixed = summarize(declared + undeclared)
+    assert mixed["final_position_error_median"] == summarize(declared)[
+        "final_position_error_median"]
+    assert summarize(undeclared)["final_position_error_median"] is None

@@ -66,3 +66,39 @@ def test_a_map_check_figure_wraps_its_warnings_to_its_width(tmp_path, monkeypatc
     (fig,) = shown
     lines = fig._suptitle.get_text().split("\n")
     assert len(lines) > 2 and max(map(len, lines)) <= fig.get_figwidth() * 14
+
+
+@pytest.mark.parametrize("rows", [1, 121])
+def test_a_map_check_figure_says_what_a_step_reads_on_a_tilted_maps_plains(tmp_path,
+                                                                         monkeypatch, rows):
+    """A held-out check: on a plate scanned off level, the figure said its plains were
+    where "a step reads nothing", though a step there reads the slope."""
+    from service.localization.map_check import check_map
+    from service.localization.surface import HeightMap
+    from tools import map_plots
+
+    shown = []
+    monkeypatch.setattr(map_plots.plt, "close", shown.append)
+    x = np.arange(121) * 0.001
+    xx, yy = np.meshgrid(x, x[:rows])
+    boss = np.where((np.abs(xx - 0.06) < 0.01) & (np.abs(yy - yy.mean()) <= 0.01), 0.004, 0.0)
+    for heights, words in ((boss, "a step reads nothing"),
+                           (boss + 0.05 * xx, "a step reads only the slope")):
+        height_map = HeightMap(heights, 0.001, "plate")
+        map_plots.check_figure(height_map, check_map(height_map, 0.008), tmp_path / "c.png")
+        fig = shown.pop()
+        texts = [ax.get_title() for ax in fig.axes] + [
+            t.get_text() for ax in fig.axes if ax.get_legend() for t in ax.get_legend().texts]
+        assert any(words in t for t in texts), texts
+
+
+def test_map_check_refuses_a_spacing_the_run_refuses(capsys, tmp_path):
+    """The noticed defect: `map check --spacing 1` passed with a warning that the map
+    spans metres, and `haptic run` then refused the same spacing."""
+    path = tmp_path / "m.npy"
+    np.save(path, load_map("bumps:20:2").heights)
+    assert main(["map", "check", str(path), "--spacing", "1"]) == 2
+    run_said = capsys.readouterr().err
+    assert main(["run", "--quiet", "--map", str(path), "--spacing", "1"]) == 2
+    assert capsys.readouterr().err.split("error: ")[1] == run_said.split("error: ")[1]
+    assert main(["map", "check", str(path), "--spacing", "0.001"]) == 0
