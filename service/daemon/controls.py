@@ -11,12 +11,13 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import logging
+import os
 from typing import TYPE_CHECKING, Any
 
 from firmware_if.errors import HardwareFault
 from service.daemon.explorer import Explorer
 from service.daemon.lifecycle import State
-from service.daemon.reconfigure import Reconfiguration
+from service.daemon.reconfigure import Reconfiguration, check_backend_options
 from service.errors import StateError
 from service.wire.commands import Deferred
 
@@ -74,6 +75,7 @@ class CommandHandlers:
         self._not_configuring()
         new = self.config.updated(changes)
         settings = new.run_settings()
+        check_backend_options(new, settings)
         self.link.start()  # (again, if the compute process died)
         rebuild = (self.backend is None or new.backend != self.config.backend
                    or new.backend.name == "sim"
@@ -82,9 +84,8 @@ class CommandHandlers:
                    # the object put back after a drop: a hand on servos starts afresh
                    or bool(self.last_state is not None and self.last_state.dropped))
         deferred = Deferred()
-        port = new.backend.options.get("port")
-        same_port = (self.backend is not None and port is not None
-                     and port == self.config.backend.options.get("port"))
+        same_port = self.backend is not None and _same_device(
+            new.backend.options.get("port"), self.config.backend.options.get("port"))
         self.reconf = Reconfiguration(new, settings, self.link, deferred,
                                       rebuild_backend=rebuild, fault_count=self.faults,
                                       release=self.backend if rebuild and same_port else None,
@@ -212,3 +213,19 @@ def _servos(config: DaemonConfig) -> str | None:
     scenario.hand on a running Dynamixel daemon: accepted, the two-finger backend kept,
     and the next episode failed in the compute process."""
     return None if config.scenario.object is None else config.scenario.hand_name
+
+
+def _same_device(new: Any, old: Any) -> bool:
+    """Whether two port options name one device: the same path, or two names of it (a
+    link such as /dev/serial/by-id/... and the /dev/ttyUSB0 it points to). The daemon
+    holds its port exclusively, so the old backend must let a device go before a new one
+    opens it under any name (a held-out lab moved a running daemon from /dev/pts/1 to a
+    link to it and was told another process held the port)."""
+    if not (isinstance(new, str) and isinstance(old, str)):
+        return False
+    if new == old:
+        return True
+    try:
+        return os.path.samefile(new, old)
+    except OSError:  # one of them is gone or never was: not the device held
+        return False

@@ -33,6 +33,15 @@ TRANSITIONS: dict[str, dict[State, State]] = {
 }
 """event -> {from state: to state}; anything missing is refused."""
 
+WAY_OUT: dict[State, str] = {
+    State.UNCONFIGURED: "configure the daemon first",
+    State.INACTIVE: "activate first",
+    State.ACTIVE: "deactivate first",
+    State.FAULT: "reset clears the fault once its cause is mended",
+}
+"""What leaves each state toward the others, for a refusal's words: a client refused
+"while fault" was not told that `reset` is the way out (a held-out lab)."""
+
 
 class Lifecycle:
     """Current state, the last fault and whether the backend has been read since opening."""
@@ -54,7 +63,7 @@ class Lifecycle:
         if self.state not in table:
             allowed = ", ".join(s.value for s in table)
             raise StateError(f"cannot {command or event} while {self.state.value}; allowed in: "
-                             f"{allowed}")
+                             f"{allowed} ({WAY_OUT[self.state]})")
         return table[self.state]
 
     def apply(self, event: str, reason: str | None = None) -> tuple[State, State]:

@@ -176,7 +176,8 @@ def validate(req: dict[str, Any]) -> tuple[Any, str, str | None, dict[str, Any],
         raise CommandError("malformed", f"expected type 'request', got '{req['type']}'")
     rid = req.get("id")
     if not (isinstance(rid, (int, str)) and not isinstance(rid, bool)):
-        raise CommandError("malformed", "request 'id' must be an integer or string")
+        raise CommandError("malformed", "request 'id' must be an integer or string (the "
+                                        "reply carries it back: number each request)")
     cmd, client, args = req.get("cmd"), req.get("client"), req.get("args", {})
     if not isinstance(cmd, str):
         raise CommandError("malformed", "request 'cmd' must be a string")
@@ -289,7 +290,9 @@ class CommandServer:
         if len(rest) >= 2 and len(rest[0]) == 0:  # a REQ client's delimiter
             head, rest = [identity, b""], rest[1:]
         if len(rest) != 1:
-            return head + [self._error(None, "malformed", "a request is exactly one frame")]
+            return head + [self._error(None, "malformed", "a request is exactly one frame: "
+                                                          "send its msgpack map alone, not "
+                                                          "multipart")]
         reply = self.handle(rest[0].bytes, _peer(identity, rest[0]), head)
         return None if reply is None else head + [reply]
 

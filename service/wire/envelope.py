@@ -164,7 +164,8 @@ def unpack_map(data: bytes, max_bytes: int = MAX_MESSAGE_BYTES) -> dict[str, Any
     except Exception as exc:  # msgpack raises several unrelated types on garbage
         raise WireError("malformed", f"not a msgpack message: {_why(exc)}") from None
     if not isinstance(obj, dict):
-        raise WireError("malformed", "message must be a msgpack map")
+        raise WireError("malformed", "message must be a msgpack map (send one map of v, type, "
+                                     "id, cmd and args per request: docs/protocol.md)")
     if keys.problem is not None:  # the top-level map is the last one decoded
         raise WireError("malformed", keys.problem,
                         None if "id" in keys.last_repeated else obj.get("id"))

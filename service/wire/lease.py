@@ -75,7 +75,8 @@ class Lease:
                                 f"in a moment")
             raise LeaseHeld(f"'{self.holder.name()}' holds the lease on another connection "
                             f"for {(self.expires_ns - now) / 1e9:.1f} s more; the lease "
-                            f"belongs to the connection that took it")
+                            f"belongs to the connection that took it: wait till it ends "
+                            f"or ask its holder to release it (estop needs no lease)")
         if self.holder is not None and peer.label is None:  # the holder's label stays
             peer = dataclasses.replace(peer, label=self.holder.label)  # till it gives one
         self.holder = peer

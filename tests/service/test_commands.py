@@ -93,6 +93,13 @@ def test_garbage_gets_error_replies_and_changes_nothing(node: Node, raw: zmq.Soc
             assert reply["id"] is not True  # `true` is no id: the reply's id is nil
         reply = ask(raw, b"one", b"two")
         assert reply["error"]["code"] == "malformed"
+        # each refusal says what to do, not only what is wrong (a held-out lab's client)
+        assert "not multipart" in reply["error"]["message"]
+        assert "docs/protocol.md" in ask(raw, msgpack.packb([1, 2]))["error"]["message"]
+        assert "number each request" in ask(raw, msgpack.packb(
+            {"v": 2, "type": "request", "id": [1], "cmd": "ping"}))["error"]["message"]
+        assert "ask its holder to release" in ask(raw, request(cmd="activate"))["error"][
+            "message"]
         # keys that are wrong leave the id readable: it is echoed (a held-out client)
         reply = ask(raw, msgpack.packb({"v": 2, "type": "request", "id": "ik", "cmd": "ping",
                                         3: 4}))

@@ -290,6 +290,29 @@ def test_a_finger_backends_hand_file_tells_a_client_nothing_and_a_missing_hand_i
         assert ctl.call("get_config") == before
 
 
+def test_backend_options_missing_a_key_are_refused_before_anything_is_prepared(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """A held-out lab waited 1.3-9 s for this refusal, behind the preparation of a map it
+    had not changed: options that lack a key are refused with the rest of the check."""
+    from service.daemon import controls
+
+    def prepared(*args, **kwargs):
+        raise AssertionError("the configure was prepared before its options were checked")
+
+    with running_node(loopback_config()) as node, Client(node.endpoints["cmd"]) as ctl:
+        before = ctl.call("get_config")
+        monkeypatch.setattr(controls, "Reconfiguration", prepared)
+        for changes, missing in (
+                ({"backend": {"name": "dynamixel", "options": {"port": "/dev/null"}}}, "hand"),
+                ({"backend": {"name": "dynamixel", "options": {}},
+                  "scenario": {"object": "blob", "hand": "three-finger"}}, "port")):
+            with pytest.raises(CommandFailed) as err:
+                ctl.call("configure", changes=changes)
+            assert err.value.code == "bad_config"
+            assert f"need {missing} beside what they give" in str(err.value)
+        assert ctl.call("get_config") == before
+
+
 def test_a_map_in_millimetres_is_accepted_with_a_warning_the_client_sees(tmp_path: Path) -> None:
     """Under hapticd a map whose heights were in millimetres was taken without a word, where
     `haptic run` warns: the configure's reply and `status` carry the map check's warnings."""

@@ -108,6 +108,9 @@ def test_lifecycle_table() -> None:
     assert (lc.state, lc.fault) == (State.FAULT, "servo 3 overload")
     for event in ("activate", "deactivate"):
         assert not lc.allowed(event)
+    # a held-out lab's client was refused "while fault" and not told the way out
+    with pytest.raises(StateError, match=r"while fault; allowed in: inactive \(reset clears"):
+        lc.check("activate")
     assert lc.allowed("configure")  # a new backend, perhaps on a new port, clears it too
     lc.apply("reset")
     assert lc.state is State.INACTIVE and lc.fault is None and not lc.valid_read

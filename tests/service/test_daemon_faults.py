@@ -5,6 +5,7 @@ new port; after any reset every servo holds what `open` wrote."""
 from __future__ import annotations
 
 import logging
+import os
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -116,6 +117,21 @@ def test_new_backend_options_on_the_same_port_reopen_it(rig) -> None:
     assert err.value.code == "bad_config"
     assert ctl.call("get_config")["backend"]["options"]["cycle_budget_s"] == 0.04
     explore_until_moving(sub, ctl)  # the old backend has its port again
+
+
+def test_configure_moves_to_another_name_of_the_port_it_holds(rig) -> None:
+    """A held-out lab moved a running daemon from its port to another name of the same
+    device (a link, as /dev/serial/by-id/... is): refused, "another process has it open",
+    though only the daemon itself did. The old backend lets the device go first now, under
+    either name, and it explores on the new one."""
+    node, sub, ctl, buses, link = rig
+    device = os.path.realpath(link)
+    assert device != str(link)
+    for port in (device, str(link)):
+        reply = ctl.call("configure", changes={"backend": {"options": options(port)}})
+        assert reply["state"] == "inactive"
+        assert ctl.call("get_config")["backend"]["options"]["port"] == port
+    explore_until_moving(sub, ctl)
 
 
 def test_a_hardware_error_fault_then_reset_restores_goal_current_and_touch_down(rig) -> None:
