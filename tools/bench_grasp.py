@@ -93,6 +93,25 @@ def _check(args: argparse.Namespace) -> None:
                               f"{', '.join(OBJECTS)}) nor an object: {exc}") from None
 
 
+def _check_holds(jobs: Sequence[tuple[tuple[str, str, str], Any]]) -> None:
+    """Refuse, before any episode, a hand that cannot hold an object: one finger, or no
+    hold at the first seed's start (out of reach, too big or too slippery). A held-out
+    check's bench ran half its episodes first, then exited 1, the status of a drop, and
+    wrote nothing."""
+    from service.episode.hand_episode import seeded_world
+    from service.episode.hand_scenario import load_parts
+
+    seen: set[tuple[str, str]] = set()
+    for (hand, family, kind), settings in jobs:
+        if kind != "gated" or (hand, family) in seen:
+            continue
+        seen.add((hand, family))
+        try:
+            seeded_world(settings, load_parts(settings))
+        except ConfigError as exc:
+            raise ConfigError(f"--hands {hand} --objects {family}: {exc}") from None
+
+
 _PARTS: dict[tuple, Any] = {}
 
 
@@ -170,10 +189,15 @@ def run(args: argparse.Namespace) -> int:
                         units="m" if family in OBJECTS else args.object_units)))
     # a bad hand name or start quality fails here, not in a worker
     HandSettings(hand=hands[0], start_n=args.start_quality)
+    _check_holds(jobs)
     outcomes: list[dict[str, Any] | None] = [None] * len(jobs)
     with executor_for(args) as executor, progress(len(jobs), "B6 grasp") as bar:
         for index, outcome in executor.run([s for _, s in jobs], {}, task=episode):
             if isinstance(outcome, Failed):
+                if outcome.refused:  # the user's to fix, as up front (exit status 2)
+                    raise ConfigError(f"--hand {outcome.settings.hand} --object "
+                                      f"{outcome.settings.object} --seed "
+                                      f"{outcome.settings.seed}: {outcome.error}")
                 raise ServiceError(f"an episode raised: --hand {outcome.settings.hand} "
                                    f"--object {outcome.settings.object} --seed "
                                    f"{outcome.settings.seed}: {outcome.error}")

@@ -144,6 +144,10 @@ def run_hand(args: argparse.Namespace) -> int:
                  + ", ".join(f"{v:.3f}" for v in parts.contour.axis) + ")")
         print(f"          poses are of its centroid, at ({at}) mm in the file's frame, "
               f"headings from {along}")
+        if parts.contour.holes:  # a held-out ring's hole went without a word
+            print(f"          the section's {parts.contour.holes} inner loop(s) are left out: "
+                  "holes the fingers never reach; the object is its outer outline, the "
+                  "centroid that outline's")
     report = simulate_hand(settings, parts, on_step=None if args.quiet else _print_step,
                            snapshot_steps=(0,) if args.plot else (),
                            backend_factory=backend_factory)
@@ -233,6 +237,16 @@ def _print_summary(report, on_servos: bool = False) -> None:
         print(f"result    not localized after {steps} steps: {why}")
     if math.isfinite(report.min_quality):
         margin = report.settings.margin_n
-        print(f"grasp     least quality {report.min_quality:.2f} N, "
+        print(f"grasp     least quality {_beside(report.min_quality, margin)} N, "
               + (f"below the {margin:g} N margin: the object slipped"
                  if report.result.dropped else f"held above the {margin:g} N margin"))
+
+
+def _beside(value: float, bound: float) -> str:
+    """`value` to two decimals, or to as many as tell it from `bound` (a drop at 0.196 N
+    read "least quality 0.20 N, below the 0.2 N margin")."""
+    for digits in range(2, 6):
+        text = f"{value:.{digits}f}"
+        if (float(text) < bound) == (value < bound) and float(text) != bound:
+            return text
+    return f"{value:.6g}"

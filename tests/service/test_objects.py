@@ -173,6 +173,20 @@ def test_mesh_section_through_a_plane(tmp_path):
         load_object(str(tmp_path / "junk.stl"))
 
 
+def test_a_mesh_sections_holes_are_left_out_and_counted(tmp_path):
+    """A held-out check: a ring's hole was left out without a word. The object is still
+    the outer outline (the fingers never reach a hole), and the section says how many inner
+    loops it left out, for `haptic run` to tell."""
+    ring = trimesh.creation.annulus(r_min=0.01, r_max=0.025, height=0.02)
+    ring.export(tmp_path / "ring.stl")
+    c = load_object(str(tmp_path / "ring.stl"), plane="z=0")
+    assert c.holes == 1
+    assert c.area == pytest.approx(np.pi * 0.025**2, rel=0.01)
+    box = trimesh.creation.box(extents=(0.05, 0.03, 0.02))
+    box.export(tmp_path / "box.stl")
+    assert load_object(str(tmp_path / "box.stl"), plane="z=0").holes == 0
+
+
 def test_a_mesh_whose_text_is_not_utf8_loads_and_a_cut_one_is_named(tmp_path):
     """A held-out check: an ASCII STL named in Latin-1, and a binary STL cut short, were
     both refused with "No module named 'charset_normalizer'" (trimesh decodes such text

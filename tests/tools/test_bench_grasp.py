@@ -167,3 +167,21 @@ def test_the_median_steps_of_the_runs_that_localized_are_told_apart():
     summary = _summary([outcome(0, False)] * 3 + [outcome(14, True), outcome(20, True)])
     assert summary["steps_median"] == 0 and summary["steps_median_localized"] == 17
     assert _summary([outcome(0, False)])["steps_median_localized"] is None
+
+
+def test_bench_grasp_refuses_a_hand_that_cannot_hold_before_any_episode(tmp_path, capsys,
+                                                                       monkeypatch):
+    """A held-out check: a one-finger hand among the --hands ran the other hands' episodes
+    first, then exited 1 (the status of a drop) and wrote no JSON. It is refused up front,
+    exit status 2, with `haptic run`'s words; no episode runs."""
+    from service.episode import hand_episode
+
+    ran = []
+    monkeypatch.setattr(hand_episode, "simulate_hand", lambda *a, **k: ran.append(a))
+    out = tmp_path / "b6.json"
+    assert main(["bench", "grasp", "--runs", "2", "--objects", "blob", "--hands",
+                 "three-finger,planar", "--no-ablation", "--no-single", "--workers", "1",
+                 "--json", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "--hands planar --objects blob: hand 'planar' has one finger" in err
+    assert not ran and not out.exists()

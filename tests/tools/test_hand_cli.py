@@ -178,3 +178,13 @@ def test_an_object_too_big_for_the_hand_is_called_too_big(tmp_path, capsys):
     assert main(["run", "--hand", "three-finger", "--object", str(square)]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "too big for this hand" in err and "half" in err, err
+
+
+def test_the_least_quality_is_told_apart_from_the_margin():
+    """A held-out check's drop read "least quality 0.20 N, below the 0.2 N margin" (it was
+    0.196 N)."""
+    from tools.hand_cli import _beside
+
+    assert _beside(0.196, 0.2) == "0.196"
+    assert _beside(0.2004, 0.2) == "0.2004"
+    assert _beside(1.56, 0.2) == "1.56" and _beside(0.12, 0.2) == "0.12"

@@ -42,6 +42,9 @@ class Contour:
     axis: tuple[float, ...] = (1.0, 0.0)
     """The file's direction a pose's heading is measured from: an outline's x axis, a mesh
     section's first in-plane axis (x for a `z=V` plane)."""
+    holes: int = 0
+    """Inner loops of a mesh's section left out: holes the fingers never reach. The object
+    is its outer outline, and its centroid that outline's, not the holed part's."""
     polygon: Polygon = field(init=False, repr=False)
     max_radius: float = field(init=False)
     """Largest distance from the centroid to the contour: the object's lever arm."""

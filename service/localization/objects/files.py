@@ -173,4 +173,5 @@ def mesh_section(path: Path, plane: str | None, scale: float = 1.0) -> Contour:
     # the centroid and the heading's axis in the mesh's own frame, not the plane's
     centre = origin + basis.T @ np.asarray(contour.origin)
     return dataclasses.replace(contour, origin=tuple(float(v) for v in centre),
-                               axis=tuple(float(v) for v in basis[0]))
+                               axis=tuple(float(v) for v in basis[0]),
+                               holes=len(loops) - 1)
