@@ -339,7 +339,9 @@ def grasp_figure(table: dict, hands, families, kinds, path: Path) -> None:
     import matplotlib.pyplot as plt
 
     fig, axes = plt.subplots(1, 2, figsize=(12, 4.5))
-    labels = [f"{h.split('-')[0]}\n{f}" for h in hands for f in families]
+    # files by their stems, presets whole: a held-out check's file objects' paths ran
+    # into one another, and "three-finger" read "three"
+    labels = [f"{_short(h)}\n{_short(f)}" for h in hands for f in families]
     x = np.arange(len(labels))
     rows = [table[f"{h}/{f}/gated"] for h in hands for f in families]
     runs = np.array([r["runs"] for r in rows], dtype=float)
@@ -352,7 +354,8 @@ def grasp_figure(table: dict, hands, families, kinds, path: Path) -> None:
         ablation = [table[f"{h}/{f}/ablation"]["drops"] for h in hands for f in families]
         axes[0].bar(x + 2 * width, np.array(ablation) / runs * 100, width, color="tab:red",
                     alpha=0.35, label="drops without the gate")
-    axes[0].set_xticks(x, labels, fontsize=8)
+    tilt = {"rotation": 30, "ha": "right"} if len(labels) > 6 else {}
+    axes[0].set_xticks(x, labels, fontsize=8, **tilt)
     axes[0].set(ylabel="% of runs", title="B6: success, drops and wrong declarations",
                 ylim=(0, 125))  # room above 100 % for the legend, clear of the bars
     axes[0].legend(fontsize=7, ncol=4, loc="upper center")
@@ -361,7 +364,7 @@ def grasp_figure(table: dict, hands, families, kinds, path: Path) -> None:
     if "single" in kinds:
         single = [table[f"{h}/{f}/single"]["steps_median"] for h in hands for f in families]
         axes[1].bar(x + 0.15, single, 0.3, label="one finger, object clamped")
-    axes[1].set_xticks(x, labels, fontsize=8)
+    axes[1].set_xticks(x, labels, fontsize=8, **tilt)
     axes[1].set(ylabel="median steps", title="steps to a declaration (or the step limit)")
     axes[1].set_ylim(0, 1.25 * max([*steps, *(single if "single" in kinds else [])], default=1))
     axes[1].legend(fontsize=7, ncol=2, loc="upper center")
@@ -369,3 +372,8 @@ def grasp_figure(table: dict, hands, families, kinds, path: Path) -> None:
     fig.savefig(path, dpi=110)
     plt.close(fig)
 
+
+def _short(name: str) -> str:
+    """A hand's or object's name on a figure: a file's stem, a preset's name."""
+    path = Path(name)
+    return path.stem if path.suffix else name
