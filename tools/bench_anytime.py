@@ -18,6 +18,7 @@ from service.episode.simulate import simulate
 from service.localization.localizers.base import Budget, Measurement
 from service.registry import LOCALIZERS
 from tools.bench_common import write_json
+from tools.outputs import check_outputs
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -49,6 +50,7 @@ def measure(algorithm: str, seed: int, budget_s: float) -> tuple[list[float], li
 
 
 def run(args: argparse.Namespace) -> int:
+    check_outputs(args.json)
     rows = []
     print(f"work() under a {args.budget_ms:g} ms budget, {args.runs} B2 episodes each")
     for algorithm in args.algorithms.split(","):

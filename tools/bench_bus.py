@@ -17,6 +17,7 @@ from firmware_if.dxl_bus import DxlBus
 from firmware_if.errors import CommunicationError
 from sim_backend.emulator import EmulatedServo, ServoBus
 from tools.bench_common import write_json
+from tools.outputs import check_outputs
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -53,6 +54,7 @@ def measure(servos: int = 3, cycles: int = 2000, fast: bool = True) -> dict[str,
 
 
 def run(args: argparse.Namespace) -> int:
+    check_outputs(args.json)
     results = [measure(args.servos, args.cycles, fast=True),
                measure(args.servos, args.cycles, fast=False)]
     for r in results:

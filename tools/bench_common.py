@@ -28,6 +28,7 @@ from tools.executor import (
     add_executor_options,
     make_executor,
 )
+from tools.outputs import check_outputs
 from tools.scenario_options import add_scenario_options, settings_from_args
 
 
@@ -52,9 +53,7 @@ def add_bench_options(parser: argparse.ArgumentParser, *, defaults: RunSettings,
 def check_bench_args(args: argparse.Namespace) -> None:
     if args.runs < 1:
         raise ConfigError(f"--runs must be at least 1, got {args.runs}")
-    for path in (args.json, args.plot):
-        if path is not None and not path.resolve().parent.is_dir():
-            raise ConfigError(f"cannot write {path}: folder {path.parent} does not exist")
+    check_outputs(args.json, figures=(args.plot,))
 
 
 LOG_EVERY_S = 30.0

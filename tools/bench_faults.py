@@ -29,6 +29,7 @@ from service.errors import ConfigError
 from service.wire.client import CommandFailed, CommandTimeout, Controller, Subscriber
 from tools import bench_service
 from tools.bench_common import percentile, write_json
+from tools.outputs import check_outputs
 
 CONFIG = """
 [backend]
@@ -140,6 +141,7 @@ def campaign(args: argparse.Namespace) -> dict[str, Any]:
 
 
 def run(args: argparse.Namespace) -> int:
+    check_outputs(args.json)
     if args.rounds < 1:
         raise ConfigError("--rounds must be at least 1")
     r = campaign(args)

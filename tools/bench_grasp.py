@@ -28,6 +28,7 @@ from service.localization.objects.files import OBJECT_FILE_SUFFIXES
 from service.localization.surface import HeightMap
 from tools.bench_common import executor_for, fmt, percentile, progress, write_json
 from tools.executor import Failed, add_executor_options
+from tools.outputs import check_outputs
 
 OBJECTS = ("ellipse", "rounded", "blob", "keyed")
 HANDS = ("two-finger", "three-finger")
@@ -66,9 +67,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def _check(args: argparse.Namespace) -> None:
     if args.runs < 1 or args.max_steps < 1:
         raise ConfigError("--runs and --max-steps must be at least 1")
-    for path in (args.json, args.plot):
-        if path is not None and not path.resolve().parent.is_dir():
-            raise ConfigError(f"cannot write {path}: folder {path.parent} does not exist")
+    check_outputs(args.json, figures=(args.plot,))
     from firmware_if.errors import HandConfigError
     from firmware_if.hand import load_hand
     from service.errors import ObjectError

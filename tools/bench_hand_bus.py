@@ -26,6 +26,7 @@ from sim_backend.emulator import ServoBus
 from sim_backend.emulator.hand_plant import HandPlant
 from sim_backend.emulator.plant import hand_bus_servos
 from tools.bench_common import write_json
+from tools.outputs import check_outputs
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -142,6 +143,7 @@ def _err_text(error: list[float] | None) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
+    check_outputs(args.json)
     settings = HandSettings(object=args.object, hand=args.hand, noise=args.noise,
                             max_steps=args.max_steps)
     ticks = [measure_ticks(settings, args.ticks, fast=True),

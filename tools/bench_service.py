@@ -31,6 +31,7 @@ from service.errors import ConfigError
 from service.registry import LOCALIZERS, POLICIES
 from service.wire.client import Client, Subscriber
 from tools.bench_common import percentile, write_json
+from tools.outputs import check_outputs
 
 SCENARIO = """
 [scenario]
@@ -198,6 +199,7 @@ def measure(subscribers: int, args: argparse.Namespace) -> dict[str, Any]:
 
 
 def run(args: argparse.Namespace) -> int:
+    check_outputs(args.json)
     if not args.duration > 0 or not args.rate > 0 or args.subscribers < 2:
         raise ConfigError("--duration and --rate must be > 0 and --subscribers >= 2")
     results = [measure(0, args), measure(args.subscribers, args)]

@@ -35,6 +35,7 @@ from service.errors import ConfigError
 from service.wire.client import Client, CommandFailed, CommandTimeout
 from tools import bench_service
 from tools.bench_common import write_json
+from tools.outputs import check_outputs
 from tools.wake_floor import wake_floor
 
 
@@ -172,6 +173,7 @@ def soak(args: argparse.Namespace) -> dict[str, Any]:
 
 
 def run(args: argparse.Namespace) -> int:
+    check_outputs(args.json)
     if (not args.duration > 0 or not args.rate > 0 or args.reconnect_s <= 0
             or not args.floor_s > 0):
         raise ConfigError("--duration, --rate, --reconnect-s and --floor-s must be > 0")

@@ -133,6 +133,13 @@ def load_campaign(path: Path, out: Path | None = None) -> Campaign:
         except ConfigError as exc:
             raise _fail(path, f"scenario {label}: {exc}") from None
         scenarios.append(Scenario(label, settings, choices, path.parent))
+    seen: dict[str, str] = {}
+    for sc in scenarios:  # "a.npy" and "./a.npy" are one map: its episodes ran twice
+        if sc.key in seen:
+            raise _fail(path, f"scenarios {seen[sc.key]} and {sc.name} are the same "
+                              "settings (a value listed twice, or one map file by two "
+                              "names): list each once")
+        seen[sc.key] = sc.name
     if len(scenarios) * runs > MAX_EPISODES:
         raise _fail(path, f"{len(scenarios)} scenarios x {runs} runs is over "
                           f"{MAX_EPISODES:,} episodes")
@@ -142,6 +149,18 @@ def load_campaign(path: Path, out: Path | None = None) -> Campaign:
             raise _fail(path, f"out must be a folder name, got {given!r}")
         out = path.parent / given  # relative to the campaign file
     return Campaign(name, runs, first_seed, out, scenarios, source)
+
+
+def map_digest(spec: str) -> str | None:
+    """A map file's content digest (the first 16 hex digits of its SHA-256), None for a
+    preset: a finished episode keeps the digest of the file it ran on."""
+    if Path(spec).suffix.lower() not in MAP_FILE_SUFFIXES:
+        return None
+    digest = hashlib.sha256()
+    with open(spec, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()[:16]
 
 
 def _beside(path: Path, table: dict[str, Any]) -> dict[str, Any]:

@@ -160,4 +160,7 @@ def write_figures(folder: Path, grouped) -> list[Path]:
         fig.savefig(path, dpi=90)
         plt.close(fig)
         paths.append(path)
+    for old in folder.glob("[0-9][0-9]-*.png"):  # a changed campaign's figures are gone
+        if old not in paths:
+            old.unlink()
     return paths

@@ -85,27 +85,20 @@ def run_list(args: argparse.Namespace) -> int:
     return 0
 
 
-def _check_outputs(*paths: Path | None) -> None:
-    from service.errors import ConfigError
-
-    for path in paths:
-        if path is not None and not path.resolve().parent.is_dir():
-            raise ConfigError(f"cannot write {path}: folder {path.parent} does not exist")
-
-
 def run_check(args: argparse.Namespace) -> int:
     from service.bounds import bound_of
     from service.episode.scenario import RunSettings
     from service.errors import ConfigError
     from service.localization.map_check import check_map
     from service.localization.maps import load_map
+    from tools.outputs import check_outputs
 
     if not (args.step > 0):
         raise ConfigError(f"--step must be a positive number of metres, got {args.step}")
     # the spacing `haptic run` takes, with its words: a map check passed --spacing 1 with a
     # warning that the run then refused
     bound_of(RunSettings, "spacing").check("--spacing", args.spacing)
-    _check_outputs(args.json, args.plot)
+    check_outputs(args.json, figures=(args.plot,))
     height_map = load_map(args.map, args.spacing)
     report = check_map(height_map, args.radius, args.step)
     print("\n".join(report.lines()))

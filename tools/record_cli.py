@@ -14,12 +14,12 @@ import csv
 import json
 import sys
 import time
-from pathlib import Path
 from typing import Any
 
 from service.errors import InputError
 from service.wire import envelope as wire
 from service.wire.client import CommandFailed, CommandTimeout
+from tools.outputs import check_outputs
 from tools.signals import interrupted, signals_held
 from tools.stream_cli import (
     add_stream_options,
@@ -177,8 +177,7 @@ def cmd_export(args: argparse.Namespace) -> int:
     from tools.recording import read_recording
 
     target = args.json or args.csv
-    if target != "-" and not Path(target).resolve().parent.is_dir():
-        raise InputError(f"cannot write {target}: folder {Path(target).parent} does not exist")
+    check_outputs(target)
     _, records = read_recording(args.file)
     episodes = episodes_from([r.message for r in records if r.topic == "event"])
     if not episodes:

@@ -10,7 +10,13 @@ from pathlib import Path
 
 from firmware_if.backend import Backend
 from service.episode.runner import StepRecord
-from service.episode.scenario import RunSettings, Truth, check_start, for_backend
+from service.episode.scenario import (
+    RunSettings,
+    Truth,
+    check_algorithm,
+    check_start,
+    for_backend,
+)
 from service.episode.simulate import EpisodeReport, simulate
 from service.errors import ConfigError
 from service.localization.map_check import check_map
@@ -19,6 +25,7 @@ from service.localization.policies.base import MOVE_NAMES
 from service.localization.surface import check_radius
 from service.registry import BACKENDS
 from tools.hand_cli import add_object_options, run_hand
+from tools.outputs import check_outputs
 from tools.scenario_options import add_scenario_options, settings_from_args
 from tools.words import (
     EXIT_FAULT,
@@ -65,7 +72,7 @@ def run(args: argparse.Namespace) -> int:
                           "needs no hand; give --object NAME for a hand holding an object, or "
                           "--backend dynamixel --port PORT for a finger on servos")
     settings = settings_from_args(args)
-    _check_outputs(args)
+    check_outputs(args.json, figures=(args.plot,))
     if args.backend != "sim":  # refused before any line of the run is printed
         from firmware_if.dxl_bus import check_port_exists  # the SDK only for servos
 
@@ -75,6 +82,7 @@ def run(args: argparse.Namespace) -> int:
     height_map = load_map(settings.map, settings.spacing)
     check_radius(height_map, settings.radius)  # the tip first: it names a profile's one row
     check_start(settings, height_map)
+    check_algorithm(settings, height_map)
     for warning in check_map(height_map, settings.radius, settings.step).warnings:
         print(f"warning: {warning}")
     backend_factory: Callable[[Truth], Backend] | None = None
@@ -109,13 +117,6 @@ def run(args: argparse.Namespace) -> int:
     if report.result.fault is not None:
         return EXIT_FAULT
     return 1 if failed else 0  # a script must notice a wrong pose
-
-
-def _check_outputs(args: argparse.Namespace) -> None:
-    """Fail before the run, not after it, when an output cannot be written."""
-    for path in (args.json, args.plot):
-        if path is not None and not path.resolve().parent.is_dir():
-            raise ConfigError(f"cannot write {path}: folder {path.parent} does not exist")
 
 
 class StepPrinter:

@@ -110,6 +110,15 @@ def episode_streams(seed: int) -> list[np.random.Generator]:
     return np.random.default_rng(seed).spawn(4)
 
 
+def check_algorithm(settings: RunSettings, height_map: HeightMap) -> None:
+    """Refuse a localizer the map cannot take, before any work: a held-out campaign of the
+    grid localizers over a profile among its maps recorded each of their episodes as an
+    error and exited 0."""
+    refusal = getattr(LOCALIZERS.load(settings.algorithm), "profiles", None)
+    if height_map.is_profile and refusal:
+        raise ConfigError(refusal)
+
+
 def check_start(settings: RunSettings, height_map: HeightMap) -> None:
     """Refuse a start the map cannot give (`draw_truth`), before any work is shown."""
     x_max, y_max = height_map.extent

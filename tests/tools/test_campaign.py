@@ -223,3 +223,98 @@ def test_a_finished_campaign_run_again_shows_no_progress_bar(tmp_path, capsys):
     printed = capsys.readouterr()
     assert "2 already done, 0 to run" in printed.out and "2 of 2 episodes finished" in printed.out
     assert "elapsed" not in printed.err
+
+
+def _map_campaign(tmp_path, grid: str, runs: int = 1) -> Path:
+    import numpy as np
+
+    from service.localization.maps import load_map
+
+    np.save(tmp_path / "bumps.npy", load_map("bumps:20:1").heights)
+    path = tmp_path / "m.toml"
+    path.write_text(f"runs = {runs}\n[fixed]\nspacing = 0.001\nnoise = true\nmax_steps = 3\n"
+                    f"[grid]\n{grid}\n")
+    return path
+
+
+def test_one_map_file_by_two_names_is_refused(tmp_path, capsys):
+    """A held-out check listed `boss.npy` and `./boss.npy`: the same episodes ran twice and
+    counted twice, and a resume ran some of them a third time."""
+    path = _map_campaign(tmp_path, 'map = ["bumps.npy", "./bumps.npy"]')
+    assert main(["campaign", str(path), "--workers", "1"]) == 2
+    assert "are the same settings" in capsys.readouterr().err
+    assert not (tmp_path / "m-results").exists()
+
+
+def test_a_localizer_a_map_cannot_take_is_refused_before_any_episode(tmp_path, capsys):
+    """A held-out check's grid of algorithms over maps with a profile among them recorded
+    every grid episode on the profile as an error, and exited 0."""
+    (tmp_path / "row.csv").write_text(",".join(["0.0", "0.001", "0.003", "0.001"] * 30))
+    path = tmp_path / "p.toml"
+    path.write_text('runs = 1\n[fixed]\nmap = "row.csv"\nspacing = 0.001\nmax_steps = 2\n'
+                    '[grid]\nalgorithm = ["particles", "grid"]\n')
+    assert main(["campaign", str(path), "--workers", "1"]) == 2
+    err = capsys.readouterr().err
+    assert "scenario algorithm=grid: the grid localizers need a 2-D map" in err
+    assert not (tmp_path / "p-results").exists()
+
+
+def test_a_changed_map_file_runs_its_episodes_again(tmp_path, capsys):
+    """A held-out check replaced a campaign's map file between runs: the resume said "2
+    already done, 0 to run" and reported the old map's results as the new one's."""
+    import numpy as np
+
+    path = _map_campaign(tmp_path, 'algorithm = ["particles"]\nmap = ["bumps.npy"]', runs=2)
+    assert main(["campaign", str(path), "--workers", "1"]) == 0
+    np.save(tmp_path / "bumps.npy", np.load(tmp_path / "bumps.npy") * 1.5)
+    capsys.readouterr()
+    assert main(["campaign", str(path), "--workers", "1"]) == 0
+    out = capsys.readouterr().out
+    assert "2 finished episodes ran on another version of their map file" in out
+    assert "0 already done, 2 to run" in out
+    records = stored(tmp_path / "m-results")
+    assert len(records) == 4 and len({r["map_sha256"] for r in records}) == 2
+    assert len(episodes(tmp_path / "m-results")) == 2
+
+
+def test_a_changed_campaign_leaves_no_figures_of_scenarios_it_dropped(tmp_path):
+    """A held-out check dropped an algorithm from its grid: the results folder kept the
+    dropped scenarios' figures beside the new ones."""
+    path = write(tmp_path, runs=1)
+    assert main(["campaign", str(path), "--workers", "1"]) == 0
+    path.write_text(CAMPAIGN.format(runs=1).replace(', "elimination"', ""))
+    assert main(["campaign", str(path), "--workers", "1"]) == 0
+    figures = sorted(p.name for p in (tmp_path / "c-results" / "figures").iterdir())
+    assert figures == ["00-algorithm_particles_map_bumps_20_1.png"], figures
+
+
+def test_results_that_cannot_be_written_are_one_line_errors(tmp_path, capsys):
+    """A held-out check's `out` inside a file, or under /proc, ended in a traceback."""
+    (tmp_path / "afile").write_text("x")
+    for out in (tmp_path / "afile" / "r", Path("/proc/haptic-results")):
+        assert main(["campaign", str(write(tmp_path, runs=1)), "--workers", "1",
+                     "--out", str(out)]) == 2
+        assert f"cannot write results to {out}" in capsys.readouterr().err
+
+
+def test_an_episode_that_raised_runs_again_and_the_campaign_says_so(tmp_path, capsys,
+                                                                     monkeypatch):
+    """A held-out check: episodes that raised counted as done (a rerun never retried them)
+    and the campaign exited 0."""
+    from tools import executor
+
+    ran = executor.run_one
+
+    def flaky(settings, maps, task=executor.on_map):
+        if settings.seed == 1:
+            return executor.Failed(settings, "RuntimeError: a worker's bad day")
+        return ran(settings, maps, task)
+
+    monkeypatch.setattr(executor, "run_one", flaky)
+    path = write(tmp_path, runs=2)
+    assert main(["campaign", str(path), "--workers", "1"]) == 1
+    assert "2 episodes raised, e.g. scenario" in capsys.readouterr().err
+    monkeypatch.setattr(executor, "run_one", ran)
+    assert main(["campaign", str(path), "--workers", "1"]) == 0
+    assert "2 already done, 2 to run" in capsys.readouterr().out
+    assert all(r["outcome"] != "error" for r in episodes(tmp_path / "c-results"))

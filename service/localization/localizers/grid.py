@@ -64,10 +64,16 @@ a trace, not nothing, so a mistaken wall cannot erase the truth for good."""
 HeadingSd = Annotated[float, Bound("float", lo=0.01, hi=180.0)]
 """Degrees of heading noise a step is assumed to add."""
 
+PROFILE_REFUSAL = "the grid localizers need a 2-D map; use particles for a profile"
+
+
 class Grid:
     """Algorithm I over (position[, heading]) cells of the current finger position."""
 
     name: ClassVar[str] = "grid"
+    profiles: ClassVar[str | None] = PROFILE_REFUSAL
+    """Why this localizer refuses a profile (None: it takes one); read before it is built
+    (`scenario.check_algorithm`)."""
 
     def __init__(self, ctx: LocalizerContext, *, cell: Pitch = None, headings: Headings = 36,
                  epsilon: Share = 0.1, heading_sd_deg: HeadingSd = 2.0, keep: Count = 3000,
@@ -75,7 +81,7 @@ class Grid:
         if headings < 1:
             raise ConfigError(f"grid headings must be >= 1, got {headings}")
         if ctx.surface.map.is_profile:
-            raise ConfigError("the grid localizers need a 2-D map; use particles for a profile")
+            raise ConfigError(PROFILE_REFUSAL)
         kernels.warm_up()  # compile before the first update, not during it
         self.ctx = ctx
         self.cell = float(cell or 0.5 * ctx.step_length)
