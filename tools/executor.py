@@ -18,6 +18,7 @@ from __future__ import annotations
 import dataclasses
 import os
 import signal
+import sys
 from abc import ABC, abstractmethod
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
@@ -25,11 +26,16 @@ from typing import Any
 
 from service.episode.scenario import RunSettings
 from service.episode.simulate import EpisodeReport, simulate
-from service.errors import ConfigError, InputError
+from service.errors import ConfigError, InputError, ServiceError
 from service.localization.surface import HeightMap
 
 CONNECT_TIMEOUT_S = 10.0
 """How long to try reaching a Dask scheduler."""
+ANSWER_GRACE_S = 5.0
+"""How much longer than `CONNECT_TIMEOUT_S` a peer that took the connection may take to
+answer as a scheduler."""
+LOST_RETRIES = 3
+"""Times the episodes a lost Dask worker took with it are sent again."""
 PRELOAD = ["service.episode.simulate", "service.localization.kernels",
            "service.localization.localizers.particles", "tools.executor",
            "tools.executor_warm"]
@@ -223,14 +229,7 @@ class DaskCluster(Executor):
         from distributed import Client
 
         _check_address(address)
-        try:
-            self._client = Client(address, timeout=f"{CONNECT_TIMEOUT_S}s",
-                                  set_as_default=False)
-        except (OSError, TimeoutError, ValueError) as exc:
-            raise ConfigError(f"cannot reach the Dask scheduler at {address}: "
-                              f"{str(exc).splitlines()[0] if str(exc) else exc!r}; start "
-                              "one (`dask scheduler`, `dask worker ADDRESS`) or drop "
-                              "--scheduler for the local pool") from None
+        self._client = _connect(Client, address)
         self.address = address
         self.workers = max(1, len(self._client.scheduler_info().get("workers", {})))
         self._futures: list[Any] = []
@@ -239,24 +238,83 @@ class DaskCluster(Executor):
         return f"the Dask cluster at {self.address} ({self.workers} workers)"
 
     def run(self, settings, maps, task=on_map):
-        from distributed import as_completed
+        """The episodes as they finish. A worker lost takes its episodes and the maps
+        scattered to it along: those are sent again with the maps scattered afresh, at
+        most `LOST_RETRIES` times (a held-out check killed a worker: the bench ended in a
+        traceback and kept none of its finished runs)."""
+        from concurrent.futures import CancelledError
 
-        # a hand's episodes share no map (scattering nothing fails inside Dask)
-        shared = self._client.scatter(maps, broadcast=True) if maps else {}
-        index = {}
-        for i, s in enumerate(settings):
-            future = self._client.submit(_dask_task, s, shared, task, pure=False)
-            index[future.key] = i
-            self._futures.append(future)
-        try:
-            for future in as_completed(self._futures, loop=self._client.loop):
-                yield index[future.key], _arrived(future.result(), maps)
-        finally:
-            self._client.cancel(self._futures)
-            self._futures = []
+        from distributed import KilledWorker, as_completed
+
+        pending = dict(enumerate(settings))
+        for attempt in range(LOST_RETRIES + 1):
+            if attempt:
+                print(f"the Dask cluster lost a worker: {len(pending)} episodes are sent "
+                      "again", file=sys.stderr)
+            # a hand's episodes share no map (scattering nothing fails inside Dask)
+            shared = self._client.scatter(maps, broadcast=True) if maps else {}
+            index = {}
+            for i, s in pending.items():
+                future = self._client.submit(_dask_task, s, shared, task, pure=False)
+                index[future.key] = i
+                self._futures.append(future)
+            try:
+                for future in as_completed(self._futures, loop=self._client.loop):
+                    try:
+                        outcome = future.result()
+                    except (CancelledError, KilledWorker):  # lost with a worker
+                        continue
+                    except Exception as exc:  # the cluster's, not the episode's (caught there)
+                        raise ServiceError(f"the Dask cluster at {self.address} failed an "
+                                           f"episode: {_first_line(exc)}") from None
+                    i = index[future.key]
+                    del pending[i]
+                    yield i, _arrived(outcome, maps)
+            finally:
+                self._client.cancel(self._futures)
+                self._futures = []
+            if not pending:
+                return
+        raise ServiceError(f"the Dask cluster at {self.address} lost workers "
+                           f"{LOST_RETRIES + 1} times; {len(pending)} episodes did not "
+                           "finish: check its workers and run the same command again")
 
     def close(self) -> None:
         self._client.close()
+
+
+def _connect(client_class: Any, address: str) -> Any:
+    """A Dask client of the scheduler at `address`, or a one-line ConfigError. The client
+    is made on a thread and waited for: a peer that took the connection and never
+    answered held a campaign silent for minutes, and another's answer ended in a
+    traceback (an allocation of 3 EiB)."""
+    import threading
+
+    made: dict[str, Any] = {}
+
+    def connect() -> None:
+        try:
+            made["client"] = client_class(address, timeout=f"{CONNECT_TIMEOUT_S}s",
+                                          set_as_default=False)
+        except Exception as exc:  # whatever the peer made Dask raise
+            made["error"] = exc
+
+    thread = threading.Thread(target=connect, daemon=True, name="dask-connect")
+    thread.start()
+    thread.join(CONNECT_TIMEOUT_S + ANSWER_GRACE_S)
+    if "client" in made:
+        return made["client"]
+    why = (_first_line(made["error"]) if "error" in made else
+           f"it took the connection but did not answer as a scheduler within "
+           f"{CONNECT_TIMEOUT_S + ANSWER_GRACE_S:g} s")
+    raise ConfigError(f"cannot reach the Dask scheduler at {address}: {why}; start one "
+                      "(`dask scheduler`, `dask worker ADDRESS`) or drop --scheduler for "
+                      "the local pool")
+
+
+def _first_line(exc: BaseException) -> str:
+    text = str(exc).strip()
+    return text.splitlines()[0] if text else type(exc).__name__
 
 
 def _check_address(address: str) -> None:

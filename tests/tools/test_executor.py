@@ -88,3 +88,66 @@ def test_a_hands_bench_runs_on_a_dask_cluster():
         assert main(["bench", "grasp", "--objects", "keyed", "--hands", "three-finger",
                      "--runs", "1", "--max-steps", "2", "--no-ablation", "--no-single",
                      "--scheduler", cluster.scheduler_address]) == 0
+
+
+def test_a_scheduler_that_takes_the_connection_and_never_answers_is_a_one_line_error(
+        capsys, monkeypatch):
+    """A held-out check's listener took the connection and said nothing: the campaign sat
+    silent for minutes. It is given up on after the connect timeout and a grace."""
+    import socket
+
+    monkeypatch.setattr(executor, "CONNECT_TIMEOUT_S", 1.0)
+    monkeypatch.setattr(executor, "ANSWER_GRACE_S", 1.0)
+    with socket.socket() as silent:
+        silent.bind(("127.0.0.1", 0))
+        silent.listen()
+        port = silent.getsockname()[1]
+        assert main(["bench", "realistic", "--runs", "1", "--scheduler",
+                     f"tcp://127.0.0.1:{port}"]) == 2
+    err = capsys.readouterr().err
+    assert "cannot reach the Dask scheduler" in err and err.count("\n") == 1
+
+
+def test_episodes_a_lost_worker_took_along_are_sent_again(monkeypatch, capsys):
+    """A held-out check killed a Dask worker mid-bench: the maps scattered to it were lost
+    with it, the bench ended in a traceback and kept none of its finished runs. Each
+    lost episode is sent again with the maps scattered afresh."""
+    import concurrent.futures
+
+    import distributed
+
+    class Future:
+        def __init__(self, key, value, lost):
+            self.key, self.value, self.lost = key, value, lost
+
+        def result(self):
+            if self.lost:
+                raise concurrent.futures.CancelledError("lost with its worker")
+            return self.value
+
+    class Client:
+        loop = None
+
+        def __init__(self):
+            self.scattered, self.submitted = 0, []
+
+        def scatter(self, maps, broadcast):
+            self.scattered += 1
+            return maps
+
+        def submit(self, fn, settings, shared, task, pure):
+            self.submitted.append(settings)
+            lost = self.scattered == 1 and settings % 2 == 1  # the first round loses odds
+            return Future(len(self.submitted), settings * 10, lost)
+
+        def cancel(self, futures):
+            pass
+
+    monkeypatch.setattr(distributed, "as_completed", lambda futures, loop: list(futures))
+    monkeypatch.setattr(executor, "_arrived", lambda outcome, maps: outcome)
+    cluster = executor.DaskCluster.__new__(executor.DaskCluster)
+    cluster._client, cluster._futures, cluster.address = Client(), [], "tcp://x:1"
+    results = dict(cluster.run([0, 1, 2, 3], {"m": object()}))
+    assert results == {0: 0, 1: 10, 2: 20, 3: 30}
+    assert cluster._client.scattered == 2 and cluster._client.submitted == [0, 1, 2, 3, 1, 3]
+    assert "2 episodes are sent again" in capsys.readouterr().err
