@@ -256,7 +256,8 @@ class GraspGatedPolicy(Turns):
             :self.plausible]
         if view.fixed:
             return poses, w / w.sum()
-        poses, w, self._guard = guarded_poses.with_spread(poses, w, view.spread)
+        floor = guarded_poses.spread_floor(view.mismatch[0], view.field.contour.max_radius)
+        poses, w, self._guard = guarded_poses.with_spread(poses, w, view.spread, floor)
         if self._certified is None:
             self._certified = (view.centres.copy(), view.joints)
         poses, w, now, start = self._held(view, poses, w)
