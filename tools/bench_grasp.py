@@ -108,7 +108,10 @@ def _check_holds(jobs: Sequence[tuple[tuple[str, str, str], Any]]) -> None:
         try:
             seeded_world(settings, load_parts(settings))
         except ConfigError as exc:
-            raise ConfigError(f"--hands {hand} --objects {family}: {exc}") from None
+            # its advice names `haptic run`'s options, which the bench does not take
+            raise ConfigError(f"--hands {hand} --objects {family}: {exc} (the bench runs the "
+                              "defaults of --mass, --mu and --threshold: try others with "
+                              f"`haptic run --hand {hand} --object {family}`)") from None
 
 
 _PARTS: dict[tuple, Any] = {}

@@ -61,6 +61,20 @@ class Scenario:
         return hashlib.sha1(json.dumps(data, sort_keys=True).encode()).hexdigest()[:12]
 
 
+    @property
+    def identity(self) -> str:
+        """The settings with a map file named by the file itself (device and inode): one
+        file by two names, a hard link too, is one scenario."""
+        data = dataclasses.replace(self.settings, seed=0).to_json()
+        if Path(data["map"]).suffix.lower() in MAP_FILE_SUFFIXES:
+            try:
+                found = os.stat(data["map"])
+                data["map"] = [found.st_dev, found.st_ino]
+            except OSError:  # missing: refused when it is loaded, in its own words
+                pass
+        return json.dumps(data, sort_keys=True)
+
+
 @dataclass(frozen=True)
 class Campaign:
     name: str
@@ -135,11 +149,11 @@ def load_campaign(path: Path, out: Path | None = None) -> Campaign:
         scenarios.append(Scenario(label, settings, choices, path.parent))
     seen: dict[str, str] = {}
     for sc in scenarios:  # "a.npy" and "./a.npy" are one map: its episodes ran twice
-        if sc.key in seen:
-            raise _fail(path, f"scenarios {seen[sc.key]} and {sc.name} are the same "
+        if sc.identity in seen:
+            raise _fail(path, f"scenarios {seen[sc.identity]} and {sc.name} are the same "
                               "settings (a value listed twice, or one map file by two "
                               "names): list each once")
-        seen[sc.key] = sc.name
+        seen[sc.identity] = sc.name
     if len(scenarios) * runs > MAX_EPISODES:
         raise _fail(path, f"{len(scenarios)} scenarios x {runs} runs is over "
                           f"{MAX_EPISODES:,} episodes")

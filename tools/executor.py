@@ -19,6 +19,7 @@ import dataclasses
 import os
 import signal
 import sys
+import time
 from abc import ABC, abstractmethod
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
@@ -36,6 +37,10 @@ ANSWER_GRACE_S = 5.0
 answer as a scheduler."""
 LOST_RETRIES = 3
 """Times the episodes a lost Dask worker took with it are sent again."""
+WORKERLESS_S = 20.0
+"""How long a Dask cluster may have no worker before the episodes left are given up on."""
+POLL_S = 0.2
+"""How often a run on Dask with nothing finished looks whether any worker is left."""
 PRELOAD = ["service.episode.simulate", "service.localization.kernels",
            "service.localization.localizers.particles", "tools.executor",
            "tools.executor_warm"]
@@ -251,15 +256,21 @@ class DaskCluster(Executor):
             if attempt:
                 print(f"the Dask cluster lost a worker: {len(pending)} episodes are sent "
                       "again", file=sys.stderr)
+            self._await_a_worker(len(pending))
             # a hand's episodes share no map (scattering nothing fails inside Dask)
-            shared = self._client.scatter(maps, broadcast=True) if maps else {}
+            try:
+                shared = self._client.scatter(maps, broadcast=True) if maps else {}
+            except Exception as exc:  # its last worker went meanwhile: "No valid workers"
+                raise self._workerless(len(pending), _first_line(exc)) from None
             index = {}
             for i, s in pending.items():
                 future = self._client.submit(_dask_task, s, shared, task, pure=False)
                 index[future.key] = i
                 self._futures.append(future)
             try:
-                for future in as_completed(self._futures, loop=self._client.loop):
+                for future in self._as_they_finish(as_completed(self._futures,
+                                                                loop=self._client.loop),
+                                                   pending):
                     try:
                         outcome = future.result()
                     except (CancelledError, KilledWorker):  # lost with a worker
@@ -278,6 +289,43 @@ class DaskCluster(Executor):
         raise ServiceError(f"the Dask cluster at {self.address} lost workers "
                            f"{LOST_RETRIES + 1} times; {len(pending)} episodes did not "
                            "finish: check its workers and run the same command again")
+
+    def _as_they_finish(self, finished: Any, pending: dict) -> Iterator[Any]:
+        """The futures of `finished` (an `as_completed`) as they finish, giving up when the
+        cluster has had no worker for `WORKERLESS_S`: episodes that need no map wait for a
+        worker for ever (a held-out check's bench hung when the last worker died)."""
+        idle_since: float | None = None
+        while not finished.is_empty():
+            if finished.has_ready():
+                idle_since = None
+                yield from finished.next_batch(block=False)
+                continue
+            if self._has_workers():
+                idle_since = None
+            elif idle_since is None:
+                idle_since = time.monotonic()
+            elif time.monotonic() - idle_since > WORKERLESS_S:
+                raise self._workerless(len(pending), f"none for {WORKERLESS_S:g} s")
+            time.sleep(POLL_S)  # a poll of the cluster, not a wait for an event of ours
+
+    def _await_a_worker(self, left: int) -> None:
+        try:
+            self._client.wait_for_workers(1, timeout=WORKERLESS_S)
+        except Exception:  # TimeoutError, or the scheduler gone
+            raise self._workerless(left, f"none for {WORKERLESS_S:g} s") from None
+
+    def _has_workers(self) -> bool:
+        try:
+            return bool(self._client.scheduler_info().get("workers"))
+        except Exception:  # the scheduler gone: no worker of its either
+            return False
+
+    def _workerless(self, left: int, why: str) -> ServiceError:
+        """A one-line error for a cluster left with no worker (a traceback, "No valid
+        workers found", ended a held-out check's campaign when its last worker died)."""
+        return ServiceError(f"the Dask cluster at {self.address} has no worker ({why}); "
+                            f"{left} episodes did not finish: start a worker (`dask worker "
+                            f"{self.address}`) and run the same command again")
 
     def close(self) -> None:
         self._client.close()

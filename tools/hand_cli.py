@@ -12,6 +12,7 @@ from pathlib import Path
 
 from service.errors import ConfigError
 from service.localization.objects.files import OBJECT_FILE_SUFFIXES
+from tools.outputs import check_outputs
 from tools.words import (
     EXIT_FAULT,
     NO_SAFE_MOVE,
@@ -127,6 +128,8 @@ def run_hand(args: argparse.Namespace) -> int:
                           "from --seed")
     _refuse_finger_options(args)
     settings = hand_settings(args)
+    # before any work (a held-out check's --json in a missing folder failed after the run)
+    check_outputs(args.json, figures=(args.plot,), inputs=(args.object, args.hand))
     parts = load_parts(settings)
     backend_factory = None
     if args.backend != "sim":

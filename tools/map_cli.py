@@ -98,7 +98,7 @@ def run_check(args: argparse.Namespace) -> int:
     # the spacing `haptic run` takes, with its words: a map check passed --spacing 1 with a
     # warning that the run then refused
     bound_of(RunSettings, "spacing").check("--spacing", args.spacing)
-    check_outputs(args.json, figures=(args.plot,))
+    check_outputs(args.json, figures=(args.plot,), inputs=(args.map,))
     height_map = load_map(args.map, args.spacing)
     report = check_map(height_map, args.radius, args.step)
     print("\n".join(report.lines()))

@@ -10,16 +10,30 @@ from pathlib import Path
 from service.errors import ConfigError
 
 
-def check_outputs(*paths: Path | str | None, figures: tuple[Path | str | None, ...] = ()
-                  ) -> None:
-    """Refuse any of `paths` (and `figures`, which must be a format matplotlib writes) that
-    cannot be written: its folder missing, it a folder, or the system refusing it (a
-    held-out check's `--json /sys/x.json` ran every episode, then failed with a traceback;
-    `--plot x.txt` wrote the JSON, then failed). A file the check creates is removed."""
-    for path in (*paths, *figures):
-        if path is None or str(path) == "-":
-            continue
-        _check_writable(Path(path))
+def check_outputs(*paths: Path | str | None, figures: tuple[Path | str | None, ...] = (),
+                  inputs: tuple[Path | str | None, ...] = (), stdout: bool = False) -> None:
+    """Refuse any of `paths` (and `figures`, which must be a format matplotlib writes here)
+    that cannot be written: its folder missing, it a folder, the system refusing it, one of
+    the command's `inputs`, or two outputs one file (a held-out check's `--json
+    /sys/x.json` ran every episode, then failed with a traceback; `--plot x.txt` wrote the
+    JSON, then failed; `export run.mcap --json run.mcap` overwrote the recording). `-` is
+    standard output where the command writes there (`stdout`). A file the check creates is
+    removed."""
+    outputs = [Path(p) for p in (*paths, *figures) if p is not None]
+    for path in outputs:
+        if str(path) == "-":
+            if stdout:
+                continue
+            raise ConfigError("'-' is not a file: this command writes its output to files; "
+                              "name one")
+        _check_writable(path)
+        if any(_same_file(path, Path(i)) for i in inputs if i is not None):
+            raise ConfigError(f"cannot write {path}: it is an input of this command; name "
+                              "another file")
+    files = [p for p in outputs if str(p) != "-"]
+    for k, path in enumerate(files):
+        if any(_same_file(path, other) for other in files[k + 1:]):
+            raise ConfigError(f"cannot write {path} twice: give each output its own file")
     for path in figures:
         if path is None:
             continue
@@ -47,8 +61,17 @@ def _check_writable(path: Path) -> None:
         os.unlink(path)
 
 
+def _same_file(a: Path, b: Path) -> bool:
+    try:
+        return a.resolve() == b.resolve() or (a.exists() and b.exists() and a.samefile(b))
+    except OSError:
+        return False
+
+
 @functools.cache
 def _figure_formats() -> frozenset[str]:
+    """The formats matplotlib writes by itself: not PGF, which needs a TeX installation
+    (a held-out check's `--plot x.pgf` passed, then failed after the work)."""
     from matplotlib.figure import Figure
 
-    return frozenset(Figure().canvas.get_supported_filetypes())
+    return frozenset(Figure().canvas.get_supported_filetypes()) - {"pgf"}

@@ -177,7 +177,7 @@ def cmd_export(args: argparse.Namespace) -> int:
     from tools.recording import read_recording
 
     target = args.json or args.csv
-    check_outputs(target)
+    check_outputs(target, inputs=(args.file,), stdout=True)
     _, records = read_recording(args.file)
     episodes = episodes_from([r.message for r in records if r.topic == "event"])
     if not episodes:

@@ -72,7 +72,7 @@ def run(args: argparse.Namespace) -> int:
                           "needs no hand; give --object NAME for a hand holding an object, or "
                           "--backend dynamixel --port PORT for a finger on servos")
     settings = settings_from_args(args)
-    check_outputs(args.json, figures=(args.plot,))
+    check_outputs(args.json, figures=(args.plot,), inputs=(args.map,))
     if args.backend != "sim":  # refused before any line of the run is printed
         from firmware_if.dxl_bus import check_port_exists  # the SDK only for servos
 

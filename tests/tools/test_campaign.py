@@ -244,6 +244,10 @@ def test_one_map_file_by_two_names_is_refused(tmp_path, capsys):
     assert main(["campaign", str(path), "--workers", "1"]) == 2
     assert "are the same settings" in capsys.readouterr().err
     assert not (tmp_path / "m-results").exists()
+    os.link(tmp_path / "bumps.npy", tmp_path / "hard.npy")  # a hard link, as a later check
+    path.write_text(path.read_text().replace('"./bumps.npy"', '"hard.npy"'))
+    assert main(["campaign", str(path), "--workers", "1"]) == 2
+    assert "are the same settings" in capsys.readouterr().err
 
 
 def test_a_localizer_a_map_cannot_take_is_refused_before_any_episode(tmp_path, capsys):

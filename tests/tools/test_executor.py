@@ -110,6 +110,53 @@ def test_a_scheduler_that_takes_the_connection_and_never_answers_is_a_one_line_e
     assert "cannot reach the Dask scheduler" in err and err.count("\n") == 1
 
 
+class Finished:
+    """`distributed.as_completed` over futures that are all done."""
+
+    def __init__(self, futures, ready=True):
+        self.futures, self.ready = list(futures), ready
+
+    def is_empty(self):
+        return not self.futures
+
+    def has_ready(self):
+        return self.ready and bool(self.futures)
+
+    def next_batch(self, block):
+        batch, self.futures = self.futures, []
+        return batch
+
+
+def test_a_cluster_left_without_workers_is_a_one_line_error(monkeypatch):
+    """A held-out check killed a cluster's only worker: the bench ended in a traceback ("No
+    valid workers found") and lost its finished runs; a hand's bench, which scatters no
+    map, waited for ever."""
+    from service.errors import ServiceError
+
+    class Gone:
+        loop = None
+
+        def wait_for_workers(self, n, timeout):
+            raise TimeoutError("no worker")
+
+    cluster = executor.DaskCluster.__new__(executor.DaskCluster)
+    cluster._client, cluster._futures, cluster.address = Gone(), [], "tcp://x:1"
+    with pytest.raises(ServiceError, match=r"has no worker .*2 episodes did not finish: "
+                                           r"start a worker"):
+        list(cluster.run([0, 1], {}))
+
+    class Empty:
+        def scheduler_info(self):
+            return {"workers": {}}
+
+    monkeypatch.setattr(executor, "WORKERLESS_S", 0.05)
+    monkeypatch.setattr(executor, "POLL_S", 0.01)
+    cluster._client = Empty()
+    waiting = Finished(["never"], ready=False)
+    with pytest.raises(ServiceError, match="has no worker"):
+        list(cluster._as_they_finish(waiting, {0: "s"}))
+
+
 def test_episodes_a_lost_worker_took_along_are_sent_again(monkeypatch, capsys):
     """A held-out check killed a Dask worker mid-bench: the maps scattered to it were lost
     with it, the bench ended in a traceback and kept none of its finished runs. Each
@@ -145,7 +192,13 @@ def test_episodes_a_lost_worker_took_along_are_sent_again(monkeypatch, capsys):
         def cancel(self, futures):
             pass
 
-    monkeypatch.setattr(distributed, "as_completed", lambda futures, loop: list(futures))
+        def wait_for_workers(self, n, timeout):
+            pass
+
+        def scheduler_info(self):
+            return {"workers": {"w": {}}}
+
+    monkeypatch.setattr(distributed, "as_completed", lambda futures, loop: Finished(futures))
     monkeypatch.setattr(executor, "_arrived", lambda outcome, maps: outcome)
     cluster = executor.DaskCluster.__new__(executor.DaskCluster)
     cluster._client, cluster._futures, cluster.address = Client(), [], "tcp://x:1"

@@ -12,7 +12,8 @@ from tools.outputs import check_outputs
 
 
 def test_a_writable_path_passes_and_leaves_nothing_behind(tmp_path: Path) -> None:
-    check_outputs(tmp_path / "r.json", None, "-", figures=(tmp_path / "f.png", None))
+    check_outputs(tmp_path / "r.json", None, "-", figures=(tmp_path / "f.png", None),
+                  stdout=True)
     assert list(tmp_path.iterdir()) == []
     kept = tmp_path / "old.json"
     kept.write_text("{}")
@@ -51,3 +52,32 @@ def test_a_bench_refuses_an_unwritable_output_before_any_episode(tmp_path, capsy
                  str(tmp_path / "ok.json"), "--plot", str(tmp_path / "x.txt")]) == 2
     assert "a figure is one of" in capsys.readouterr().err
     assert not (tmp_path / "ok.json").exists()
+
+
+def test_an_output_that_is_an_input_or_another_output_is_refused(tmp_path: Path) -> None:
+    """A held-out check: `export run.mcap --json run.mcap` overwrote the recording, `run
+    --map in.npy --json in.npy` the map, and `--json same.png --plot same.png` kept one."""
+    source = tmp_path / "in.npy"
+    source.write_bytes(b"map")
+    with pytest.raises(ConfigError, match="it is an input of this command"):
+        check_outputs(source, inputs=(str(source),))
+    (tmp_path / "link.npy").symlink_to(source)
+    with pytest.raises(ConfigError, match="it is an input"):
+        check_outputs(tmp_path / "link.npy", inputs=(source,))
+    with pytest.raises(ConfigError, match="twice"):
+        check_outputs(tmp_path / "same.png", figures=(tmp_path / "same.png",))
+    assert source.read_bytes() == b"map"
+
+
+def test_standard_output_only_where_the_command_writes_there(tmp_path: Path) -> None:
+    """A held-out check's `run --json -` wrote a file named '-'; `export --json -` writes
+    to standard output."""
+    check_outputs("-", stdout=True)
+    with pytest.raises(ConfigError, match="'-' is not a file"):
+        check_outputs("-")
+
+
+def test_a_figure_format_that_needs_tex_is_refused_before_the_work() -> None:
+    """`--plot x.pgf` passed the check, then failed after the run: PGF needs xelatex."""
+    with pytest.raises(ConfigError, match="a figure is one of"):
+        check_outputs(figures=("x.pgf",))
