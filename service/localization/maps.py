@@ -28,14 +28,15 @@ def check_map_spec(spec: str, spacing: float | None) -> None:
         if spacing is None:
             raise MapError(f"map file '{spec}' needs its sample spacing in metres (`--spacing` "
                            "on the command line, `scenario.spacing` in hapticd's "
-                           "configuration, `spacing` beside `map` in its set_map command)")
+                           "configuration, `spacing` beside `map` in its set_map command "
+                           "or in a campaign file)")
         return
     if "/" in spec or suffix[1:].isalpha():
         raise MapError(f"map file '{spec}': a map file is a grid of heights in metres, "
                        f"{', '.join(sorted(MAP_FILE_SUFFIXES))}")
     if spacing is not None:
-        raise MapError("a spacing (`--spacing`, `scenario.spacing`) applies to map files, "
-                       "not presets")
+        raise MapError("a spacing (`--spacing`, `scenario.spacing`, a campaign's `spacing`) "
+                       "applies to map files, not presets")
     parse(spec)  # a preset's name, size and seed (nothing built)
 
 

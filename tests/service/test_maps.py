@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from service.errors import MapError
-from service.localization.maps import load_map, load_rows, peaks
+from service.localization.maps import check_map_spec, load_map, load_rows, peaks
 
 
 def test_peaks_matches_the_benchmark_definition():
@@ -123,3 +123,12 @@ def test_a_non_finite_height_is_found_for_the_lab(tmp_path):
     with pytest.raises(MapError, match=r"has 1 non-finite height \(NaN or inf\), the first in "
                                        r"row 3, column 2 \(counting from 0\)"):
         load_map(str(tmp_path / "hole.npy"), spacing=0.001)
+
+
+def test_a_campaigns_spacing_is_named_where_a_map_needs_one():
+    """A held-out check's campaign on a map file without a spacing was told of
+    `--spacing`, `scenario.spacing` and `set_map`, not of the campaign's own key."""
+    with pytest.raises(MapError, match="or in a campaign file"):
+        check_map_spec("heights.npy", None)
+    with pytest.raises(MapError, match="a campaign's `spacing`"):
+        check_map_spec("peaks", 0.001)
