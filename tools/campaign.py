@@ -54,25 +54,29 @@ class Scenario:
     @property
     def key(self) -> str:
         """Names the scenario's settings (all but the seed) in the episode store."""
-        data = dataclasses.replace(self.settings, seed=0).to_json()
-        if self.home is not None and Path(data["map"]).suffix.lower() in MAP_FILE_SUFFIXES:
+        data, map_file = self._settings()
+        if self.home is not None and map_file:
             data["map"] = Path(os.path.relpath(Path(data["map"]).resolve(),
                                                self.home.resolve())).as_posix()
         return hashlib.sha1(json.dumps(data, sort_keys=True).encode()).hexdigest()[:12]
-
 
     @property
     def identity(self) -> str:
         """The settings with a map file named by the file itself (device and inode): one
         file by two names, a hard link too, is one scenario."""
-        data = dataclasses.replace(self.settings, seed=0).to_json()
-        if Path(data["map"]).suffix.lower() in MAP_FILE_SUFFIXES:
+        data, map_file = self._settings()
+        if map_file:
             try:
                 found = os.stat(data["map"])
                 data["map"] = [found.st_dev, found.st_ino]
             except OSError:  # missing: refused when it is loaded, in its own words
                 pass
         return json.dumps(data, sort_keys=True)
+
+    def _settings(self) -> tuple[dict[str, Any], bool]:
+        """The settings but the seed, as JSON data, and whether the map is a file."""
+        data = dataclasses.replace(self.settings, seed=0).to_json()
+        return data, Path(data["map"]).suffix.lower() in MAP_FILE_SUFFIXES
 
 
 @dataclass(frozen=True)

@@ -32,11 +32,10 @@ def register(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from service.episode.scenario import check_algorithm, check_start
+    from service.episode.scenario import check_scenario
     from service.errors import ConfigError
     from service.localization.map_check import check_map
     from service.localization.maps import load_map
-    from service.localization.surface import check_radius
     from tools.bench_common import progress
     from tools.campaign import Store, load_campaign, map_digest
     from tools.executor import Failed, make_executor
@@ -54,9 +53,7 @@ def run(args: argparse.Namespace) -> int:
             for warning in check_map(maps[key], sc.settings.radius, sc.settings.step).warnings:
                 print(f"warning: {key}: {warning}")
         try:  # what `haptic run` refuses is refused here, before any episode
-            check_radius(maps[key], sc.settings.radius)
-            check_start(sc.settings, maps[key])
-            check_algorithm(sc.settings, maps[key])
+            check_scenario(sc.settings, maps[key])
         except ConfigError as exc:
             raise ConfigError(f"campaign {args.campaign}: scenario {sc.name}: {exc}") from None
     # reached before anything is written or forgotten: a cluster that is not there changes

@@ -13,8 +13,7 @@ from service.episode.runner import StepRecord
 from service.episode.scenario import (
     RunSettings,
     Truth,
-    check_algorithm,
-    check_start,
+    check_scenario,
     for_backend,
 )
 from service.episode.simulate import EpisodeReport, simulate
@@ -22,7 +21,6 @@ from service.errors import ConfigError
 from service.localization.map_check import check_map
 from service.localization.maps import load_map
 from service.localization.policies.base import MOVE_NAMES
-from service.localization.surface import check_radius
 from service.registry import BACKENDS
 from tools.hand_cli import add_object_options, run_hand
 from tools.outputs import check_outputs
@@ -80,9 +78,7 @@ def run(args: argparse.Namespace) -> int:
             raise ConfigError(f"--backend {args.backend} needs --port and --hand")
         check_port_exists(args.port)
     height_map = load_map(settings.map, settings.spacing)
-    check_radius(height_map, settings.radius)  # the tip first: it names a profile's one row
-    check_start(settings, height_map)
-    check_algorithm(settings, height_map)
+    check_scenario(settings, height_map)
     for warning in check_map(height_map, settings.radius, settings.step).warnings:
         print(f"warning: {warning}")
     backend_factory: Callable[[Truth], Backend] | None = None

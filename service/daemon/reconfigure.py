@@ -181,8 +181,8 @@ def check_backend_options(config: DaemonConfig, settings: RunSettings | HandSett
 def make_backend(config: DaemonConfig, settings: RunSettings | HandSettings,
                  truth: Truth | None, world: dict[str, Any] | None) -> Backend:
     """The configured backend, not yet opened. The simulator's world (the perturbed map
-    and its contact surface) was built by the compute process and is mapped here."""
-    check_backend_options(config, settings)
+    and its contact surface) was built by the compute process and is mapped here. Its
+    options were checked with the rest of the configure (`check_backend_options`)."""
     if isinstance(settings, HandSettings):
         return _hand_backend(config, settings)
     cls = BACKENDS.load(config.backend.name)

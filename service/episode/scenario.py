@@ -18,7 +18,12 @@ from service.localization.localizers.base import Estimate, Localizer, LocalizerC
 from service.localization.localizers.pose_table import grid_positions
 from service.localization.maps import load_map
 from service.localization.models import HARDWARE_SENSOR_SIGMA, NoiseSpec, models_for
-from service.localization.surface import ContactSurface, HeightMap, contact_surface
+from service.localization.surface import (
+    ContactSurface,
+    HeightMap,
+    check_radius,
+    contact_surface,
+)
 from service.registry import LOCALIZERS, POLICIES
 
 
@@ -108,6 +113,15 @@ def episode_streams(seed: int) -> list[np.random.Generator]:
     policy. `haptic run`, `hapticd` and `haptic emulate` split a seed only here, so the same
     seed hides the same start pose in all three."""
     return np.random.default_rng(seed).spawn(4)
+
+
+def check_scenario(settings: RunSettings, height_map: HeightMap) -> None:
+    """Refuse what a finger's run on `height_map` cannot do, before any work: the tip's
+    radius first (it names a profile's one row), then the start, then the localizer.
+    `haptic run` and `haptic campaign` ask alike."""
+    check_radius(height_map, settings.radius)
+    check_start(settings, height_map)
+    check_algorithm(settings, height_map)
 
 
 def check_algorithm(settings: RunSettings, height_map: HeightMap) -> None:

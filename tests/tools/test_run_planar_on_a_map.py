@@ -13,16 +13,23 @@ from sim_backend.emulator.plant import FingerPlant, hand_bus_servos
 from tools.cli import main
 
 
-def test_a_planar_finger_on_a_map_steps_only_along_its_plane(tmp_path, capsys) -> None:
+def _run_on_the_emulator(tmp_path, capsys, start: tuple[float, float, float],
+                         max_steps: int) -> list[dict]:
+    """The steps of `haptic run` with the planar hand on `peaks` through the emulated bus,
+    the finger at `start` (x, y, heading)."""
     hand = load_hand("planar")
-    plant = FingerPlant(hand, load_map("peaks"), (0.12, 0.10, 0.571))
+    plant = FingerPlant(hand, load_map("peaks"), start)
     out = tmp_path / "run.json"
     with ServoBus(hand_bus_servos(hand, plant), plant=plant) as bus:
         status = main(["run", "--backend", "dynamixel", "--port", bus.port, "--hand",
-                       "planar", "--map", "peaks", "--max-steps", "8", "--quiet", "--json",
-                       str(out)])
+                       "planar", "--map", "peaks", "--max-steps", str(max_steps), "--quiet",
+                       "--json", str(out)])
     assert status == 0, capsys.readouterr()
-    steps = json.loads(out.read_text())["steps"]
+    return json.loads(out.read_text())["steps"]
+
+
+def test_a_planar_finger_on_a_map_steps_only_along_its_plane(tmp_path, capsys) -> None:
+    steps = _run_on_the_emulator(tmp_path, capsys, (0.12, 0.10, 0.571), 8)
     assert len(steps) == 8
     assert all(step["command"][1] == 0.0 and not step["blocked"] for step in steps), steps
 
@@ -41,17 +48,9 @@ def test_a_planar_finger_at_its_workspace_limit_goes_on_to_unread_places(tmp_pat
     """The noticed defect: the places beyond a blocked step counted as out of reach only
     24 steps out, so the nearest "unread" place was the 25th, past the limit. A planar
     finger stopped by its workspace at +x (the emulator's seed 0) shuttled +x/-x between
-    the last two places before the limit from step 40 on, with unread places 14 steps the
+    the last two places before the limit from step 41 on, with unread places 14 steps the
     other way. Now it walks to them."""
-    hand = load_hand("planar")
-    plant = FingerPlant(hand, load_map("peaks"), (0.15, 0.17, 0.0))
-    out = tmp_path / "run.json"
-    with ServoBus(hand_bus_servos(hand, plant), plant=plant) as bus:
-        status = main(["run", "--backend", "dynamixel", "--port", bus.port, "--hand",
-                       "planar", "--map", "peaks", "--max-steps", "50", "--quiet", "--json",
-                       str(out)])
-    assert status == 0, capsys.readouterr()
-    steps = json.loads(out.read_text())["steps"]
+    steps = _run_on_the_emulator(tmp_path, capsys, (0.15, 0.17, 0.0), 50)
     assert any(step["blocked"] for step in steps)  # it met its limit
     moves = [0 if step["command"][0] > 0 else 2 for step in steps]
     assert _longest_shuttle(moves) < 4, moves
