@@ -8,7 +8,9 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import sys
 import threading
+import traceback
 from collections.abc import Iterator
 from contextlib import contextmanager
 from typing import Any
@@ -50,4 +52,11 @@ def running_node(config: DaemonConfig, timeout_s: float = 60.0) -> Iterator[Node
         node.stop()
         thread.join(timeout_s)
         if thread.is_alive():
-            raise ServiceError("node did not stop in time")
+            raise ServiceError(f"node did not stop in time; it is at:\n{_where(thread)}")
+
+
+def _where(thread: threading.Thread) -> str:
+    """The thread's stack, so a node that will not stop says where it is stuck (seen once
+    under load, not reproduced since)."""
+    frame = sys._current_frames().get(thread.ident or -1)
+    return "".join(traceback.format_stack(frame)) if frame is not None else "(gone)"
