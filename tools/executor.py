@@ -377,7 +377,9 @@ def _check_address(address: str) -> None:
         if scheme not in backends:
             raise ValueError(f"Dask speaks {', '.join(sorted(backends))}, not {scheme!r}")
         if scheme in ("tcp", "tls"):
-            parse_host_port(location)
+            _, port = parse_host_port(location)
+            if port is not None and not 0 < int(port) < 65536:
+                raise ValueError(f"port {port} is not 1-65535")
     except ValueError as exc:
         raise ConfigError(f"--scheduler {address!r} is not a Dask scheduler's address "
                           f"({str(exc).splitlines()[0]}): give tcp://HOST:PORT, as "

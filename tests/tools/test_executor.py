@@ -73,7 +73,7 @@ def test_ctrl_c_inside_a_compiled_kernel_stops_the_run_and_is_no_episodes_error(
 
 
 @pytest.mark.parametrize("address", ["tcp://127.0.0.1", "http://127.0.0.1:8786",
-                                     "tcp://127.0.0.1:port"])
+                                     "tcp://127.0.0.1:port", "tcp://127.0.0.1:99999"])
 def test_a_malformed_scheduler_address_is_one_line_and_leaves_nothing_behind(address, capfd):
     """It was a clear line, then a 20 s wait and a client's traceback on the way out."""
     assert main(["bench", "realistic", "--runs", "1", "--scheduler", address]) == 2
