@@ -1,4 +1,5 @@
-"""`haptic bus scan|read|check`: look at a Dynamixel bus before trusting a run to it."""
+"""`haptic bus scan|read|check|release`: look at a Dynamixel bus before trusting a run to it,
+and let its servos go when nothing else can."""
 
 from __future__ import annotations
 
@@ -28,7 +29,8 @@ MODEL_NAMES = {number: name for name, (number, _) in MODELS.items()}
 
 def register(p: argparse.ArgumentParser) -> None:
     p.description = ("Look at a Dynamixel servo bus before trusting a run to it: which servos "
-                     "answer, their live joint angles, their configuration.")
+                     "answer, their live joint angles, their configuration; and turn their "
+                     "torque off when the process that drove them is gone.")
     verbs = p.add_subparsers(dest="verb", metavar="VERB", required=True)
     scan = verbs.add_parser("scan", help="find the servos on a port")
     _port_options(scan)
@@ -44,6 +46,13 @@ def register(p: argparse.ArgumentParser) -> None:
                                            "delay, baud, modes")
     _port_options(check, hand=True)
     check.set_defaults(handler=cmd_check)
+    release = verbs.add_parser(
+        "release", help="turn every servo's torque off (a daemon killed outright, or a "
+                        "crashed host, leaves the servos holding their last goal)")
+    _port_options(release)
+    release.add_argument("--hand", metavar="PRESET|FILE",
+                         help="only this hand's servos (default: every servo that answers)")
+    release.set_defaults(handler=cmd_release)
 
 
 def _port_options(p: argparse.ArgumentParser, hand: bool = False) -> None:
@@ -181,3 +190,33 @@ def cmd_check(args: argparse.Namespace) -> int:
     for level, message in lines:
         print(f"{level:4s} {message}")
     return 1 if any(level == "FAIL" for level, _ in lines) else 0
+
+
+def cmd_release(args: argparse.Namespace) -> int:
+    """Torque off for every servo, each read back. Nothing else does it once the driver
+    is gone: SIGKILL gives a daemon no chance to, and a servo holds its goal with torque
+    on for as long as it has power (a held object stays held until then)."""
+    hand = load_hand(args.hand) if args.hand else None
+    with _bus(args, hand) as bus:
+        ids = hand.ids if hand else tuple(bus.scan())
+        if not ids:
+            print(f"no servo answered on {args.port}")
+            return 1
+        bus.ids = ids
+        bus.torque(False)
+        still = []
+        for sid in ids:
+            try:
+                on = bus.read(sid, "torque_enable")
+            except CommunicationError as exc:
+                print(f"servo {sid}: no answer to the read-back ({exc})")
+                still.append(sid)
+                continue
+            print(f"servo {sid}: torque {'ON' if on else 'off'}")
+            if on:
+                still.append(sid)
+    if still:
+        print(f"torque may still be on: servo {', '.join(map(str, still))}; check the cable "
+              "and power, then run release again", file=sys.stderr)
+        return 1
+    return 0

@@ -64,6 +64,26 @@ def test_bus_scan_read_check(emulated, capsys):
     assert "FAIL" not in out
 
 
+def test_bus_release_turns_off_the_torque_a_killed_driver_left_on(emulated, capsys):
+    """A daemon killed outright (SIGKILL) leaves its servos holding their goal with torque
+    on; `bus check` says so, and nothing in the tools turned it off."""
+    from firmware_if.dxl_bus import DxlBus
+
+    port, _ = emulated
+    driver = DxlBus(port, (1, 2, 3, 4))
+    driver.open()
+    driver.torque(True)
+    driver._port.closePort()  # killed: the kernel closes the port, and nothing else happens
+    assert cli.main(["bus", "check", "--port", port, "--hand", "spatial"]) == 0
+    assert "warn servo 3: torque on, though nothing drives it" in capsys.readouterr().out
+    assert cli.main(["bus", "release", "--port", port]) == 0
+    assert capsys.readouterr().out.splitlines() == [f"servo {sid}: torque off"
+                                                    for sid in (1, 2, 3, 4)]
+    assert cli.main(["bus", "check", "--port", port, "--hand", "spatial"]) == 0
+    out = capsys.readouterr().out
+    assert all(f"ok   servo {sid}: torque off" in out for sid in (1, 2, 3, 4))
+
+
 def test_bus_check_fails_on_a_wrong_baud_register(emulated, capsys, tmp_path):
     emulated_port, _ = emulated
     hand = tmp_path / "slow.toml"
