@@ -218,8 +218,10 @@ def _start(client: Client, sub: Subscriber, wait_s: float) -> dict[str, Any]:
                     client.call("stop_exploration")  # a controller that left: take over
                 result = client.call("start_exploration")
                 config = client.call("get_config")
+                # the truth comes with our `episode_started`: before it, `sim_truth` is the
+                # last episode's (a second explore printed that, 63 mm from the estimate)
                 return {**result, "max_steps": config["scenario"]["max_steps"],
-                        "truth": status.get("sim_truth"), "object": status.get("object")}
+                        "object": status.get("object")}
         except CommandFailed as exc:
             if exc.code not in ("lease_held", "bad_state"):
                 raise ExploreFailed(str(exc)) from exc
@@ -254,7 +256,8 @@ class Follower:
         self.client, self.sub, self.quiet = client, sub, quiet
         self.episode = int(started["episode"])
         self.max_steps = int(started["max_steps"])
-        self.truth = started.get("truth")
+        self.truth: list[float] | None = None
+        """The simulator's hidden pose, from our `episode_started` (and a hand's steps)."""
         self.hand = started.get("object") is not None
         """A hand holding an object: steps are printed from `step` events."""
         self.step = -1
@@ -330,6 +333,7 @@ class Follower:
         name = ev.get("event")
         if name == "episode_started" and ev.get("episode") == self.episode:
             self.open_at = 0.0
+            self.truth = ev.get("truth")
         if time.monotonic() < self.open_at:
             return None
         if name == "step" and self.hand and ev.get("episode") == self.episode:

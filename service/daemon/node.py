@@ -473,16 +473,18 @@ class Node(CommandHandlers):
             self._read_now()  # the last state: torque off
             with contextlib.suppress(Exception):
                 self.backend.close()
-            self.backend = None
         self.link.close()
         if self.pub is not None:
             self._episode_cut(cut)
             self.lifecycle.apply("shutdown")
             now = time.monotonic_ns()
             with contextlib.suppress(Exception):  # `shutdown` goes out whatever happens
+                # the closed backend still names its fingers (a held-out client saw them
+                # nil in the last state, the backend dropped before it was published)
                 self._publish_state(Tick(index=0, start_ns=now, due_ns=now, deadline_ns=now))
             self._event("shutdown", state=self.lifecycle.state.value)
             self.pub.close()
+        self.backend = None
         if self.cmd is not None:
             self.cmd.close()
         _log("exited")

@@ -162,7 +162,8 @@ def unpack_map(data: bytes, max_bytes: int = MAX_MESSAGE_BYTES) -> dict[str, Any
     except WireError:
         raise
     except Exception as exc:  # msgpack raises several unrelated types on garbage
-        raise WireError("malformed", f"not a msgpack message: {_why(exc)}") from None
+        raise WireError("malformed", f"not a msgpack message: {_why(exc)}"
+                                     f"{_looks_like_text(bytes(data))}") from None
     if not isinstance(obj, dict):
         raise WireError("malformed", "message must be a msgpack map (send one map of v, type, "
                                      "id, cmd and args per request: docs/protocol.md)")
@@ -219,6 +220,16 @@ def _why(exc: Exception) -> str:
     if isinstance(exc, ValueError) and "exceeds" in str(exc):
         return "a string, array or map longer than the message allows"
     return "the bytes end early or hold an invalid msgpack type"
+
+
+def _looks_like_text(data: bytes) -> str:
+    """A hint when the bytes are printable text: JSON or a typed command reads as msgpack
+    integers and strings, and the refusal's words alone puzzled a held-out client."""
+    head = data[:64]
+    if head and all(32 <= b < 127 or b in b"\t\r\n" for b in head):
+        return (" (the bytes are text: a request is one msgpack map, not JSON or words; "
+                "docs/protocol.md)")
+    return ""
 
 
 def _refuse_ext(code: int, data: bytes) -> Any:

@@ -76,7 +76,7 @@ def _servo(bus: ServoBus, text: str) -> int:
 
 
 def _count(text: str, verb: str) -> int:
-    return int(_number(text, verb, int, 0, 1_000_000, "a count of replies >= 0"))
+    return int(_number(text, verb, int, 0, 1_000_000, "a whole count of replies in 0..1000000"))
 
 
 def _seconds(text: str, verb: str) -> float:

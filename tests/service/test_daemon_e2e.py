@@ -231,6 +231,8 @@ def test_a_shutdown_mid_episode_ends_the_episode_and_says_torque_is_off() -> Non
     assert len(done) == 1 and seen[done[0]]["reason"] == "shutdown"
     last_state = [m for m in seen[done[0]:] if m.topic == "state"][-1]
     assert not last_state["torque_on"] and not last_state["exploring"]
+    # its fingers still named (a held-out client saw nil: the backend dropped before it)
+    assert [f["name"] for f in last_state["fingers"]] == ["finger"]
 
 
 def test_stop_takes_no_lock_so_a_signal_may_land_inside_another() -> None:

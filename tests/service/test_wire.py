@@ -62,6 +62,9 @@ def test_unpack_refuses_garbage(data: bytes, code: str) -> None:
 @pytest.mark.parametrize("data, words", [
     (b"hello", "it begins with a msgpack int where a map should be, and 4 bytes follow it"),
     (msgpack.packb({"v": 2}) + b"xy", "2 bytes left over after the message's map"),
+    # text, as a held-out JavaScript client sent: msgpack's reading of it is no help alone
+    (b'{"cmd": "ping"}', "the bytes are text: a request is one msgpack map, not JSON"),
+    (b"status\n", "the bytes are text"),
 ])
 def test_bytes_that_are_not_one_map_are_told_so(data: bytes, words: str) -> None:
     """A C client from the docs: `hello` was answered "bytes left over after the message"

@@ -83,7 +83,9 @@ def _snapshot(bus: ServoBus) -> tuple:
     ("mute", "'mute' takes 1 value"),
     ("mute 7", "no servo 7 on this bus"),
     ("mute one", "whole number"),
-    ("drop 1 -2", "count of replies >= 0"),
+    ("drop 1 -2", "whole count of replies in 0..1000000"),
+    ("drop 1 1e9", "whole count of replies"),  # it said ">= 0" of a count too large
+    ("corrupt 1 2.5", "whole count of replies"),
     ("late 1 soon", "seconds in 0..10"),
     ("error 1 overload,fire", "unknown hardware error 'fire'"),
 ])

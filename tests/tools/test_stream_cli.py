@@ -3,10 +3,12 @@
 from __future__ import annotations
 
 import json
+import re
 import threading
 from collections.abc import Iterator
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from service.daemon.harness import loopback_config, running_node
@@ -82,7 +84,16 @@ def test_explore_twice_and_after_another_controller_left(node: Node, capsys) -> 
     assert main(["ctl", "activate", "--cmd", cmd, "--client", "gone"]) == 0
     assert main(["explore", *endpoints(node), "--quiet"]) == 0
     assert main(["explore", *endpoints(node), "--quiet"]) == 0
-    assert capsys.readouterr().out.count("localized in") == 2
+    out = capsys.readouterr().out
+    assert out.count("localized in") == 2
+    # each run's truth is its own episode's: the second printed the first's (a held-out
+    # lab's client read it as a right pose 63 mm off)
+    xy = [tuple(map(float, m)) for m in re.findall(
+        r"^(?:truth|estimate) +x +(-?[\d.]+) mm +y +(-?[\d.]+) mm", out, re.M)]
+    assert len(xy) == 4
+    for truth, estimate in (xy[0:2], xy[2:4]):
+        assert np.hypot(truth[0] - estimate[0], truth[1] - estimate[1]) < 5.0, out
+    assert xy[0] != xy[2]  # the second episode starts where the first ended
 
 
 def test_explore_says_why_it_cannot_start(node: Node, capsys) -> None:
