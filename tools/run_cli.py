@@ -121,9 +121,10 @@ class StepPrinter:
     def __init__(self) -> None:
         self.z = 0.0
         print("dz: this step's height change (z: relative to the start). spread: sd of the "
-              "estimate's position / heading\n(over all hypotheses until one pose fits the "
-              "readings; unbounded: the readings so far, on a plain, let that pose slide). "
-              "leading mode: the probability of the best pose.")
+              "estimate's position / heading\n(over all hypotheses until a pose fits the "
+              "readings, then that pose's own; unbounded: the readings so far, on a plain, "
+              "let it slide). leading mode: the probability of the best pose (under 100 %: "
+              "other poses, however far, fit too).")
 
     def __call__(self, step: StepRecord) -> None:
         move = MOVE_NAMES[step.move] + (" (blocked)" if step.blocked else "")

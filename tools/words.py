@@ -122,8 +122,11 @@ def why_not_converged(*, candidates: int, steps: int, max_steps: int,
                      f"{where} that fits nearly as well holds it back")
     elif runner_up is not None:
         share = "" if runner_up_mass is None else f" ({100 * runner_up_mass:.0f} %)"
-        parts.append(f"still ambiguous between {pose_text(pose, second=second)}{lead} and "
-                     f"{pose_text(runner_up, second=second)}{share}")
+        poses = [f"{pose_text(pose, second=second)}{lead}",
+                 f"{pose_text(runner_up, second=second)}{share}"]
+        if (runner_up_mass or 0.0) > (mode_mass or 0.0):  # the likelier first: a leader
+            poses.reverse()  # whose rival fits better once both are fitted weighs 0 %
+        parts.append(f"still ambiguous between {poses[0]} and {poses[1]}")
     else:
         parts.append(f"the leading pose {pose_text(pose, second=second)}{lead} is not yet "
                      "clear of the rest")

@@ -26,6 +26,11 @@ FEATURE_TOLERANCE = 2e-4
 FEATURE_ASPECT = 0.25
 """A feature is at least this tall for its width; so on smooth ground the smallest
 "feature" is about its sharpest radius of curvature."""
+WINDOW_GROWTH = 1.2
+"""Windows for the smallest feature grow by this factor (a sample each side at least).
+Doubling judged a boss 3 mm high and 9 mm wide by a 17 mm window, which asks a 1-in-4
+feature for 4.25 mm, and called a profile across it one with no bump at all (a held-out
+check)."""
 MAX_PLAUSIBLE_RELIEF = 1.0
 """Metres. Objects a fingertip explores are not taller than this."""
 MAX_PLAUSIBLE_EXTENT = 5.0
@@ -122,7 +127,8 @@ class MapReport:
                   else "none as steep as 1 in 4 for its width: smooth, gently varying ground")
         feature = (smooth
                    if self.smallest_feature is None else
-                   f"{self.smallest_feature * 1e3:.3g} mm wide"
+                   f"{self.smallest_feature * 1e3:.3g} mm across (a bump, a pit, or the "
+                   "edge of one)"
                    + (f", narrower than the tip ({2 * self.radius * 1e3:g} mm across): it is "
                       f"felt only blurred" if self.smallest_feature < 2 * self.radius else ""))
         lines = [
@@ -139,9 +145,10 @@ class MapReport:
                " more than the map's overall tilt would "
                f"({np.degrees(np.arctan(np.hypot(*self.tilt))):.1f} deg, {self._rising}): "
                "there a step tells at most which way the slope runs"),
-            "symmetries " + describe_symmetries(
+            "symmetries " + ("every motion (the map is flat: no reading tells one pose "
+                             "from another)" if flat else describe_symmetries(
                 self.aligned_symmetries, self.symmetry_strengths, self.is_profile,
-                self.extent, self.symmetry_differences),
+                self.extent, self.symmetry_differences)),
         ]
         return lines + [f"warning    {w}" for w in self.warnings]
 
@@ -397,8 +404,9 @@ def hidden_depths(surface: ContactSurface) -> np.ndarray:
 
 
 def _smallest_feature(z: np.ndarray, h: float, widest: int) -> float | None:
-    """The narrowest window (samples, odd, about doubling) whose grey opening or closing
-    removes a bump or pit tall enough to count (FEATURE_TOLERANCE, FEATURE_ASPECT)."""
+    """The narrowest window (samples, odd, growing by about `WINDOW_GROWTH`) whose grey
+    opening or closing removes a bump or pit tall enough to count (FEATURE_TOLERANCE,
+    FEATURE_ASPECT)."""
     width = 3
     while width <= max(widest, 3) * 4 and width <= max(z.shape):
         size = (1, width) if z.shape[0] == 1 else (width, width)
@@ -406,7 +414,7 @@ def _smallest_feature(z: np.ndarray, h: float, widest: int) -> float | None:
         pits = ndimage.grey_closing(z, size=size, mode="nearest") - z
         if max(bumps.max(), pits.max()) > max(FEATURE_TOLERANCE, FEATURE_ASPECT * width * h):
             return (width - 1) * h
-        width = 2 * width - 1
+        width = max(width + 2, 2 * round(WINDOW_GROWTH * width / 2) + 1)
     return None
 
 

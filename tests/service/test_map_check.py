@@ -89,6 +89,8 @@ def test_plains_features_and_hidden_pits():
     assert "smallest none as steep as 1 in 4" in "\n".join(flat.lines())
     level = check_map(HeightMap(np.zeros((201, 201)), 0.001, name="level"), 0.008)
     assert "smallest none (flat)" in "\n".join(level.lines())
+    # every motion maps a flat map onto itself (a held-out check read "none found")
+    assert "symmetries every motion (the map is flat" in "\n".join(level.lines())
 
 
 def test_symmetries_of_surfaces_and_profiles():
@@ -141,7 +143,8 @@ def test_a_flat_profile_like_a_flat_map_has_no_symmetry():
         assert len(report.symmetries) == 0
         text = "\n".join(report.lines())
         along = "its length" if report.is_profile else "the area"
-        assert "symmetries none found" in text and f"plains     100.0% of {along}" in text
+        assert "symmetries every motion (the map is flat" in text
+        assert f"plains     100.0% of {along}" in text
     assert len(profile_symmetries(np.full(701, 0.02) + 3e-4 * (np.arange(701) == 350),
                                   0.001)) >= 1  # a bump 0.3 mm tall on it: a reversal
 
@@ -189,7 +192,8 @@ def test_a_plate_with_one_hole_turns_about_the_hole_and_a_flat_map_about_nothing
     text = "\n".join(check_map(HeightMap(hole, 0.001, "hole"), 0.008).lines())
     assert "every turn about (60, 130) mm" in text, text
     flat = check_map(HeightMap(rough, 0.001, "flat"), 0.008)
-    assert len(flat.symmetries) == 0 and "symmetries none found" in "\n".join(flat.lines())
+    assert len(flat.symmetries) == 0 and "symmetries every motion (the map is flat" in \
+        "\n".join(flat.lines())
 
 
 def test_a_surface_of_revolution_is_named_with_its_axis(rings_map):
@@ -338,3 +342,14 @@ def test_a_step_shorter_than_a_sample_does_not_make_the_map_plain():
     short = check_map(load_map("peaks"), 0.008, 0.0005).plains_share
     assert short < 0.2
     assert check_map(load_map("peaks"), 0.008, 0.001).plains_share == pytest.approx(short)
+
+
+def test_a_boss_on_a_profile_is_a_feature_of_its_own_width():
+    """A held-out check: a row through a boss 3 mm high and 9 mm wide (steeper than 1 in 4
+    for its width) was "no bump or pit as steep as 1 in 4": the windows doubled from 9 to
+    17 samples, and 17 mm asks a bump for 4.25 mm."""
+    z = np.full(200, 0.010)
+    z[136:145] = 0.013
+    report = check_map(HeightMap(z[None], 0.001, name="boss"), 0.008)
+    assert report.smallest_feature == pytest.approx(0.010)
+    assert "smallest 10 mm across" in "\n".join(report.lines())

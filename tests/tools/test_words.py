@@ -32,6 +32,18 @@ def test_a_rival_of_no_weight_is_not_called_an_ambiguity():
     assert "still ambiguous between" in text and "(30 %)" in text
 
 
+def test_an_ambiguity_names_the_likelier_pose_first():
+    """A held-out check read 'still ambiguous between X (0 %) and Y (48 %)' on a map with
+    an exact half turn: the leader's rival fitted better once both were fitted."""
+    from tools.words import why_not_converged
+
+    text = why_not_converged(candidates=10, steps=60, max_steps=60, pose=(0.131, 0.048, 4.05),
+                             mode_mass=0.0, runner_up=(0.068, 0.151, 0.91),
+                             runner_up_mass=0.48)
+    first, second = text.split("still ambiguous between ")[1].split(" and ")
+    assert "x   68.00 mm" in first and first.endswith("(48 %)") and second.endswith("(0 %)")
+
+
 def test_a_localizer_that_says_what_held_it_back_is_quoted():
     from tools.words import why_not_converged
 
