@@ -3,6 +3,7 @@ simulated hand and its object as the plant, faults latched as a single finger's 
 
 from __future__ import annotations
 
+import time
 from collections.abc import Iterator
 from dataclasses import dataclass
 from functools import cached_property
@@ -105,7 +106,11 @@ def test_a_step_is_one_sync_read_and_one_sync_write_and_lands_where_the_simulati
 
 
 def _finish(hand: DynamixelHand):
-    for _ in range(2000):
+    """Read until the step under way ends: it settles, or its `timeout_s` ends it blocked.
+    Bounded by time, not by reads: under load (make test beside other work, load 11) reads
+    that missed their cycles came back at once, and 2000 of them fell within the step."""
+    deadline = time.monotonic() + 10 * hand.settings.timeout_s
+    while time.monotonic() < deadline:
         state = hand.read_hand()
         if not state.moving:
             return state
