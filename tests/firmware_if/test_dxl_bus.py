@@ -15,6 +15,7 @@ from firmware_if.errors import (
     HardwareFault,
     NotReadyError,
     PortLost,
+    StaleReplyError,
 )
 from sim_backend.emulator import EmulatedServo, ServoBus
 
@@ -183,16 +184,42 @@ def test_a_corrupt_reply_is_counted_and_forgiven(emulator, bus):
     assert bus.stats.consecutive_failures == 0 and emulator.stats["corrupted"] == 1
 
 
-def test_a_late_reply_is_a_timeout_within_the_budget(emulator, bus):
-    emulator.fault(3).late_s = 0.05
+def test_a_late_reply_is_a_timeout_within_the_budget(emulator, bus, monkeypatch):
+    # late past any stall of a loaded host: a host descheduled for longer than a reply's
+    # lateness reads it when it looks, in time (a loaded run: "DID NOT RAISE" at 0.05 s)
+    emulator.fault(3).late_s = 0.5
+    port = bus._require()
+    waits: list[float] = []  # each packet's timeout, as the port was given it
+    set_timeout = port.setPacketTimeout
+
+    def recorded(length: int) -> None:
+        set_timeout(length)
+        waits.append(port.packet_timeout)
+
+    monkeypatch.setattr(port, "setPacketTimeout", recorded)
     sent = emulator.stats["tx_packets"]
-    start = time.perf_counter()
     with pytest.raises(BusTimeoutError):
         bus.cycle()
-    assert time.perf_counter() - start < 0.04  # the SDK's own allowance alone is 34 ms
+    # every wait within half the cycle's budget (plus the bytes' transfer), not the SDK's
+    # own 34 ms allowance: what the port was told, not a wall clock a loaded host outruns
+    assert waits and max(waits) < bus.cycle_budget_s * 1e3 / 2 + 1, waits
     assert emulator.wait_until(lambda: emulator.stats["tx_packets"] > sent)  # it came, late
     emulator.fault(3).late_s = 0.0
-    bus.cycle()  # the stale reply is flushed; the next cycle is clean
+    _answered_cycle(bus)  # the stale reply is flushed; the next cycle is clean
+
+
+def _answered_cycle(bus: DxlBus) -> dict:
+    """`bus.cycle()`, again if its read timed out with nothing come (a host descheduled past
+    its 5 ms wait: 3 runs in 300 under load); a stale or damaged reply is not forgiven."""
+    for attempt in range(bus.failure_tolerance - 1):
+        try:
+            return bus.cycle()
+        except StaleReplyError:
+            raise
+        except BusTimeoutError:
+            if attempt == bus.failure_tolerance - 2:
+                raise
+    raise AssertionError("unreachable")
 
 
 @pytest.mark.parametrize("period_s, late_s", [(0.01, 0.01), (0.005, 0.006)])
@@ -224,7 +251,10 @@ def test_a_servo_a_cycle_late_latches_a_fault_and_its_late_replies_are_never_rea
             break
         else:
             for reading in readings.values():  # made after the read asked, to the tick
-                assert (asked_ms - reading.tick) % 32768 <= half_cycle_ms + 1, readings
+                # signed, wrapped age: a reply handled a millisecond after `asked_ms` is -1
+                # ms old, not 32767 (a loaded host met it: only late looks pass here)
+                age_ms = (asked_ms - reading.tick + 16384) % 32768 - 16384
+                assert age_ms <= half_cycle_ms + 1, (age_ms, readings)
         time.sleep(max(0.0, deadline - time.monotonic()))  # hapticd's pace, not a wait
     assert fault is not None, "60 cycles with a servo a cycle late, and no fault"
     assert re.search(r"servos? (\d, )*2(, \d)* answers? a ping only after \d+ ms", str(fault))

@@ -13,7 +13,8 @@ import pytest
 
 from firmware_if.backend import FingerMove, HandCommand
 from firmware_if.dxl_bus import TORQUE_CHECK_CYCLES
-from firmware_if.dynamixel_hand import DynamixelHand
+from firmware_if.dynamixel_backend import StepSettings
+from firmware_if.dynamixel_hand import HAND_PRESS, DynamixelHand
 from firmware_if.errors import HandConfigError, NotReadyError
 from firmware_if.hand import load_hand
 from firmware_if.registers import CURRENT_BASED_POSITION, amp_to_current
@@ -27,6 +28,9 @@ from sim_backend.hand import HandSimConfig, SimulatedHand
 POSE = (0.001, -0.001, 0.7)
 ROUNDING = 1e-4
 """Metres: a tick of a shoulder is 0.13 mm at the tip; half a tick on each joint, and less."""
+SETTINGS = StepSettings(press=HAND_PRESS, cycle_budget_s=0.1)
+"""Generous, as test_bus_faults': the emulator answers from a thread of this process, and on
+a loaded host three reads in a row missed 5 ms ("the host missed the cycles") mid-step."""
 
 
 @dataclass
@@ -55,7 +59,7 @@ def rig(request) -> Iterator[Rig]:
     sim = _sim(name)
     plant = HandPlant(sim)
     with ServoBus(hand_bus_servos(sim.hand, plant), plant=plant) as bus:
-        hand = DynamixelHand(sim.hand, bus.port)
+        hand = DynamixelHand(sim.hand, bus.port, SETTINGS)
         hand.open()
         yield Rig(hand, bus, sim)
         hand.close()
@@ -87,14 +91,16 @@ def test_a_step_is_one_sync_read_and_one_sync_write_and_lands_where_the_simulati
     n = len(twin.hand.fingers)
     for i, dz in ((0, 0.002), (n - 1, -0.002), (0, -0.003)):
         command = HandCommand(tuple(FingerMove(dz=dz) if k == i else None for k in range(n)))
-        hand.read_hand()  # answered once every packet sent before it was handled
-        before = bus.stats["rx_packets"]
+        _answered_read(hand)  # every packet sent before it was handled
+        before, missed = bus.stats["rx_packets"], hand.bus.stats.failures
         # every TORQUE_CHECK_CYCLES-th cycle also reads Torque Enable; how many cycles
         # `_finish` took depends on the host's speed (CI under load met one here)
-        expected = 2 + (hand.bus.stats.cycles % TORQUE_CHECK_CYCLES == 0)
+        torque_check = hand.bus.stats.cycles % TORQUE_CHECK_CYCLES == 0
         hand.command_hand(command)
-        hand.read_hand()
-        # the read, then the goals' Sync Write (broadcast: no reply to wait for)
+        _answered_read(hand)
+        # the read, then the goals' Sync Write (broadcast: no reply to wait for); a read
+        # whose reply missed its window on a loaded host is sent again, the goals with it
+        expected = 2 + torque_check + (hand.bus.stats.failures - missed)
         assert bus.wait_until(lambda: bus.stats["rx_packets"] - before >= expected)  # noqa: B023
         assert bus.stats["rx_packets"] - before == expected
         state = _finish(hand)
@@ -103,6 +109,17 @@ def test_a_step_is_one_sync_read_and_one_sync_write_and_lands_where_the_simulati
         # the tip is sent half a millimetre into the object and pressed back onto it
         np.testing.assert_allclose(_xz(state), _xz(twin_state), atol=0.3e-3)
     assert rig.sim.pose == twin.pose  # exploring does not move the held object
+
+
+def _answered_read(hand: DynamixelHand) -> None:
+    """`read_hand` until a cycle gets its reply (a missed one counts a failure and sends its
+    goals with the next): a loaded host missed one in a step's window, 1 packet, not 2."""
+    cycles = hand.bus.stats.cycles
+    for _ in range(hand.settings.failure_tolerance):
+        hand.read_hand()
+        if hand.bus.stats.cycles > cycles:
+            return
+    raise AssertionError("no cycle got its reply")
 
 
 def _finish(hand: DynamixelHand):
