@@ -344,7 +344,8 @@ def test_haptic_run_dynamixel_on_haptic_emulate(tmp_path, capsys, noise):
         common = ["--seed", "3", "--start", start, "--quiet", "--algorithm", "elimination",
                   "--policy", "paper", *(["--noise"] if noise else [])]
         assert cli.main(["run", "--backend", "dynamixel", "--port", bus.port, "--hand",
-                         "spatial", "--json", str(tmp_path / "hil.json"), *common]) == 0
+                         "spatial", "--json", str(tmp_path / "hil.json"), "--cycle-budget",
+                         "50", *common]) == 0
     finally:
         bus.stop()
     assert cli.main(["run", "--json", str(tmp_path / "sim.json"), *common]) == 0

@@ -175,6 +175,7 @@ def _servo_hand(args: argparse.Namespace, settings):
     """A factory of the hand on servos `--port` names (no I/O until the episode opens it)."""
     from firmware_if.dxl_bus import check_port_exists
     from firmware_if.dynamixel_hand import DynamixelHand
+    from tools.run_cli import cycle_budget_option
 
     if args.backend != "dynamixel":
         raise ConfigError(f"--object runs on --backend sim or dynamixel, not {args.backend}")
@@ -184,7 +185,8 @@ def _servo_hand(args: argparse.Namespace, settings):
     if settings.single_finger:
         raise ConfigError("--single-finger runs on the simulated hand only")
     check_port_exists(args.port)
-    return lambda: DynamixelHand.from_cli(port=args.port, hand=settings.hand)
+    budget = cycle_budget_option(args)
+    return lambda: DynamixelHand.from_cli(port=args.port, hand=settings.hand, **budget)
 
 
 def _print_step(step) -> None:

@@ -58,11 +58,16 @@ def register(p: argparse.ArgumentParser) -> None:
     hw.add_argument("--port", help="serial port of the servo bus (dynamixel backend)")
     hw.add_argument("--hand", help="hand preset or TOML file (dynamixel backend, or the hand "
                     "holding --object)")
+    hw.add_argument("--cycle-budget", type=float, metavar="MS", default=None,
+                    help="milliseconds a bus cycle may take before it counts as missed "
+                         "(3 in a row end the run with a fault); raise it on a loaded "
+                         "machine or a slow adapter (dynamixel backend; default: 10)")
     add_object_options(p)
     p.set_defaults(handler=run)
 
 
 def run(args: argparse.Namespace) -> int:
+    cycle_budget_option(args)  # refused before anything else is done
     if args.object is not None:
         return run_hand(args)
     if args.hand is not None and args.backend == "sim":
@@ -77,6 +82,7 @@ def run(args: argparse.Namespace) -> int:
         if not args.port or not args.hand:
             raise ConfigError(f"--backend {args.backend} needs --port and --hand")
         check_port_exists(args.port)
+    budget = cycle_budget_option(args)
     height_map = load_map(settings.map, settings.spacing)
     check_scenario(settings, height_map)
     for warning in check_map(height_map, settings.radius, settings.step).warnings:
@@ -89,7 +95,7 @@ def run(args: argparse.Namespace) -> int:
         def backend_factory(truth: Truth) -> Backend:
             """A hardware hand; the truth is not its to know (the emulator draws its own)."""
             return cls.from_cli(port=args.port, hand=args.hand, radius=settings.radius,
-                                step=settings.step)
+                                step=settings.step, **budget)
     size = (f"profile of {height_map.shape[1]} samples, {height_map.extent[0] * 1e3:.0f} mm "
             "long" if height_map.is_profile else
             f"{height_map.shape[1]} x {height_map.shape[0]} samples, "
@@ -172,3 +178,15 @@ def _print_summary(report: EpisodeReport) -> None:
                   f"{math.degrees(s.heading_error):.1f} deg from the truth)")
     if report.true_pose_eliminated:
         print("warning   the true pose was eliminated")
+
+
+def cycle_budget_option(args: argparse.Namespace) -> dict[str, float]:
+    """`--cycle-budget` as a backend's `cycle_budget_s` (nothing when not given), checked
+    before anything runs; refused for the simulator, which has no bus."""
+    if args.cycle_budget is None:
+        return {}
+    if args.backend == "sim":
+        raise ConfigError("--cycle-budget is a servo bus's: it needs --backend dynamixel")
+    if not 2.0 <= args.cycle_budget <= 500.0:
+        raise ConfigError(f"--cycle-budget must be 2 .. 500 ms, got {args.cycle_budget:g}")
+    return {"cycle_budget_s": args.cycle_budget / 1e3}

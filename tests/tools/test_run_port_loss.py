@@ -129,3 +129,36 @@ def test_a_runs_file_gives_its_fault_in_a_commands_words():
     fault = command_record(Report())["fault"]
     assert "reset" not in fault and "torque off" not in fault
     assert fault.endswith("servo 2 does not answer a ping: check its cable and power")
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["run", "--cycle-budget", "50"], "needs --backend dynamixel"),
+    (["run", "--object", "blob", "--cycle-budget", "50"], "needs --backend dynamixel"),
+    (["run", "--backend", "dynamixel", "--hand", "spatial", "--cycle-budget", "1"],
+     "must be 2 .. 500 ms, got 1"),
+])
+def test_a_cycle_budget_is_refused_where_it_cannot_apply(argv, message, tmp_path, capsys):
+    assert main([*argv, "--port", str(tmp_path / "ttyUSB9")]) == 2
+    assert message in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("hand", [[], ["--object", "blob", "--hand", "three-finger"]])
+def test_a_cycle_budget_reaches_the_bus(hand, tmp_path, monkeypatch):
+    """A run on servos under load faulted at 3 missed 10 ms cycles, and `haptic run` (unlike
+    hapticd's `cycle_budget_s`) had no way to allow more."""
+    from firmware_if.dxl_bus import DxlBus
+    from firmware_if.errors import PortLost
+
+    budgets: list[float] = []
+
+    def open_nothing(self):
+        budgets.append(self.cycle_budget_s)
+        raise PortLost("refused here: the budget is what this test reads")
+
+    monkeypatch.setattr(DxlBus, "open", open_nothing)
+    port = tmp_path / "ttyUSB0"
+    port.touch()
+    finger = [] if hand else ["--hand", "spatial"]
+    main(["run", "--backend", "dynamixel", "--port", str(port), *finger, *hand,
+          "--cycle-budget", "40", "--max-steps", "1", "--quiet"])
+    assert budgets == [0.04]
