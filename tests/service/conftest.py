@@ -62,6 +62,12 @@ def rings_map(tmp_path: Path) -> Path:
     return _map_file(tmp_path / "rings.npy", concentric_rings())
 
 
+@pytest.fixture()
+def holes_map(tmp_path: Path) -> Path:
+    """`holes_grid` as a map file."""
+    return _map_file(tmp_path / "holes.npy", holes_grid())
+
+
 def _map_file(path: Path, heights: np.ndarray) -> Path:
     np.save(path, heights)
     return path
@@ -193,3 +199,16 @@ def _pocket(cx: float, cy: float, w: float, h: float, corner: float, depth: floa
     t = np.clip(fillet - inward, 0, fillet)
     rise = fillet - np.sqrt(np.maximum(fillet**2 - t**2, 0))
     return np.where(inward > 0, -depth + rise, 0.0)
+
+
+def holes_grid() -> np.ndarray:
+    """A plate 12 mm thick with a 4 x 4 grid of holes 3 mm deep at a 40 mm pitch, each
+    8 mm across but one of 10 mm (a helper's, 200 x 200 samples): its quarter turns and
+    shifts repeat it but where the larger hole lies."""
+    y, x = np.mgrid[0:200, 0:200].astype(float)
+    z = np.full((200, 200), 0.012)
+    for i, cy in enumerate((40, 80, 120, 160)):
+        for j, cx in enumerate((40, 80, 120, 160)):
+            r = 5.0 if (i, j) == (2, 1) else 4.0
+            z -= 3e-3 * np.clip((r - np.hypot(x - cx, y - cy)) / 0.5, 0.0, 1.0)
+    return z
