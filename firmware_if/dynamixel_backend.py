@@ -118,6 +118,13 @@ class DynamixelBackend(HandOfOne):
         check_cycle_budget(cycle_budget_s)
         return cls(h, port, StepSettings(cycle_budget_s=cycle_budget_s))
 
+    @property
+    def home_centre(self) -> tuple[float, float, float]:
+        """Where the hand's home posture puts the fingertip centre (hand frame): the servos'
+        power-up posture, under which a fresh `haptic emulate` puts its seed's start."""
+        c = kin.forward(self.hand, np.asarray(self.hand.fingers[0].home, dtype=np.float64))
+        return (float(c[0]), float(c[1]), float(c[2]))
+
     def centre_sigma(self) -> np.ndarray:
         """1-sigma error (metres, per hand axis) of the centre from encoder rounding at the
         present posture: half a tick each way per joint, through the Jacobian.

@@ -12,6 +12,7 @@ import sys
 import threading
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from tools import bench_bus, cli, emulate_cli
@@ -233,3 +234,22 @@ exit
                           stdin=subprocess.DEVNULL, env={**os.environ, "PYTHONPATH": str(ROOT)})
     assert "Stopped" not in done.stdout, done.stdout
     assert "id   1:" in done.stdout and "id   6:" in done.stdout, done.stdout
+
+
+def test_a_second_run_on_one_emulator_is_scored_where_it_began(emulated, tmp_path):
+    """A held-out check: the second `haptic run --seed 3` on one emulator began where the
+    first had left the finger, was scored against the seed's start, and said "WRONG: ...
+    42.3 mm away" (exit 1) of a right pose. The truth is now the seed's start moved by the
+    finger's offset from its home posture, as the emulator places it."""
+    port, _ = emulated
+    runs = []
+    for k in range(2):
+        out = tmp_path / f"run{k}.json"
+        assert cli.main(["run", "--backend", "dynamixel", "--port", port, "--hand", "spatial",
+                         "--seed", "3", "--max-steps", "30", "--quiet", "--cycle-budget",
+                         "50", "--json", str(out)]) == 0
+        runs.append(json.loads(out.read_text()))
+    assert all(run["success"] for run in runs)
+    first, second = (np.array([r["truth"]["x"], r["truth"]["y"]]) for r in runs)
+    assert np.hypot(*(first - (0.12, 0.10))) < 0.001  # a fresh emulator: the seed's start
+    assert np.hypot(*(second - first)) > 0.01  # the second began where the first ended
