@@ -176,7 +176,7 @@ def check_lines(bus: DxlBus, hand: Hand, port: str) -> list[tuple[str, str]]:
         out.append(("ok", f"servo {sid}: torque off") if not values["torque_enable"] else
                    ("warn", f"servo {sid}: torque on, though nothing drives it (the port is "
                             "ours): it holds its position until a driver opens the bus and "
-                            "turns it off"))
+                            "turns it off, or `haptic bus release` does"))
         if values["hardware_error_status"]:
             out.append(("FAIL", f"servo {sid}: hardware error status "
                                 f"{values['hardware_error_status']:#04x}; reboot it"))
@@ -198,7 +198,8 @@ def cmd_release(args: argparse.Namespace) -> int:
     on for as long as it has power (a held object stays held until then)."""
     hand = load_hand(args.hand) if args.hand else None
     with _bus(args, hand) as bus:
-        ids = hand.ids if hand else tuple(bus.scan())
+        answered = tuple(bus.scan())
+        ids = hand.ids if hand else answered
         if not ids:
             print(f"no servo answered on {args.port}")
             return 1
@@ -215,6 +216,14 @@ def cmd_release(args: argparse.Namespace) -> int:
             print(f"servo {sid}: torque {'ON' if on else 'off'}")
             if on:
                 still.append(sid)
+    others = sorted(set(answered) - set(ids))
+    if others:  # another hand's servos, or the wrong hand file: not ours to leave on
+        print(f"servo {', '.join(map(str, others))} also answered, which hand '{hand.name}' "
+              "does not use: left as they were (release without --hand turns off every "
+              "servo that answers)", file=sys.stderr)
+    if hand is None:  # a servo that did not answer the scan was not released
+        print(f"{len(ids)} servo(s) answered; one that did not (muted, unpowered) was not "
+              "released: give --hand to check each of a hand's servos", file=sys.stderr)
     if still:
         print(f"torque may still be on: servo {', '.join(map(str, still))}; check the cable "
               "and power, then run release again", file=sys.stderr)

@@ -77,9 +77,14 @@ def test_bus_release_turns_off_the_torque_a_killed_driver_left_on(emulated, caps
     driver._port.closePort()  # killed: the kernel closes the port, and nothing else happens
     assert cli.main(["bus", "check", "--port", port, "--hand", "spatial"]) == 0
     assert "warn servo 3: torque on, though nothing drives it" in capsys.readouterr().out
+    assert cli.main(["bus", "release", "--port", port, "--hand", "planar"]) == 0
+    captured = capsys.readouterr()  # a smaller hand's release left 3 and 4 on, unsaid
+    assert captured.out.splitlines() == ["servo 1: torque off", "servo 2: torque off"]
+    assert "servo 3, 4 also answered, which hand 'planar' does not use" in captured.err
     assert cli.main(["bus", "release", "--port", port]) == 0
-    assert capsys.readouterr().out.splitlines() == [f"servo {sid}: torque off"
-                                                    for sid in (1, 2, 3, 4)]
+    captured = capsys.readouterr()
+    assert captured.out.splitlines() == [f"servo {sid}: torque off" for sid in (1, 2, 3, 4)]
+    assert "one that did not (muted, unpowered) was not released" in captured.err
     assert cli.main(["bus", "check", "--port", port, "--hand", "spatial"]) == 0
     out = capsys.readouterr().out
     assert all(f"ok   servo {sid}: torque off" in out for sid in (1, 2, 3, 4))
