@@ -129,8 +129,9 @@ class StepPrinter:
         print("dz: this step's height change (z: relative to the start). spread: sd of the "
               "estimate's position / heading\n(over all hypotheses until a pose fits the "
               "readings, then that pose's own; unbounded: the readings so far, on a plain, "
-              "let it slide). leading mode: the probability of the best pose (under 100 %: "
-              "other poses, however far, fit too).")
+              "let it slide). leading mode: the best pose's share among the poses the "
+              "localizer weighs (not a checked chance: only a declared pose is checked "
+              "against the whole map).")
 
     def __call__(self, step: StepRecord) -> None:
         move = MOVE_NAMES[step.move] + (" (blocked)" if step.blocked else "")
