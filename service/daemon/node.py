@@ -336,12 +336,16 @@ class Node(CommandHandlers):
                 gc.freeze()
 
     def truth_at(self, state: HandState) -> list[float] | None:
-        """The simulator's hidden pose now (the start of an episode begun here): a finger's,
-        the configured start moved by its measured displacement; a hand's, the object's."""
+        """The simulator's hidden pose now (the start of an episode begun here): a finger's
+        own (`SimulatedFinger.pose`), else the configured start moved by its measured
+        displacement; a hand's, the object's."""
         if self.truth is None:
             return None
         if self.explorer is not None and self.explorer.kind == "hand":
             return self.hidden().get("truth")
+        pose = getattr(self.backend, "pose", None)
+        if pose is not None:
+            return [float(v) for v in pose]
         t = self.truth
         dx, dy = rotate(np.asarray(t.heading), *state.fingers[0].centre[:2])
         return [float(t.x + dx), float(t.y + dy), float(t.heading)]
