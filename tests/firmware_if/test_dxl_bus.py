@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import re
 import time
 
@@ -300,7 +301,9 @@ def test_a_setup_exchange_retried_after_a_late_reply_reads_its_own_answer(emulat
     took it as its own, and the retry's status was then read as the next register's value
     ("return_delay_time reads 161 after writing 0")."""
     emulator.fault(1).late_s = 0.045  # past the setup's 34 ms timeout, within two of them
-    with pytest.raises(BusTimeoutError):  # it never answers in time: not a late success
+    # it times out; a host descheduled past the 11 ms margin finds a reply waiting and
+    # takes it in time (1 run in 100 under load): either way no status may be misread
+    with contextlib.suppress(BusTimeoutError):
         bus.write(1, "goal_current", 123)
     emulator.fault(1).late_s = 0.0
     assert bus.read(1, "goal_current") == 123  # the write landed; the read gets its own

@@ -22,10 +22,14 @@ def readme_block(heading: str) -> str:
     return section.split("```sh\n", 1)[1].split("```", 1)[0]
 
 
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+def endpoints() -> dict[str, str]:
+    """HAPTIC_PUB and HAPTIC_CMD on two loopback ports free now, and not the same one (each
+    port is held until both are chosen; a helper's hunt saw the two could coincide)."""
+    with socket.socket() as pub, socket.socket() as cmd:
+        pub.bind(("127.0.0.1", 0))
+        cmd.bind(("127.0.0.1", 0))
+        return {"HAPTIC_PUB": f"tcp://127.0.0.1:{pub.getsockname()[1]}",
+                "HAPTIC_CMD": f"tcp://127.0.0.1:{cmd.getsockname()[1]}"}
 
 
 @contextmanager
@@ -74,8 +78,7 @@ def test_the_daemon_section_works_as_written_three_times_on_a_busy_machine(tmp_p
     assert ".venv/bin/haptic explore" in script and "kill %1" in script
     assert "haptic record run.mcap" in script and "haptic export run.mcap" in script
     (tmp_path / ".venv").symlink_to(ROOT / ".venv")  # a fresh clone's folder, after make
-    env = {**os.environ, "HAPTIC_PUB": f"tcp://127.0.0.1:{free_port()}",
-           "HAPTIC_CMD": f"tcp://127.0.0.1:{free_port()}", "MPLBACKEND": "Agg"}
+    env = {**os.environ, **endpoints(), "MPLBACKEND": "Agg"}
     with busy_cores():
         for attempt in range(3):
             done = run_block(script, tmp_path, env)
@@ -96,8 +99,7 @@ def test_the_hand_under_hapticd_section_works_as_written(tmp_path):
     assert "config/hand.toml" in script and "kill %1" in script
     (tmp_path / ".venv").symlink_to(ROOT / ".venv")
     (tmp_path / "config").symlink_to(ROOT / "config")
-    env = {**os.environ, "HAPTIC_PUB": f"tcp://127.0.0.1:{free_port()}",
-           "HAPTIC_CMD": f"tcp://127.0.0.1:{free_port()}"}
+    env = {**os.environ, **endpoints()}
     done = run_block(script, tmp_path, env)
     log = (tmp_path / "hapticd.log").read_text()
     assert done.returncode == 0, (done.stdout, done.stderr, log[-2000:])
