@@ -122,7 +122,7 @@ class DynamixelBackend(HandOfOne):
     def home_centre(self) -> tuple[float, float, float]:
         """Where the hand's home posture puts the fingertip centre (hand frame): the servos'
         power-up posture, under which a fresh `haptic emulate` puts its seed's start."""
-        c = kin.forward(self.hand, np.asarray(self.hand.fingers[0].home, dtype=np.float64))
+        c = kin.forward(self.hand, np.asarray(self.hand.home, dtype=np.float64))
         return (float(c[0]), float(c[1]), float(c[2]))
 
     def centre_sigma(self) -> np.ndarray:

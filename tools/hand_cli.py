@@ -118,7 +118,7 @@ def _refuse_finger_options(args: argparse.Namespace) -> None:
                           + (f" ({'; '.join(notes)})" if notes else ""))
 
 
-def run_hand(args: argparse.Namespace) -> int:
+def run_hand(args: argparse.Namespace, budget: dict[str, float] | None = None) -> int:
     """The body of `haptic run --object ...`."""
     from service.episode.hand_episode import simulate_hand
     from service.episode.hand_scenario import hand_for_backend, load_parts
@@ -133,7 +133,7 @@ def run_hand(args: argparse.Namespace) -> int:
     parts = load_parts(settings)
     backend_factory = None
     if args.backend != "sim":
-        backend_factory = _servo_hand(args, settings)
+        backend_factory = _servo_hand(args, settings, budget or {})
         settings = hand_for_backend(settings, args.backend)
     fingers = len(parts.hand.fingers)
     print(f"object {parts.contour.name}: {parts.contour.extent * 1e3:.0f} mm across; hand "
@@ -171,11 +171,11 @@ def run_hand(args: argparse.Namespace) -> int:
     return 1 if failed else 0  # a wrong pose or a drop: a script must notice
 
 
-def _servo_hand(args: argparse.Namespace, settings):
-    """A factory of the hand on servos `--port` names (no I/O until the episode opens it)."""
+def _servo_hand(args: argparse.Namespace, settings, budget: dict[str, float]):
+    """A factory of the hand on servos `--port` names (no I/O until the episode opens it);
+    `budget`: the bus's `cycle_budget_s`, if `--cycle-budget` gave one."""
     from firmware_if.dxl_bus import check_port_exists
     from firmware_if.dynamixel_hand import DynamixelHand
-    from tools.run_cli import cycle_budget_option
 
     if args.backend != "dynamixel":
         raise ConfigError(f"--object runs on --backend sim or dynamixel, not {args.backend}")
@@ -185,7 +185,6 @@ def _servo_hand(args: argparse.Namespace, settings):
     if settings.single_finger:
         raise ConfigError("--single-finger runs on the simulated hand only")
     check_port_exists(args.port)
-    budget = cycle_budget_option(args)
     return lambda: DynamixelHand.from_cli(port=args.port, hand=settings.hand, **budget)
 
 

@@ -67,9 +67,9 @@ def register(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    cycle_budget_option(args)  # refused before anything else is done
+    budget = cycle_budget_option(args)  # refused before anything else is done
     if args.object is not None:
-        return run_hand(args)
+        return run_hand(args, budget)
     if args.hand is not None and args.backend == "sim":
         raise ConfigError(f"--hand {args.hand} without --object: a simulated finger on a map "
                           "needs no hand; give --object NAME for a hand holding an object, or "
@@ -82,7 +82,6 @@ def run(args: argparse.Namespace) -> int:
         if not args.port or not args.hand:
             raise ConfigError(f"--backend {args.backend} needs --port and --hand")
         check_port_exists(args.port)
-    budget = cycle_budget_option(args)
     height_map = load_map(settings.map, settings.spacing)
     check_scenario(settings, height_map)
     for warning in check_map(height_map, settings.radius, settings.step).warnings:

@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-from collections.abc import Callable
 from dataclasses import dataclass
 from statistics import NormalDist
 
@@ -31,6 +30,7 @@ from service.localization.localizers.fitting import (
     gauss_newton,
     offset_residuals,
 )
+from service.localization.localizers.image_search import images_searched, leads_alone
 from service.localization.localizers.refine import (
     Fit,
     assess,
@@ -249,60 +249,10 @@ class Verdict:
     held_back: str = ""
     """Without a declaration: the first condition that held it back, in words."""
     searched: bool = False
-    """Whether the leader's images were searched around (`_images_searched`)."""
+    """Whether the leader's images were searched around (`image_search`)."""
     found: np.ndarray = dataclasses.field(default_factory=lambda: np.empty((0, 3)))
-    """Images of the leader that the search (`_images_searched`) moved to a fit as good as
-    its own, within `WORSE_BY`: a localizer keeps them as modes, so the next judgement has
-    them without searching again."""
-
-
-IMAGE_SEARCH_SAMPLES = 2
-"""Map samples each way an image of the leader is searched over, where polishing left it
-fitting far worse than the leader: a symmetry is found on the map's grid, so an image may
-lie a sample or two off the pose it stands for, and beside sharp walls Gauss-Newton does
-not cross that (a held-out plate of 16 holes, one larger: the truth was an image of a
-leader 107 mm away, fitted as well as it, but its image lay 2.6 mm off, polished to 3,000
-nats worse, and the leader was given 100 %)."""
-IMAGE_SEARCH_POSES = 500
-"""Most poses the search tries in one judgement: the worst-fitting images go without."""
-WORSE_BY = 10.0
-"""Nats by which an image must fit worse than the leader to be searched around; and by
-which the leader must lead every mode for the search to run at all (`_leads_alone`): only
-then would the images' misfit give it a share it may not have."""
-
-
-def _leads_alone(ll: np.ndarray, images_ll: np.ndarray) -> bool:
-    """Whether the leader fits `WORSE_BY` better than every other mode and image: then its
-    share rests on the images fitting as badly as they do."""
-    rest = np.sort(np.concatenate([ll, images_ll]))[::-1]
-    return len(rest) > 1 and rest[0] - rest[1] >= WORSE_BY
-
-
-def _images_searched(surface: ContactSurface, images_: np.ndarray, ll: np.ndarray,
-                     best: float, score: Callable[[np.ndarray], np.ndarray],
-                     history: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The images, each moved to its best fit within `IMAGE_SEARCH_SAMPLES` map samples
-    (then polished) where polishing left it `WORSE_BY` nats behind the leader, the best
-    fitting first, at most `IMAGE_SEARCH_POSES` poses in all."""
-    behind = np.flatnonzero(ll < best - WORSE_BY)
-    if len(behind) == 0:
-        return images_, ll
-    k = np.arange(-IMAGE_SEARCH_SAMPLES, IMAGE_SEARCH_SAMPLES + 1) * surface.map.spacing
-    dx, dy = (a.ravel() for a in np.meshgrid(k, k))
-    per = len(dx)
-    behind = behind[np.argsort(-ll[behind], kind="stable")][:max(IMAGE_SEARCH_POSES // per, 1)]
-    tried = np.repeat(images_[behind], per, axis=0)
-    tried[:, 0] += np.tile(dx, len(behind))
-    tried[:, 1] += np.tile(dy, len(behind))
-    pick = np.argmax(score(tried).reshape(len(behind), per), axis=1)
-    moved = tried.reshape(len(behind), per, 3)[np.arange(len(behind)), pick]
-    moved = gauss_newton(surface, moved, history, np.ones(len(history)), iterations=3,
-                         max_move=surface.map.spacing)
-    again = score(moved)
-    better = again > ll[behind]
-    images_, ll = images_.copy(), ll.copy()
-    images_[behind[better]], ll[behind[better]] = moved[better], again[better]
-    return images_, ll
+    """Images of the leader that the search moved to a fit nearly as good as its own: a
+    localizer keeps them as modes, so the next judgement has them without searching."""
 
 
 def judge(surface: ContactSurface, history: np.ndarray, modes: Modes, *, sigma: float,
@@ -320,7 +270,7 @@ def judge(surface: ContactSurface, history: np.ndarray, modes: Modes, *, sigma: 
     merged. The sd is floored at 1 % of a step: a few polishing steps leave rivals that
     much short of their exact fits, and the floor keeps that from deciding between them.
     `search_images`: search around the leader's images that polishing left far behind it
-    (`_images_searched`); a caller whose leader has not moved since its last search may
+    (`image_search.images_searched`); a caller whose leader has not moved since its last search may
     skip it, as the answer would be the same.
     """
     if len(history) < 4 or len(modes.centres) == 0:
@@ -345,16 +295,12 @@ def judge(surface: ContactSurface, history: np.ndarray, modes: Modes, *, sigma: 
                                 max_move=tol_pos)
         more = fit_log_likelihood(surface, mirrored, history, sd, margin,
                                   outlier_probability, outlier_range)
-        if search_images and _leads_alone(ll, more):
-
-            def score(poses: np.ndarray) -> np.ndarray:
-                return fit_log_likelihood(surface, poses, history, sd, margin,
-                                          outlier_probability, outlier_range)
-
-            moved, better = _images_searched(surface, mirrored, more, float(ll.max()),
-                                             score, history)
-            found = moved[(better > more) & (better >= ll.max() - WORSE_BY)]
-            mirrored, more, searched = moved, better, True
+        if search_images and leads_alone(ll, more):
+            mirrored, more, found = images_searched(
+                surface, history, mirrored, more, float(ll.max()),
+                lambda poses: fit_log_likelihood(surface, poses, history, sd, margin,
+                                                 outlier_probability, outlier_range))
+            searched = True
         centres = np.vstack([centres, mirrored])
         ll = np.concatenate([ll, more])
     order = distinct(centres, ll, tol_pos, tol_head)
