@@ -519,13 +519,16 @@ def distinct_places(history: np.ndarray, cell: float) -> int:
 
 def _with_floored_spread(surface: ContactSurface, history: np.ndarray, fit: Fit, sigma: float,
                          position_sigma: float, step_length: float) -> Fit:
-    """`fit` with its spread recomputed at a reading sd of at least `FLOOR` steps.
+    """`fit` with its spread and residuals recomputed at a reading sd of at least `FLOOR`
+    steps.
 
     Noise-free the sensor sd is 0.1 um, and even a nearly flat patch of map (where every
     pose reads the same heights to within that) would look pinned; the floor makes the
     spread say how well the *shape* of the readings fixes the pose, to about what a
     sampled map can say (a round boss meshed at 1 mm is round only to some 10 um, and at
-    0.5 um its poses round the boss looked pinned).
+    0.5 um its poses round the boss looked pinned). The residuals are judged at that sd
+    too: judged at 0.1 um, a reading beside a pocket's wall lay 23.65 sds off a fit 0.0 mm
+    and 0.0 degrees from the truth, and plate:20:1 (seed 0) went 100 steps undeclared.
     """
     floor = max(sigma, FLOOR * step_length)
     if floor <= sigma:
@@ -534,7 +537,8 @@ def _with_floored_spread(surface: ContactSurface, history: np.ndarray, fit: Fit,
                     reading_sigmas(surface, history, np.asarray(fit.pose), floor,
                                    position_sigma))
     return dataclasses.replace(fit, position_sd=spread.position_sd,
-                               heading_sd=spread.heading_sd)
+                               heading_sd=spread.heading_sd, rms=spread.rms,
+                               max_abs=spread.max_abs)
 
 
 def _with_model_error(surface: ContactSurface, history: np.ndarray, fit: Fit, sigma: float,
