@@ -429,3 +429,16 @@ def test_three_fingers_hold_five_alike_lobes_through_a_turn():
     report = simulate_hand(HandSettings(object=str(DATA / "five_lobes.csv"),
                                         hand="three-finger", seed=3, noise=True, max_steps=32))
     assert not report.result.dropped
+
+
+def test_three_fingers_roll_before_they_turn_a_known_object_again():
+    """A held-out lab's kidney outline (`data/kidney.csv`), seed 0, noise-free: the leader
+    held the truth at 100 % from step 2, but the policy turned the object at every one of
+    100 steps (its heading alternating between two values from step 79). Each turn left the
+    judge three readings since it, too few to weigh (`object_judge.FRESH`), so nothing was
+    ever declared. With one mode left, a roll now comes before the next turn."""
+    report = simulate_hand(HandSettings(object=str(DATA / "kidney.csv"), hand="three-finger",
+                                        seed=0, max_steps=30))
+    assert report.score.success
+    kinds = [step.kind for step in report.result.steps]
+    assert "manipulate" in kinds and kinds != ["manipulate"] * len(kinds)

@@ -43,6 +43,10 @@ from service.localization.localizers.shared_error import (
 from service.localization.objects.symmetry import images
 
 REFINED_RIVALS = 2
+FRESH = 4
+"""Readings since the last manipulation (or the first grasp) the tracks are weighed on
+afresh; with fewer, the tracks stand as they are and no pose is declared (`_as_tracked`).
+A policy that turns the object before this many learns nothing the judge can confirm."""
 ADOPT = 1e-5
 """Least weight, relative to the leader's, at which a pose the whole-object check found
 (`object_certificate`) joins the tracks: the localizer had lost it, and the next updates
@@ -245,7 +249,7 @@ def judge(ctx: ObjectContext, points: np.ndarray, radii: np.ndarray, tracks: Obj
     since has never been asked to explain the readings from before."""
     if len(tracks.centres) == 0:
         return ObjectVerdict(None, 0.0, None, 0.0, False)
-    if len(points) < 4:
+    if len(points) < FRESH:
         return _as_tracked(ctx, tracks, motions, points, radii)
     scale = ctx.scale
     sigma = ctx.sigma
@@ -328,7 +332,7 @@ def judge(ctx: ObjectContext, points: np.ndarray, radii: np.ndarray, tracks: Obj
 def _as_tracked(ctx: ObjectContext, tracks: ObjectTracks, motions: np.ndarray,
                 points: np.ndarray, radii: np.ndarray) -> ObjectVerdict:
     """The verdict with too few readings since the last manipulation to weigh afresh (under
-    four): no fit and no declaration, the tracks' modes as they stand, with the leader's
+    `FRESH`): no fit and no declaration, the tracks' modes as they stand, with the leader's
     near-symmetric images (`_images`) among them as `judge` weighs them - the leader's share
     and the heaviest other's. (A client saw `runner_up` nil beside a leader at 49 % after
     each turn of two fingers on keyed, seed 2: the mass was one track's, the rival unsaid.
