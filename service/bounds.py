@@ -24,6 +24,8 @@ from service.errors import ConfigError
 UNITS = {"m": "metres", "s": "seconds", "Hz": "Hz", "rad": "radians", "": ""}
 MAX_TEXT = 4096
 """Longest string any setting takes (a path, a map spec, an endpoint)."""
+MAX_ITEMS = 64
+"""Most strings a list setting takes."""
 
 
 @dataclass(frozen=True)
@@ -31,8 +33,9 @@ class Bound:
     """What one setting accepts."""
 
     kind: str
-    """'int', 'float', 'bool', 'str', 'vec3' (three finite floats) or 'options' (a table of
-    keyword options: identifiers to numbers, bools or strings)."""
+    """'int', 'float', 'bool', 'str', 'strs' (a list of strings, kept as a tuple), 'vec3'
+    (three finite floats) or 'options' (a table of keyword options: identifiers to numbers,
+    bools or strings)."""
     lo: float | None = None
     hi: float | None = None
     unit: str = ""
@@ -44,7 +47,8 @@ class Bound:
     def describe(self) -> str:
         unit = UNITS.get(self.unit, self.unit)
         what = {"int": "an integer", "float": "a number", "bool": "true or false",
-                "str": "a string", "vec3": "three numbers",
+                "str": "a string", "strs": f"a list of at most {MAX_ITEMS} strings",
+                "vec3": "three numbers",
                 "options": "a table of names to numbers, true/false or strings (at most 64)"
                 }[self.kind]
         if self.kind in ("int", "float", "vec3") and self.lo is not None:
@@ -114,6 +118,12 @@ def _str(bound: Bound, value: Any) -> tuple[bool, Any]:
     return isinstance(value, str) and len(value) <= MAX_TEXT and "\0" not in value, value
 
 
+def _strs(bound: Bound, value: Any) -> tuple[bool, Any]:
+    if not isinstance(value, (list, tuple)) or len(value) > MAX_ITEMS:
+        return False, value
+    return all(_str(bound, v)[0] for v in value), tuple(value)
+
+
 def _vec3(bound: Bound, value: Any) -> tuple[bool, Any]:
     if not isinstance(value, (list, tuple)) or len(value) != 3:
         return False, value
@@ -133,7 +143,7 @@ def _options(bound: Bound, value: Any) -> tuple[bool, Any]:
 
 
 _CHECKS: dict[str, Callable[[Bound, Any], tuple[bool, Any]]] = {
-    "int": _int, "float": _float, "bool": _bool, "str": _str, "vec3": _vec3,
+    "int": _int, "float": _float, "bool": _bool, "str": _str, "strs": _strs, "vec3": _vec3,
     "options": _options}
 
 

@@ -239,6 +239,9 @@ class SecurityConfig:
     """Path of the server's `.key_secret` file (from `haptic keygen`)."""
     authorized_clients: str = setting("", "str")
     """Directory of client `.key` files allowed to connect (read again when it changes)."""
+    serial_ports: tuple[str, ...] = setting(("/dev/ttyUSB*", "/dev/ttyACM*"), "strs")
+    """Patterns of the serial ports a client's `configure` may name, besides the port this
+    configuration names (`service.daemon.port_choice`)."""
 
     def __post_init__(self) -> None:
         check_fields(self, "security.")

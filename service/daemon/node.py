@@ -54,6 +54,10 @@ the next tick (a request costs 0.1-1 ms: a few hundred a second fit at any rate)
 class Node(CommandHandlers):
     def __init__(self, config: DaemonConfig) -> None:
         self.config = config
+        self.operator_ports = frozenset(
+            p for p in [config.backend.options.get("port")] if isinstance(p, str))
+        """The port hapticd's own configuration names: a client may always go back to it
+        (`port_choice`)."""
         self.lifecycle = Lifecycle()
         self.ready = threading.Event()
         """Set once serving and the start-up configure has finished (or failed)."""

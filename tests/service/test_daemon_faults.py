@@ -4,6 +4,7 @@ new port; after any reset every servo holds what `open` wrote."""
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import os
 from collections.abc import Iterator
@@ -13,6 +14,7 @@ import pytest
 
 from firmware_if.hand import load_hand
 from firmware_if.registers import BAUD_REGISTER
+from service.daemon.config import SecurityConfig
 from service.daemon.harness import loopback_config, running_node
 from service.localization.maps import load_map
 from service.wire.client import Controller, Subscriber
@@ -41,6 +43,8 @@ def rig(tmp_path: Path) -> Iterator[tuple]:
     buses = [emulator(link)]
     config = loopback_config({"backend": {"name": "dynamixel", "options": options(str(link))},
                               "scenario": {"noise": True, "max_steps": 60}})
+    # a lab rehearsing on the emulator lets clients move to its pseudo-terminals
+    config = dataclasses.replace(config, security=SecurityConfig(serial_ports=("/dev/pts/*",)))
     try:
         with running_node(config) as node, \
                 Subscriber(node.endpoints["pub"], ["state", "event"]) as sub, \
