@@ -70,6 +70,11 @@ class Lease:
         ran out is free only once the watchdog has handled its end (within one tick)."""
         now = self._clock()
         if self.holder is not None and not self.holds(peer):
+            if self.busy and not self.gone:  # it cannot run out meanwhile (`remaining_s`)
+                raise LeaseHeld(f"'{self.holder.name()}' holds the lease on another "
+                                f"connection and a request of its (a configure) is still at "
+                                f"work; the lease lasts at least {self.ttl_ns / 1e9:.1f} s "
+                                f"after that ends (estop needs no lease)")
             if self.gone or now >= self.expires_ns:
                 raise LeaseHeld(f"the lease of '{self.holder.name()}' is ending; try again "
                                 f"in a moment")

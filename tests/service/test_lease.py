@@ -37,6 +37,26 @@ def test_a_holder_waiting_on_a_slow_request_is_shown_its_whole_lease() -> None:
     assert lease.remaining_s() == 0.0 and lease.expire_due() is not None
 
 
+def test_a_stranger_is_told_the_holders_slow_request_keeps_the_lease() -> None:
+    """A held-out C client polled `acquire` while the holder's 23 s `set_map` ran: it was
+    told "for 1.0 s more", then "ending; try again in a moment" for 20 s, though the lease
+    cannot end while the request works."""
+    from service.wire.lease import LeaseHeld
+
+    now = [0]
+    lease = Lease(2.0, clock=lambda: now[0])
+    lease.claim(Peer(b"conn", fd=7, label="alice"))
+    lease.busy += 1
+    stranger = Peer(b"other", fd=8)
+    for t in (1e9, 5e9):  # within the ttl and past it
+        now[0] = int(t)
+        with pytest.raises(LeaseHeld, match="still at work; the lease lasts at least 2.0 s"):
+            lease.claim(stranger)
+    lease.busy -= 1
+    with pytest.raises(LeaseHeld, match="is ending"):
+        lease.claim(stranger)
+
+
 def test_the_holders_label_stays_when_its_later_requests_carry_none() -> None:
     """A C client from the docs alone: `activate` labelled "alice", then a request with no
     label on the same connection: `lease_holder` and the later `lease_expired` said
