@@ -68,6 +68,12 @@ class GraspSpec:
     not yet move safely: at 2 N, 7 of 400 two-finger runs on members 100-199 dropped."""
 
     def __post_init__(self) -> None:
+        for name, value in (("friction coefficient mu", self.mu), ("object mass", self.mass_kg),
+                            ("disturbance margin", self.margin_n),
+                            ("grasp quality threshold", self.threshold_n),
+                            ("start grasp quality", self.start_n)):
+            if value is not None and not math.isfinite(value):
+                raise ConfigError(f"{name} must be a finite number, got {value}")
         if not (math.isfinite(self.mu) and self.mu > 0):
             raise ConfigError(f"friction coefficient mu must be > 0, got {self.mu}")
         if not (math.isfinite(self.mass_kg) and self.mass_kg >= 0):

@@ -166,6 +166,10 @@ def test_tilted_quality_is_the_best_or_least_with_each_normal_turned_either_way(
     ({"threshold_n": 3.0, "start_n": 2.0},
      r"start grasp quality \(2.0 N\) must be at least the threshold \(3.0 N\)"),
     ({"start_n": float("nan")}, "start grasp quality"),
+    # a held-out lab's: "threshold (inf N) must be at least the disturbance margin (0.2 N)"
+    ({"threshold_n": float("inf")}, "threshold must be a finite number, got inf"),
+    ({"mass_kg": float("inf")}, "mass must be a finite number, got inf"),
+    ({"mu": float("nan")}, "mu must be a finite number, got nan"),
 ])
 def test_spec_validation(kwargs, message):
     with pytest.raises(ConfigError, match=message):

@@ -11,7 +11,7 @@ from service.errors import ObjectError
 from service.localization.objects import kernels, rolling
 from service.localization.objects.contour import check_fits, make_contour
 from service.localization.objects.field import contact_field
-from service.localization.objects.files import load_object
+from service.localization.objects.files import check_object_spec, load_object
 from service.localization.objects.presets import PRESETS, preset_object
 from service.localization.objects.symmetry import images, near_symmetries
 
@@ -157,6 +157,10 @@ def test_mesh_section_through_a_plane(tmp_path):
         load_object(str(path), plane="z=0.01")
     with pytest.raises(ObjectError, match="'part.stl' read as millimetres"):
         load_object(str(path), plane="z=0", units="mm")
+    box.copy().apply_scale(1000.0).export(tmp_path / "part_mm.stl")  # in millimetres
+    with pytest.raises(ObjectError, match="misses .* the plane is in metres whatever the "
+                       "object's units"):
+        load_object(str(tmp_path / "part_mm.stl"), plane="z=5", units="mm")
     with pytest.raises(ObjectError, match="--plane takes"):
         load_object(str(path), plane="w=1")
     two = trimesh.util.concatenate([box, box.copy().apply_translation((0.1, 0, 0))])
@@ -238,3 +242,11 @@ def test_carrying_one_pose_uses_the_warmed_up_kernel():
     poses, _ = rolling.carry(field, np.zeros((1, 3)), tips, np.full(2, 0.01),
                              np.zeros((2, 2)), np.array([0.1, -0.1]), 2)
     assert poses.shape == (1, 3) and len(kernels.carry.signatures) == variants
+
+
+def test_a_plane_beside_an_outline_says_how_to_clear_it():
+    """A held-out lab moved a daemon from a mesh to a CSV outline and was told the plane
+    applies to meshes only; it found `scenario.plane` = nil by guessing."""
+    for spec in ("part.csv", "blob"):
+        with pytest.raises(ObjectError, match="`scenario.plane` set to nil"):
+            check_object_spec(spec, plane="z=0")

@@ -46,7 +46,8 @@ def check_object_spec(spec: str, *, plane: str | None = None, units: str = "m") 
     if suffix not in OBJECT_FILE_SUFFIXES:
         if plane is not None:
             raise ObjectError("a plane (`--plane`, `scenario.plane`) applies to mesh files "
-                              "(.stl, .obj, .ply), not presets")
+                              "(.stl, .obj, .ply), not presets: leave it out (in a "
+                              "configure, `scenario.plane` set to nil)")
         if units != "m":
             raise ObjectError("units (`--object-units`, `scenario.object_units`) apply to "
                               "object files (.csv, .stl, .obj, .ply), not presets: presets "
@@ -54,7 +55,8 @@ def check_object_spec(spec: str, *, plane: str | None = None, units: str = "m") 
         preset_name_and_seed(spec)
     elif suffix == ".csv" and plane is not None:
         raise ObjectError("a plane (`--plane`, `scenario.plane`) applies to mesh files, "
-                          "not a CSV outline")
+                          "not a CSV outline: leave it out (in a configure, "
+                          "`scenario.plane` set to nil)")
 
 
 def load_object(spec: str, *, plane: str | None = None, units: str = "m") -> Contour:
@@ -155,7 +157,9 @@ def mesh_section(path: Path, plane: str | None, scale: float = 1.0) -> Contour:
         raise ObjectError(f"the plane through {np.round(origin * 1e3, 3).tolist()} mm "
                           f"{'misses' if misses else 'only touches a face of'} the mesh "
                           f"'{path.name}', which lies {lo} to {hi} mm from it along its "
-                          "normal: choose a plane through its inside")
+                          "normal: choose a plane through its inside"
+                          + ("; the plane is in metres whatever the object's units"
+                             if scale != 1.0 else ""))
     if not all(bool(e.closed) for e in section.entities):
         raise ObjectError(f"the section of '{path.name}' is open (the mesh has a hole where "
                           "the plane cuts it): repair the mesh or choose another plane "
