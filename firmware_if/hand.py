@@ -408,18 +408,22 @@ def hand_from_dict(data: dict[str, Any], name: str = "hand") -> Hand:
         raise HandConfigError(f"hand '{name}': {exc}") from None
 
 
-def presets() -> list[str]:
-    return sorted(p.stem for p in PRESET_DIR.glob("*.toml"))
+def presets(holding: bool = False) -> list[str]:
+    """The hand presets' names; `holding`: only hands of several fingers, which can hold an
+    object (a lab told of `planar` for its object was then refused it: one finger)."""
+    names = sorted(p.stem for p in PRESET_DIR.glob("*.toml"))
+    return [n for n in names if len(load_hand(n).fingers) > 1] if holding else names
 
 
-def load_hand(spec: str) -> Hand:
-    """A preset name ('planar', 'spatial', 'two-finger', ...) or a path to a TOML file."""
+def load_hand(spec: str, holding: bool = False) -> Hand:
+    """A preset name ('planar', 'spatial', 'two-finger', ...) or a path to a TOML file;
+    `holding`: for an object, so an error lists the presets that can hold one."""
     path = PRESET_DIR / f"{spec}.toml"
     if not path.is_file():
         path = Path(spec)
         if not path.is_file():
             raise HandConfigError(f"no hand preset or file '{spec}'; presets: "
-                                  f"{', '.join(presets())}")
+                                  f"{', '.join(presets(holding))}")
     try:
         data = tomllib.loads(path.read_text())
     except tomllib.TOMLDecodeError as exc:

@@ -75,7 +75,7 @@ def _check(args: argparse.Namespace) -> None:
 
     for hand in args.hands.split(","):  # before any episode (one raised it, exit 1)
         try:
-            load_hand(hand)
+            load_hand(hand, holding=True)
         except HandConfigError as exc:
             raise ConfigError(f"--hands: {exc}") from None
     if args.plane is not None and not any(_plane_for(name, args.plane)
@@ -101,6 +101,7 @@ def _check_holds(jobs: Sequence[tuple[tuple[str, str, str], Any]]) -> None:
     from service.episode.hand_scenario import load_parts
 
     seen: set[tuple[str, str]] = set()
+    refused: list[str] = []
     for (hand, family, kind), settings in jobs:
         if kind != "gated" or (hand, family) in seen:
             continue
@@ -108,10 +109,17 @@ def _check_holds(jobs: Sequence[tuple[tuple[str, str, str], Any]]) -> None:
         try:
             seeded_world(settings, load_parts(settings))
         except ConfigError as exc:
-            # its advice names `haptic run`'s options, which the bench does not take
-            raise ConfigError(f"--hands {hand} --objects {family}: {exc} (the bench runs the "
-                              "defaults of --mass, --mu and --threshold: try others with "
-                              f"`haptic run --hand {hand} --object {family}`)") from None
+            refused.append(f"--hands {hand} --objects {family}: {exc}")
+    if refused:  # every pair that cannot hold, at once: a lab mends them in one go
+        firmer = jobs[0][1].start_n is not None
+        # the advice of `haptic run`'s names options the bench does not take
+        raise ConfigError(
+            f"{len(refused)} of {len(seen)} hand-object pairs cannot be held, so nothing ran: "
+            + "; ".join(refused) + ". Leave them out of --hands/--objects"
+            + (", or ask less of the start (--start-quality)" if firmer else "")
+            + (" (the bench runs the defaults of --mass, --mu and --threshold: try others "
+               "with `haptic run --hand H --object O`)"
+               if any("found no hold" in r for r in refused) else ""))
 
 
 _PARTS: dict[tuple, Any] = {}

@@ -136,9 +136,10 @@ class ScenarioConfig:
         except ObjectError as exc:
             raise ConfigError(f"scenario.object: {exc}") from None
         try:
-            load_hand(self.hand_name)
+            load_hand(self.hand_name, holding=True)
         except HandConfigError as exc:
-            raise ConfigError(f"scenario.hand: {quiet_hand_error(self.hand_name, exc)}"
+            raise ConfigError(f"scenario.hand: "
+                              f"{quiet_hand_error(self.hand_name, exc, holding=True)}"
                               ) from None
         try:
             self.hand_settings()

@@ -58,7 +58,7 @@ def setup(fields: dict[str, Any], backend: str) -> tuple[HandScenario, dict[str,
     try:
         parts = load_parts(settings)
     except HandConfigError as exc:  # a hand file that does not load
-        raise quiet_hand_error(settings.hand, exc) from None
+        raise quiet_hand_error(settings.hand, exc, holding=True) from None
     except ObjectError as exc:
         if not is_object_file(settings.object):
             raise  # a preset: its error says nothing about files

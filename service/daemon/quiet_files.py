@@ -56,18 +56,19 @@ def quiet_file_error(what: str, spec: str, exc: Exception, expected: str,
                  f"{expected} (the daemon's log says which){hint}")
 
 
-def quiet_hand_error(spec: str, exc: Exception) -> ConfigError:
+def quiet_hand_error(spec: str, exc: Exception, holding: bool = False) -> ConfigError:
     """A hand that does not load: a preset's error as it is, a file's quieted, and a name
     that is neither a preset nor shaped like a file's path (no '/', no .toml) told so, with
     the preset it is nearest. (A held-out client's `four-finger` was "a hand file that
     cannot be used": which says nothing of any file, as this says nothing either.)"""
     if spec in presets():
         return ConfigError(str(exc))
+    names = presets(holding)  # `holding`: for an object, only hands that can hold one
     if "/" not in spec and not spec.lower().endswith(".toml"):
-        near = difflib.get_close_matches(spec, presets(), n=1, cutoff=0.8)
+        near = difflib.get_close_matches(spec, names, n=1, cutoff=0.8)
         return ConfigError(f"no hand preset '{spec}'"
                            + (f" (did you mean '{near[0]}'?)" if near else "")
-                           + f": the presets are {', '.join(presets())}; a hand file is "
+                           + f": the presets are {', '.join(names)}; a hand file is "
                            "named by its path, ending in .toml")
     return quiet_file_error("hand", spec, exc, "a hand description in TOML", ConfigError,
-                            hint=f"; the presets are {', '.join(presets())}")
+                            hint=f"; the presets are {', '.join(names)}")

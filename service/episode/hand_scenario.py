@@ -112,7 +112,7 @@ class HandParts:
 def load_parts(settings: HandSettings) -> HandParts:
     """Object and hand of the settings, the object checked against the tips' radius."""
     contour = load_object(settings.object, plane=settings.plane, units=settings.units)
-    hand = load_hand(settings.hand)
+    hand = load_hand(settings.hand, holding=True)
     if len(hand.fingers) < 2:  # it said "found no hold ... too big, too small or too slippery"
         raise ConfigError(f"hand '{settings.hand}' has one finger: holding an object needs a "
                           "hand of several fingers (e.g. two-finger or three-finger)")

@@ -148,6 +148,7 @@ def test_a_hand_name_that_is_no_preset_is_told_so(hand, said):
         loopback_config({"scenario": {"object": "blob", "hand": hand}})
     assert said in str(refused.value) and "two-finger" in str(refused.value)
     assert "cannot be used" not in str(refused.value)
+    assert "planar" not in str(refused.value)  # one finger holds nothing
 
 
 def test_a_preset_after_a_map_file_needs_no_spacing_undone() -> None:

@@ -179,12 +179,21 @@ def test_bench_grasp_refuses_a_hand_that_cannot_hold_before_any_episode(tmp_path
     ran = []
     monkeypatch.setattr(hand_episode, "simulate_hand", lambda *a, **k: ran.append(a))
     out = tmp_path / "b6.json"
-    assert main(["bench", "grasp", "--runs", "2", "--objects", "blob", "--hands",
+    assert main(["bench", "grasp", "--runs", "2", "--objects", "blob,keyed", "--hands",
                  "three-finger,planar", "--no-ablation", "--no-single", "--workers", "1",
                  "--json", str(out)]) == 2
     err = capsys.readouterr().err
+    # every pair that cannot hold is named at once (a held-out lab mended one at a time)
+    assert "2 of 4 hand-object pairs cannot be held" in err
     assert "--hands planar --objects blob: hand 'planar' has one finger" in err
+    assert "--hands planar --objects keyed: hand 'planar' has one finger" in err
+    assert "--start-quality" not in err
     assert not ran and not out.exists()
+    assert main(["bench", "grasp", "--runs", "1", "--objects", "blob", "--hands",
+                 "two-finger", "--no-ablation", "--no-single", "--workers", "1",
+                 "--start-quality", "500"]) == 2
+    assert "ask less of the start (--start-quality)" in capsys.readouterr().err
+    assert not ran
 
 
 def test_the_figure_names_hands_and_object_files_shortly(tmp_path, monkeypatch):
