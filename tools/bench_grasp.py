@@ -314,14 +314,18 @@ def _rerunnable(spec: str) -> str:
 
 def _print(table: dict, summary: dict, hands, families, kinds) -> None:
     print("B6 grasp: hand, object family, runs; success, wrong, drops, stuck, steps median "
-          "(single finger) over all runs and over those localized, least quality, compute "
-          "after the first step median/p99")
+          "(in brackets: one finger, the object clamped) over all runs and over those "
+          "localized, least quality, compute after the first step median/p99")
+    # files by their stems, in columns as wide as the longest (paths broke the columns)
+    hand_width = max(13, *(len(_short(h)) for h in hands))
+    family_width = max(8, *(len(_short(f)) for f in families))
     for hand in hands:
         for family in families:
             g = table[f"{hand}/{family}/gated"]
             single = table.get(f"{hand}/{family}/single")
             ablation = table.get(f"{hand}/{family}/ablation")
-            print(f"  {hand:<13} {family:<8} {g['runs']:4d}  ok {g['successes']:4d}  "
+            print(f"  {_short(hand):<{hand_width}} {_short(family):<{family_width}} "
+                  f"{g['runs']:4d}  ok {g['successes']:4d}  "
                   f"wrong {g['wrong_declarations']}  drops {g['drops']}  stuck {g['stuck']}  "
                   f"steps {fmt(g['steps_median'], 'g')}"
                   f" ({fmt(single and single['steps_median'], 'g')}), localized in "
@@ -343,41 +347,53 @@ def _print(table: dict, summary: dict, hands, families, kinds) -> None:
 
 
 def grasp_figure(table: dict, hands, families, kinds, path: Path) -> None:
+    """Per hand and object: the share of runs that localized, dropped or declared wrongly,
+    and the median steps. Bars run across, a row per pair, and the figure grows with the
+    rows: a held-out lab's 16 pairs, as columns, ran their labels into one another."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(1, 2, figsize=(12, 4.5))
     # files by their stems, presets whole: a held-out check's file objects' paths ran
     # into one another, and "three-finger" read "three"
-    labels = [f"{_short(h)}\n{_short(f)}" for h in hands for f in families]
-    x = np.arange(len(labels))
+    labels = [f"{_short(h)} · {_short(f)}" for h in hands for f in families]
+    y = np.arange(len(labels))
+    fig, axes = plt.subplots(1, 2, figsize=(12, max(3.5, 1.6 + 0.42 * len(labels))),
+                             sharey=True)
     rows = [table[f"{h}/{f}/gated"] for h in hands for f in families]
     runs = np.array([r["runs"] for r in rows], dtype=float)
-    width = 0.2
-    for i, (key, colour) in enumerate((("successes", "tab:green"), ("drops", "tab:red"),
-                                       ("wrong_declarations", "black"))):
-        axes[0].bar(x + (i - 1) * width, [r[key] for r in rows] / runs * 100, width,
-                    color=colour, label=key.replace("_", " "))
+    bars = [("successes", "tab:green", 1.0, "localized"), ("drops", "tab:red", 1.0, "drops"),
+            ("wrong_declarations", "black", 1.0, "wrong declarations")]
+    columns = [np.array([r[key] for r in rows]) / runs * 100 for key, *_ in bars]
     if "ablation" in kinds:
-        ablation = [table[f"{h}/{f}/ablation"]["drops"] for h in hands for f in families]
-        axes[0].bar(x + 2 * width, np.array(ablation) / runs * 100, width, color="tab:red",
-                    alpha=0.35, label="drops without the gate")
-    tilt = {"rotation": 30, "ha": "right"} if len(labels) > 6 else {}
-    axes[0].set_xticks(x, labels, fontsize=8, **tilt)
-    axes[0].set(ylabel="% of runs", title="B6: success, drops and wrong declarations",
-                ylim=(0, 125))  # room above 100 % for the legend, clear of the bars
-    axes[0].legend(fontsize=7, ncol=4, loc="upper center")
-    steps = [r["steps_median"] for r in rows]
-    axes[1].bar(x - 0.15, steps, 0.3, label="hand (gated)")
+        bars.append(("ablation", "tab:red", 0.35, "drops without the gate"))
+        columns.append(np.array([table[f"{h}/{f}/ablation"]["drops"] for h in hands
+                                 for f in families]) / runs * 100)
+    height = 0.8 / len(bars)
+    for i, ((_, colour, alpha, label), values) in enumerate(zip(bars, columns, strict=True)):
+        axes[0].barh(y + (i - (len(bars) - 1) / 2) * height, values, height, color=colour,
+                     alpha=alpha, label=label)
+    axes[0].set_yticks(y, labels, fontsize=8)
+    axes[0].invert_yaxis()  # the first pair on top, as in the printed table
+    axes[0].set(xlabel="% of runs", xlim=(0, 100), title="B6: localized, drops and wrong "
+                "declarations")
+    axes[0].legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.16), ncol=4)
+    steps = np.array([r["steps_median"] for r in rows], dtype=float)
+    axes[1].barh(y - 0.2, steps, 0.4, label="hand (gated)")
+    values = [steps]
     if "single" in kinds:
-        single = [table[f"{h}/{f}/single"]["steps_median"] for h in hands for f in families]
-        axes[1].bar(x + 0.15, single, 0.3, label="one finger, object clamped")
-    axes[1].set_xticks(x, labels, fontsize=8, **tilt)
-    axes[1].set(ylabel="median steps", title="steps to a declaration (or the step limit)")
-    axes[1].set_ylim(0, 1.25 * max([*steps, *(single if "single" in kinds else [])], default=1))
-    axes[1].legend(fontsize=7, ncol=2, loc="upper center")
+        single = np.array([table[f"{h}/{f}/single"]["steps_median"] for h in hands
+                           for f in families], dtype=float)
+        axes[1].barh(y + 0.2, single, 0.4, label="one finger, object clamped")
+        values.append(single)
+    for offset, v in zip((-0.2, 0.2), values, strict=False):  # 0 (stuck at once) shows too
+        for yi, n in zip(y, v, strict=True):
+            axes[1].text(n, yi + offset, f" {n:g}", va="center", fontsize=7)
+    axes[1].set(xlabel="steps", title="median steps taken\n(a run that ends undeclared "
+                "counts where it ended)")
+    axes[1].set_xlim(0, 1.15 * max(float(np.max(np.concatenate(values))), 1.0))
+    axes[1].legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.16), ncol=2)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)

@@ -209,6 +209,50 @@ def test_the_figure_names_hands_and_object_files_shortly(tmp_path, monkeypatch):
     hands, families = ["three-finger", "/labs/x/my_hand.toml"], ["blob", "/labs/x/part.stl"]
     table = {f"{h}/{f}/gated": row for h in hands for f in families}
     bench_grasp.grasp_figure(table, hands, families, ["gated"], tmp_path / "b6.png")
-    labels = [t.get_text() for t in shown[0].axes[0].get_xticklabels()]
-    assert labels == ["three-finger\nblob", "three-finger\npart", "my_hand\nblob",
-                      "my_hand\npart"]
+    labels = [t.get_text() for t in shown[0].axes[0].get_yticklabels()]
+    assert labels == ["three-finger · blob", "three-finger · part", "my_hand · blob",
+                      "my_hand · part"]
+
+
+def test_the_figure_keeps_sixteen_pairs_readable(tmp_path, monkeypatch):
+    """A held-out lab's 16 hand-object pairs: their labels, as columns, overlapped till
+    none could be read. Rows now, and the figure grows with them: no two labels touch."""
+    import matplotlib.pyplot as plt
+
+    from tools import bench_grasp
+
+    shown = []
+    monkeypatch.setattr(plt, "close", shown.append)
+    row = {"runs": 6, "successes": 3, "drops": 0, "wrong_declarations": 0,
+           "steps_median": 0, "stuck": 6}
+    hands = ["three-finger", "/lab/three_uneven.toml", "/lab/two_asym.toml", "two-finger"]
+    families = ["/lab/rrect_notch.csv", "/lab/almost_sym.csv", "/lab/kidney.csv", "blob"]
+    table = {f"{h}/{f}/{k}": row for h in hands for f in families
+             for k in ("gated", "single", "ablation")}
+    bench_grasp.grasp_figure(table, hands, families, ["gated", "single", "ablation"],
+                             tmp_path / "b6.png")
+    fig = shown[0]
+    fig.canvas.draw()
+    renderer = fig.canvas.get_renderer()
+    boxes = [t.get_window_extent(renderer) for t in fig.axes[0].get_yticklabels()]
+    assert len(boxes) == 16
+    assert not any(a.overlaps(b) for i, a in enumerate(boxes) for b in boxes[i + 1:])
+    # a pair stuck at its first step has no bar; its 0 is written beside the axis
+    assert "0" in [t.get_text().strip() for t in fig.axes[1].texts]
+
+
+def test_the_table_keeps_its_columns_with_object_files(capsys):
+    """A held-out lab's table ran out of its columns where objects were paths."""
+    from tools import bench_grasp
+
+    row = {"runs": 6, "successes": 3, "drops": 0, "wrong_declarations": 0, "stuck": 1,
+           "steps_median": 9, "steps_median_localized": 8, "quality_min": 1.2,
+           "compute_ms_after_first_median": 1.0, "compute_ms_after_first_p99": 2.0}
+    hands, families = ["two-finger", "/lab/hands/two_asym.toml"], ["blob", "/lab/kidney.csv"]
+    table = {f"{h}/{f}/gated": row for h in hands for f in families}
+    summary = {"runs": 24, "successes": 12, "wrong_declarations": 0, "drops": 0,
+               "compute_ms_after_first_p99": 2.0, "settles": 0, "settle_ms_p99": None}
+    bench_grasp._print(table, summary, hands, families, ["gated"])
+    rows = [line for line in capsys.readouterr().out.splitlines() if " ok " in line]
+    assert len(rows) == 4 and len({line.index(" ok ") for line in rows}) == 1
+    assert "two_asym" in rows[2] and "/lab/" not in rows[2]
