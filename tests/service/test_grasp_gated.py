@@ -359,15 +359,17 @@ def test_two_fingers_hold_a_disc_with_three_notches_through_a_turn():
     assert not report.result.dropped
 
 
-@pytest.mark.xfail(strict=True, reason="found on a helper's held-out outlines, not fixed: the "
-                   "leading modes lay 4.5 degrees from the truth, their spread too narrow")
 def test_three_fingers_hold_a_kidney_at_step_40():
     """A helper's held-out kidney, an ellipse with a 7 mm dent (`data/kidney_with_a_dent.csv`),
     seed 7: every weighted plausible pose kept the grasp above the threshold, and the roll
-    at step 40 dropped the object."""
+    at step 40 dropped the object (a strict xfail: the leading modes lay 4.5 degrees from
+    the truth, their spread too narrow). Since a roll comes before a second turn of one mode
+    (`object_judge.FRESH`) its route differs: it holds and localizes in 36 steps (seeds 0-19
+    all hold). Why the old route's modes lay that far off was not traced: such a tail can
+    recur elsewhere."""
     report = simulate_hand(HandSettings(object=str(DATA / "kidney_with_a_dent.csv"),
                                         hand="three-finger", seed=7, noise=True, max_steps=40))
-    assert not report.result.dropped
+    assert not report.result.dropped and report.score.success
 
 
 @pytest.mark.xfail(strict=True, reason="found by a helper's held-out hunt, not fixed: two "
