@@ -17,14 +17,16 @@ from service.episode.scenario import RunSettings, build_localizer, surface_for
 from service.episode.simulate import simulate
 from service.localization.localizers.base import Budget, Measurement
 from service.registry import LOCALIZERS
+from tools.arg_types import integer, number
 from tools.bench_common import write_json
 from tools.outputs import check_outputs
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--budget-ms", type=float, default=2.0,
+    p.add_argument("--budget-ms", type=number(0.01, 10_000, "ms"), default=2.0,
                    help="time budget per work() call (default: %(default)s ms)")
-    p.add_argument("--runs", type=int, default=5, help="seeded episodes per algorithm")
+    p.add_argument("--runs", type=integer(1, 100_000), default=5,
+                   help="seeded episodes per algorithm")
     p.add_argument("--algorithms", default=",".join(LOCALIZERS.names()),
                    help="comma-separated (default: all)")
     p.add_argument("--json", type=Path, metavar="FILE", help="write results as JSON")

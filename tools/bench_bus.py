@@ -16,14 +16,15 @@ import numpy as np
 from firmware_if.dxl_bus import DxlBus
 from firmware_if.errors import CommunicationError
 from sim_backend.emulator import EmulatedServo, ServoBus
+from tools.arg_types import integer
 from tools.bench_common import write_json
 from tools.outputs import check_outputs
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--cycles", type=int, default=2000, metavar="N",
+    parser.add_argument("--cycles", type=integer(1, 1_000_000), default=2000, metavar="N",
                         help="cycles timed per read path (default: %(default)s)")
-    parser.add_argument("--servos", type=int, default=3, metavar="N",
+    parser.add_argument("--servos", type=integer(1, 252), default=3, metavar="N",
                         help="servos on the bus (default: %(default)s)")
     parser.add_argument("--json", type=Path, metavar="FILE", help="write the figures as JSON")
 

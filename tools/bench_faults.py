@@ -24,10 +24,11 @@ from pathlib import Path
 from typing import Any
 
 from firmware_if.hand import presets
-from service.daemon.config import ScenarioConfig
+from service.daemon.config import LoopConfig, ScenarioConfig
 from service.errors import ConfigError
 from service.wire.client import CommandFailed, CommandTimeout, Controller, Subscriber
 from tools import bench_service
+from tools.arg_types import integer, setting
 from tools.bench_common import percentile, write_json
 from tools.outputs import check_outputs
 
@@ -39,12 +40,14 @@ options = {{ port = "{port}", hand = "{hand}", cycle_budget_s = 0.05 }}
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--rounds", type=int, default=20,
+    parser.add_argument("--rounds", type=integer(1, 10_000), default=20,
                         help="emulator kills (default: %(default)s)")
     parser.add_argument("--hand", default="spatial", choices=presets(),
                         help="hand preset (default: %(default)s)")
-    parser.add_argument("--seed", type=int, default=3, help="the hidden start pose's seed")
-    parser.add_argument("--rate", type=float, default=200.0, help="loop rate, Hz")
+    parser.add_argument("--seed", type=setting(ScenarioConfig, "seed"), default=3,
+                        help="the hidden start pose's seed")
+    parser.add_argument("--rate", type=setting(LoopConfig, "rate_hz"), default=200.0,
+                        help="loop rate, Hz")
     parser.add_argument("--json", type=Path, metavar="FILE", help="write the figures as JSON")
     parser.set_defaults(step_s=0.0, algorithm=ScenarioConfig.localizer,
                         policy=ScenarioConfig.policy)

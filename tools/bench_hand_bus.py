@@ -25,6 +25,7 @@ from service.episode.hand_scenario import HandSettings, load_parts
 from sim_backend.emulator import ServoBus
 from sim_backend.emulator.hand_plant import HandPlant
 from sim_backend.emulator.plant import hand_bus_servos
+from tools.arg_types import integer
 from tools.bench_common import write_json
 from tools.outputs import check_outputs
 
@@ -34,12 +35,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         "%(default)s)")
     parser.add_argument("--object", default="keyed", help="object preset (default: "
                         "%(default)s)")
-    parser.add_argument("--ticks", type=int, default=2000, metavar="N",
+    parser.add_argument("--ticks", type=integer(1, 1_000_000), default=2000, metavar="N",
                         help="reads timed per read path (default: %(default)s)")
-    parser.add_argument("--seeds", type=int, default=4, metavar="N",
+    parser.add_argument("--seeds", type=integer(1, 10_000), default=4, metavar="N",
                         help="seeded episodes run both ways (default: %(default)s; 0: none)")
     parser.add_argument("--first-seed", type=int, default=0, metavar="S")
-    parser.add_argument("--max-steps", type=int, default=12, metavar="N")
+    parser.add_argument("--max-steps", type=integer(1, 10_000), default=12, metavar="N")
     parser.add_argument("--noise", action="store_true", help="B2's noise on both sides")
     parser.add_argument("--json", type=Path, metavar="FILE", help="write the figures as JSON")
 

@@ -26,10 +26,11 @@ from typing import Any
 
 import zmq
 
-from service.daemon.config import ScenarioConfig
+from service.daemon.config import BackendConfig, LoopConfig, ScenarioConfig
 from service.errors import ConfigError
 from service.registry import LOCALIZERS, POLICIES
 from service.wire.client import Client, Subscriber
+from tools.arg_types import integer, number, setting
 from tools.bench_common import percentile, write_json
 from tools.outputs import check_outputs
 
@@ -57,20 +58,21 @@ step_duration_s = {step_s}
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--duration", type=float, default=60.0,
+    parser.add_argument("--duration", type=number(0.1, 86_400, "s"), default=60.0,
                         help="seconds measured per run (default: %(default)s)")
-    parser.add_argument("--rate", type=float, default=200.0, help="loop rate, Hz")
-    parser.add_argument("--subscribers", type=int, default=10,
+    parser.add_argument("--rate", type=setting(LoopConfig, "rate_hz"), default=200.0,
+                        help="loop rate, Hz")
+    parser.add_argument("--subscribers", type=integer(1, 256), default=10,
                         help="subscribers in the loaded run, one of which never reads")
-    parser.add_argument("--step-s", type=float, default=0.02,
+    parser.add_argument("--step-s", type=setting(BackendConfig, "step_duration_s"), default=0.02,
                         help="simulated step duration, s (default: %(default)s)")
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--seed", type=setting(ScenarioConfig, "seed"), default=0)
     parser.add_argument("--algorithm", default=ScenarioConfig.localizer,
                         choices=LOCALIZERS.names(),
                         help="the daemon's localizer (default: %(default)s, its own default)")
     parser.add_argument("--policy", default=ScenarioConfig.policy, choices=POLICIES.names(),
                         help="the daemon's policy (default: %(default)s)")
-    parser.add_argument("--ping-hz", type=float, default=20.0,
+    parser.add_argument("--ping-hz", type=number(0.1, 1000, "Hz"), default=20.0,
                         help="command round trips timed per second")
     parser.add_argument("--json", type=Path, metavar="FILE", help="write the figures as JSON")
 

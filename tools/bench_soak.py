@@ -34,6 +34,7 @@ from service.daemon.config import DaemonConfig
 from service.errors import ConfigError
 from service.wire.client import Client, CommandFailed, CommandTimeout
 from tools import bench_service
+from tools.arg_types import integer, number
 from tools.bench_common import write_json
 from tools.outputs import check_outputs
 from tools.wake_floor import wake_floor
@@ -42,13 +43,13 @@ from tools.wake_floor import wake_floor
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     bench_service.add_arguments(parser)  # the daemon's scenario, rate, --json
     parser.set_defaults(duration=600.0, subscribers=7)
-    parser.add_argument("--reconnecting", type=int, default=5,
+    parser.add_argument("--reconnecting", type=integer(0, 256), default=5,
                         help="subscribers that reconnect (default: %(default)s; of "
                              "--subscribers, which also counts one steady and one stuck)")
-    parser.add_argument("--floor-s", type=float, default=10.0,
+    parser.add_argument("--floor-s", type=number(0.0, 86_400, "s"), default=10.0,
                         help="seconds of the same loop with empty ticks, measured first: the "
                              "machine's own timing floor (default: %(default)s)")
-    parser.add_argument("--reconnect-s", type=float, default=2.0,
+    parser.add_argument("--reconnect-s", type=number(0.01, 3600, "s"), default=2.0,
                         help="seconds between a reconnecting subscriber's connections")
 
 

@@ -22,6 +22,7 @@ from firmware_if.registers import (
     OPERATING_MODES,
     ticks_to_rad,
 )
+from tools.arg_types import integer, number
 from tools.signals import signals_held
 
 MODEL_NAMES = {number: name for name, (number, _) in MODELS.items()}
@@ -37,9 +38,9 @@ def register(p: argparse.ArgumentParser) -> None:
     scan.set_defaults(handler=cmd_scan)
     read = verbs.add_parser("read", help="joint angles and fingertip centre, live")
     _port_options(read, hand=True)
-    read.add_argument("--count", type=int, default=0, metavar="N",
+    read.add_argument("--count", type=integer(1, 10**9), default=None, metavar="N",
                       help="stop after N readings (default: until Ctrl-C)")
-    read.add_argument("--interval", type=float, default=0.1, metavar="S",
+    read.add_argument("--interval", type=number(0.001, 3600, "s"), default=0.1, metavar="S",
                       help="seconds between readings (default: %(default)s)")
     read.set_defaults(handler=cmd_read)
     check = verbs.add_parser("check", help="configuration sanity: latency timer, return "
@@ -86,7 +87,7 @@ def cmd_read(args: argparse.Namespace) -> int:
         bus.detect_fast_read()
         n = 0
         next_t = time.monotonic()
-        while args.count <= 0 or n < args.count:
+        while args.count is None or n < args.count:
             with signals_held():  # Ctrl-C between exchanges, never inside one
                 try:
                     readings = bus.cycle()

@@ -29,6 +29,7 @@ from service.episode.scenario import RunSettings
 from service.episode.simulate import EpisodeReport, simulate
 from service.errors import ConfigError, InputError, ServiceError
 from service.localization.surface import HeightMap
+from tools.arg_types import integer
 
 CONNECT_TIMEOUT_S = 10.0
 """How long to try reaching a Dask scheduler."""
@@ -402,7 +403,7 @@ def make_executor(workers: int | None, scheduler: str | None) -> Executor:
 
 def add_executor_options(parser, *, default_workers: str = "the number of cores") -> None:
     g = parser.add_argument_group("where episodes run")
-    g.add_argument("--workers", type=int, default=None, metavar="N",
+    g.add_argument("--workers", type=integer(1, 256), default=None, metavar="N",
                    help=f"local worker processes (default: {default_workers}); results are "
                         "the same for any N, timings are shared between them")
     g.add_argument("--scheduler", metavar="tcp://HOST:PORT",

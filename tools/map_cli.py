@@ -10,6 +10,9 @@ import argparse
 import json
 from pathlib import Path
 
+from service.episode.scenario import RunSettings
+from tools.arg_types import setting
+
 DEFAULT_RADIUS = 0.008
 DEFAULT_STEP = 0.01
 
@@ -33,11 +36,13 @@ def register(p: argparse.ArgumentParser) -> None:
     check.add_argument("map", metavar="FILE|PRESET",
                        help="a preset (see `haptic map list`) or a .npy/.csv/.txt grid of "
                             "heights in metres, rows along y")
-    check.add_argument("--spacing", type=float, metavar="M",
+    check.add_argument("--spacing", type=setting(RunSettings, "spacing"), metavar="M",
                        help="metres between samples (map files only)")
-    check.add_argument("--radius", type=float, default=DEFAULT_RADIUS, metavar="M",
+    check.add_argument("--radius", type=setting(RunSettings, "radius"),
+                       default=DEFAULT_RADIUS, metavar="M",
                        help="fingertip radius in metres (default: %(default)s)")
-    check.add_argument("--step", type=float, default=DEFAULT_STEP, metavar="M",
+    check.add_argument("--step", type=setting(RunSettings, "step"),
+                       default=DEFAULT_STEP, metavar="M",
                        help="step length in metres (default: %(default)s)")
     check.add_argument("--json", type=Path, metavar="FILE", help="write the report as JSON")
     check.add_argument("--plot", type=Path, metavar="FILE.png",
@@ -51,7 +56,8 @@ def register(p: argparse.ArgumentParser) -> None:
                     "heights seen from above, in metres above the table the part rests on "
                     "(its lowest point). Rows of the map run along y.")
     mesh.add_argument("mesh", type=Path, metavar="MESH", help="a mesh file trimesh reads")
-    mesh.add_argument("--spacing", type=float, required=True, metavar="M",
+    mesh.add_argument("--spacing", type=setting(RunSettings, "spacing"), required=True,
+                      metavar="M",
                       help="metres between samples, e.g. 0.0005")
     mesh.add_argument("-o", "--output", type=Path, required=True, metavar="FILE",
                       help="where to write the map: .npy (or .csv/.txt)")
@@ -65,10 +71,12 @@ def register(p: argparse.ArgumentParser) -> None:
     mesh.add_argument("--region", metavar="XMIN,YMIN,XMAX,YMAX",
                       help="the part of the (turned, scaled) mesh to map, in metres; default: "
                            "its footprint and two samples of table round it")
-    mesh.add_argument("--radius", type=float, default=DEFAULT_RADIUS, metavar="M",
+    mesh.add_argument("--radius", type=setting(RunSettings, "radius"),
+                      default=DEFAULT_RADIUS, metavar="M",
                       help="fingertip radius for the check of the new map "
                            "(default: %(default)s)")
-    mesh.add_argument("--step", type=float, default=DEFAULT_STEP, metavar="M",
+    mesh.add_argument("--step", type=setting(RunSettings, "step"),
+                      default=DEFAULT_STEP, metavar="M",
                       help="step length for the check (default: %(default)s)")
     mesh.set_defaults(handler=run_from_mesh)
 

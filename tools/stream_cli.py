@@ -23,6 +23,7 @@ from service.wire.client import (
     default_endpoint,
 )
 from service.wire.stream import TOPICS
+from tools.arg_types import integer, number
 from tools.signals import interrupted
 from tools.words import belief_text, pose_text, quality_text
 
@@ -142,8 +143,9 @@ def fingers_text(fingers: list[dict[str, Any]]) -> str:
 def add_stream_options(p: argparse.ArgumentParser, *, cmd: bool = False) -> None:
     p.add_argument("--topics", default=",".join(TOPICS),
                    help="comma-separated topics (default: %(default)s)")
-    p.add_argument("--duration", type=float, metavar="S", help="stop after S seconds")
-    p.add_argument("--count", type=int, metavar="N", help="stop after N messages")
+    p.add_argument("--duration", type=number(0.001, 10**7, "s"), metavar="S",
+                   help="stop after S seconds")
+    p.add_argument("--count", type=integer(1, 10**9), metavar="N", help="stop after N messages")
     add_endpoint_options(p, cmd=cmd)
 
 

@@ -9,6 +9,7 @@ from typing import Any
 
 from service.errors import InputError
 from service.wire.client import CommandFailed, CommandTimeout
+from tools.arg_types import number
 from tools.signals import interrupted
 from tools.stream_cli import add_endpoint_options, client_from, deadline, subscriber_from
 
@@ -23,7 +24,7 @@ def register(p: argparse.ArgumentParser) -> None:
     p.add_argument("--png", metavar="FILE", help="save one snapshot without a display")
     p.add_argument("--from", dest="source", metavar="RECORDING",
                    help="draw the end of a recording (needs --png)")
-    p.add_argument("--duration", type=float, default=3.0, metavar="S",
+    p.add_argument("--duration", type=number(0.01, 86_400, "s"), default=3.0, metavar="S",
                    help="with --png: seconds of stream to collect; stops early on "
                         "convergence (default: %(default)s)")
     p.add_argument("--map", metavar="NAME|PATH",
