@@ -58,8 +58,10 @@ def register(p: argparse.ArgumentParser) -> None:
 
 def _port_options(p: argparse.ArgumentParser, hand: bool = False) -> None:
     p.add_argument("--port", required=True, help="serial port, e.g. /dev/ttyUSB0")
-    p.add_argument("--baud", type=int, default=None,
-                   help="baud rate (default: the hand's, else 1000000)")
+    p.add_argument("--baud", type=int, default=None, choices=sorted(BAUD_REGISTER),
+                   metavar="BPS", help="baud rate, one of the servos' "
+                   f"({', '.join(map(str, sorted(BAUD_REGISTER)))}; default: the hand's, "
+                   "else 1000000)")
     if hand:
         p.add_argument("--hand", required=True, metavar="PRESET|FILE",
                        help=f"hand preset ({', '.join(presets())}) or TOML file")

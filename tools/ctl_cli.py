@@ -22,6 +22,7 @@ from typing import Any
 from service.errors import InputError, ServiceError
 from service.wire.client import SLOW_COMMANDS, Client, CommandFailed, CommandTimeout, Subscriber
 from service.wire.commands import TABLE
+from tools.arg_types import integer, number
 from tools.stream_cli import add_endpoint_options, client_from, subscriber_from, unheard_words
 from tools.words import (
     NO_SAFE_MOVE,
@@ -57,11 +58,11 @@ def register_ctl(p: argparse.ArgumentParser) -> None:
                         "key (scenario.seed=3)")
     p.add_argument("--client", metavar="NAME", help="a name for this controller, shown as "
                    "the lease holder (default: ctl-PID)")
-    p.add_argument("--timeout", type=float, default=None, metavar="S",
+    p.add_argument("--timeout", type=number(0.01, 86_400, "s"), default=None, metavar="S",
                    help="seconds to wait for each try (default: 2, and 120 for the commands "
                         "answered when slow work is done: "
                         + ", ".join(sorted(SLOW_COMMANDS)) + ")")
-    p.add_argument("--retries", type=int, default=2, metavar="N",
+    p.add_argument("--retries", type=integer(0, 100), default=2, metavar="N",
                    help="resends before giving up; the daemon never runs a resent request "
                         "twice (default: %(default)s)")
     add_endpoint_options(p, pub=False)
@@ -159,7 +160,7 @@ def register_explore(p: argparse.ArgumentParser) -> None:
         "fault (torque off; the fault is printed).")
     p.add_argument("--client", metavar="NAME", help="a name for this controller, shown as "
                    "the lease holder (default: explore-PID)")
-    p.add_argument("--wait", type=float, default=60.0, metavar="S",
+    p.add_argument("--wait", type=number(0.01, 86_400, "s"), default=60.0, metavar="S",
                    help="seconds to wait for the daemon to answer, read the finger and free "
                         "the lease (default: %(default)s)")
     p.add_argument("--quiet", action="store_true", help="print only the outcome")

@@ -19,6 +19,7 @@ from typing import Any
 from service.errors import InputError
 from service.wire import envelope as wire
 from service.wire.client import CommandFailed, CommandTimeout
+from tools.arg_types import number
 from tools.outputs import check_outputs
 from tools.signals import interrupted, signals_held
 from tools.stream_cli import (
@@ -43,7 +44,8 @@ def register_record(p: argparse.ArgumentParser) -> None:
         "`haptic export FILE` writes its episodes as JSON or CSV.")
     p.add_argument("file", metavar="FILE.mcap")
     add_stream_options(p, cmd=True)
-    p.add_argument("--state-hz", type=float, default=DEFAULT_STATE_HZ, metavar="HZ",
+    p.add_argument("--state-hz", type=number(0.0, 10_000, "Hz"), default=DEFAULT_STATE_HZ,
+                   metavar="HZ",
                    help="keep at most HZ `state` messages per second (the daemon sends 200; "
                         "0 keeps all) (default: %(default)s)")
     p.epilog = "The daemon's config is asked for on the --cmd endpoint and stored with it."
@@ -53,8 +55,6 @@ def register_record(p: argparse.ArgumentParser) -> None:
 def cmd_record(args: argparse.Namespace) -> int:
     from tools.recording import McapRecorder
 
-    if args.state_hz < 0:
-        raise InputError("--state-hz must be >= 0")
     topics = parse_topics(args.topics)
     end, next_state = deadline(args.duration), 0.0
     with subscriber_from(args, topics) as sub, McapRecorder(args.file) as rec:
@@ -101,9 +101,9 @@ def register_replay(p: argparse.ArgumentParser) -> None:
     p.add_argument("file", metavar="FILE")
     p.add_argument("--publish", metavar="ENDPOINT",
                    help="re-publish on this loopback PUB endpoint, e.g. tcp://127.0.0.1:5570")
-    p.add_argument("--speed", type=float, default=1.0,
+    p.add_argument("--speed", type=number(0.001, 1000), default=1.0,
                    help="time scale when publishing (default: %(default)s)")
-    p.add_argument("--delay", type=float, default=1.0, metavar="S",
+    p.add_argument("--delay", type=number(0.0, 3600, "s"), default=1.0, metavar="S",
                    help="when publishing, wait S seconds after binding so that subscribers "
                         "connect before the first message (default: %(default)s)")
     p.set_defaults(handler=cmd_replay)
@@ -132,8 +132,6 @@ def cmd_replay(args: argparse.Namespace) -> int:
     if not is_loopback(args.publish):
         raise InputError(f"--publish {args.publish}: replays bind loopback only "
                          f"(tcp://127.0.0.1:PORT or ipc://)")
-    if not args.speed > 0:
-        raise InputError("--speed must be > 0")
     ctx = zmq.Context()
     sock = ctx.socket(zmq.PUB)
     try:

@@ -154,7 +154,7 @@ def register_watch(p: argparse.ArgumentParser) -> None:
                      "--duration or --count (topics: state, estimate, cloud, event; "
                      "docs/protocol.md describes their fields).")
     add_stream_options(p)
-    p.add_argument("--state-hz", type=float, default=2.0, metavar="HZ",
+    p.add_argument("--state-hz", type=number(0.0, 10_000, "Hz"), default=2.0, metavar="HZ",
                    help="print at most HZ state lines per second, 0 for all (default: "
                         "%(default)s)")
     p.set_defaults(handler=cmd_watch)
