@@ -15,6 +15,7 @@ started in the background; a closed pipe (`| head`) ends it quietly.
 from __future__ import annotations
 
 import argparse
+import errno
 import importlib
 import os
 import signal
@@ -26,6 +27,10 @@ from typing import NoReturn
 from firmware_if.errors import FirmwareError
 from service.errors import InputError, ServiceError
 from tools.signals import signals_interrupt
+
+WRITE_FAILURES = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.EROFS, errno.EIO})
+"""OS errors of an output that passed its check and failed as it was written (a full
+disk, `--json /dev/full`): one line, not a traceback."""
 
 COMMANDS: dict[str, tuple[str, str]] = {
     "run": ("tools.run_cli", "localize a simulated (or real) finger once, step by step"),
@@ -205,6 +210,14 @@ def main(argv: list[str] | None = None) -> int:
     except BrokenPipeError:
         _quiet_broken_pipe()
         return 0
+    except OSError as exc:
+        if exc.errno not in WRITE_FAILURES:
+            raise
+        # the outputs were checked before the work (`tools.outputs`); a disk can still fill
+        where = f" {exc.filename}" if exc.filename else ""
+        print(f"haptic {_name(argv)}: error: cannot write{where}: {exc.strerror}; free some "
+              "space or write elsewhere", file=sys.stderr)
+        return 1
     except KeyboardInterrupt as exc:
         signum = getattr(exc, "signum", signal.SIGINT)
         print(f"haptic {_name(argv)}: interrupted", file=sys.stderr)

@@ -100,6 +100,9 @@ def _bus(args: argparse.Namespace, servos, plant) -> ServoBus:
     link = getattr(args, "link", None)
     if link is not None and os.path.exists(link) and not os.path.islink(link):
         raise ConfigError(f"--link {link}: a file that is not a symlink is there already")
+    if link is not None and not os.path.isdir(os.path.dirname(os.path.abspath(link))):
+        raise ConfigError(f"--link {link}: folder {os.path.dirname(link) or '.'} does not "
+                          "exist; make it first or name a link in a folder that does")
     priority = getattr(args, "priority", 0)
     if not 0 <= priority <= 98:
         raise ConfigError(f"--priority {priority}: SCHED_FIFO priorities are 1-98 (0: "

@@ -10,6 +10,7 @@ from typing import Any
 from service.errors import InputError
 from service.wire.client import CommandFailed, CommandTimeout
 from tools.arg_types import number
+from tools.outputs import check_outputs
 from tools.signals import interrupted
 from tools.stream_cli import add_endpoint_options, client_from, deadline, subscriber_from
 
@@ -88,6 +89,8 @@ def has_display() -> bool:
 def cmd_view(args: argparse.Namespace) -> int:
     from tools.viewer import ViewModel, draw, save_png
 
+    if args.png:  # before any wait: a folder that does not exist was a traceback at the end
+        check_outputs(figures=(args.png,))
     view = ViewModel()
     if args.source:
         from tools.recording import read_recording

@@ -262,3 +262,17 @@ def test_a_start_with_a_minus_or_many_turns_is_taken_as_typed(tmp_path, capsys):
                  "--json", str(out)]) == 0
     assert json.loads(out.read_text())["truth"]["heading"] == pytest.approx(
         math.radians(60000 % 360))
+
+
+@pytest.mark.parametrize("argv, said, status", [
+    # a held-out check of bad input: each was a traceback
+    (["view", "--png", "/nonexistent/x.png"], "folder /nonexistent does not exist", 2),
+    (["emulate", "--hand", "planar", "--link", "/nonexistent/dir/x"],
+     "folder /nonexistent/dir does not exist", 2),
+    (["run", "--max-steps", "2", "--quiet", "--json", "/dev/full"],
+     "cannot write: No space left on device", 1),
+])
+def test_an_output_that_cannot_be_written_is_one_line(argv, said, status, capsys):
+    assert main(argv) == status
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and said in err[0]
