@@ -220,6 +220,10 @@ class EndpointConfig:
                     f"{value!r} has no port")
                 raise ConfigError(f"endpoints.{name}: {what}: give 1-65535, or * for any "
                                   "free one")
+        if self.pub == self.cmd and _port_of(self.pub) != "*":
+            # the second bind failed as "Address already in use; is another hapticd running?"
+            raise ConfigError(f"endpoints.pub and endpoints.cmd are one endpoint "
+                              f"({self.pub!r}): the stream and the commands need one each")
 
 
 def _port_of(endpoint: str) -> str | None:

