@@ -250,3 +250,22 @@ def test_a_plane_beside_an_outline_says_how_to_clear_it():
     for spec in ("part.csv", "blob"):
         with pytest.raises(ObjectError, match="`scenario.plane` set to nil"):
             check_object_spec(spec, plane="z=0")
+
+
+def test_a_dense_outline_is_thinned_and_a_tiny_one_called_tiny(tmp_path):
+    """A held-out check: a valid ellipse of 2,000,001 vertices, and one 8 um across, were
+    both "a contour needs at least 3 distinct vertices, got 1" (neighbours closer than a
+    micrometre were merged into their first); thinned to a micrometre only, the dense one
+    was a 364 GiB MemoryError."""
+    from service.localization.objects.contour import MAX_VERTICES
+
+    t = np.linspace(0.0, 2 * np.pi, 200_001)
+    dense = tmp_path / "dense.csv"
+    np.savetxt(dense, np.c_[0.03 * np.cos(t), 0.02 * np.sin(t)], delimiter=",")
+    contour = load_object(str(dense))
+    assert 0.9 * MAX_VERTICES <= len(contour.points) <= MAX_VERTICES + 1
+    assert contour.area == pytest.approx(np.pi * 0.03 * 0.02, rel=1e-4)
+    tiny = tmp_path / "tiny.csv"
+    np.savetxt(tiny, np.c_[4e-6 * np.cos(t[::4000]), 3e-6 * np.sin(t[::4000])], delimiter=",")
+    with pytest.raises(ObjectError, match="spans only 0.00999 mm across"):  # its diagonal
+        load_object(str(tiny))
