@@ -14,6 +14,7 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
+from service.bounds import bound_of
 from service.episode.scenario import RunSettings
 from service.episode.simulate import EpisodeReport
 from service.errors import ConfigError, InputError, ServiceError
@@ -55,11 +56,19 @@ def check_bench_args(args: argparse.Namespace) -> None:
     `--seed` for `--first-seed -1`, and of `--workers 0` after the map's warnings)."""
     if args.runs < 1:
         raise ConfigError(f"--runs must be at least 1, got {args.runs}")
-    if getattr(args, "first_seed", 0) < 0:
-        raise ConfigError(f"--first-seed must be at least 0, got {args.first_seed}")
+    check_seeds(getattr(args, "first_seed", 0), args.runs)
     if getattr(args, "workers", None) is not None and args.workers < 1:
         raise ConfigError(f"--workers must be at least 1, got {args.workers}")
     check_outputs(args.json, figures=(args.plot,))
+
+
+def check_seeds(first: int, count: int, counted: str = "--runs") -> None:
+    """`count` consecutive seeds from `first` must all be seeds: a held-out check's
+    `--first-seed 9223372036854775807` was told of `--seed` 9223372036854775808."""
+    largest = int(bound_of(RunSettings, "seed").hi)
+    if first < 0 or first + count - 1 > largest:
+        raise ConfigError(f"--first-seed {first} with {counted} {count} gives seeds outside "
+                          f"0..{largest}")
 
 
 LOG_EVERY_S = 30.0

