@@ -32,6 +32,9 @@ WRITE_FAILURES = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.EROFS
 """OS errors of an output that passed its check and failed as it was written (a full
 disk, `--json /dev/full`): one line, not a traceback."""
 
+GROUPS = (["bench"], ["bus"], ["map"])
+"""Commands whose next word names a command of its own (`haptic bench paper`)."""
+
 COMMANDS: dict[str, tuple[str, str]] = {
     "run": ("tools.run_cli", "localize a simulated (or real) finger once, step by step"),
     "bench": ("tools.bench", "run a seeded benchmark scenario of BENCHMARKS.md (B1-B6 and more; "
@@ -199,7 +202,13 @@ def main(argv: list[str] | None = None) -> int:
     argv = _glued(sys.argv[1:] if argv is None else list(argv))
     try:  # around the set-up too: a signal can land while the handlers are being installed
         with signals_interrupt(), _one_blas_thread():
-            args = build_parser().parse_args(argv)
+            args, unknown = build_parser().parse_known_args(argv)
+            if unknown:  # in the command's one line, not the top level's usage block
+                name = " ".join(w for w in argv[:2 if argv[:1] in GROUPS else 1]
+                                if not w.startswith("-"))
+                print(f"haptic {name}: error: unrecognized arguments: {' '.join(unknown)} "
+                      f"(`haptic {name} --help` lists the options)", file=sys.stderr)
+                return 2
             return int(args.handler(args) or 0)
     except (InputError, FirmwareError) as exc:
         print(f"haptic {_name(argv)}: error: {exc}", file=sys.stderr)

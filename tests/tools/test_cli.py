@@ -276,3 +276,16 @@ def test_an_output_that_cannot_be_written_is_one_line(argv, said, status, capsys
     assert main(argv) == status
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and said in err[0]
+
+
+@pytest.mark.parametrize("argv, said", [
+    (["run", "--frobnicate", "3"], "haptic run: error: unrecognized arguments: --frobnicate 3 "
+                                   "(`haptic run --help` lists the options)"),
+    (["bench", "paper", "--frob"], "haptic bench paper: error: unrecognized arguments: --frob"),
+])
+def test_an_unknown_option_is_the_commands_one_line(argv, said, capsys):
+    """A held-out check: `haptic run --frobnicate 3` printed the top level's usage and
+    "haptic: error: ...", where every other refusal is the command's one line."""
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and err.startswith(said)
