@@ -90,6 +90,9 @@ def _check(args: argparse.Namespace) -> None:
                                           for name in args.objects.split(",")):
         raise ConfigError("--plane cuts mesh files (.stl, .obj, .ply) of --objects, and "
                           "none is one")  # as `haptic run --plane` refuses an outline
+    if args.object_units != "m" and all(name in OBJECTS for name in args.objects.split(",")):
+        raise ConfigError("--object-units applies to object files of --objects, and none is "
+                          "one: the families are in metres")  # it was ignored
     for name in args.objects.split(","):
         if name in OBJECTS:
             continue

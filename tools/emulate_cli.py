@@ -74,6 +74,12 @@ def emulator_truth(settings: RunSettings) -> tuple[Truth, HeightMap]:
 
 def start_emulator(args: argparse.Namespace) -> tuple[ServoBus, Truth]:
     if getattr(args, "object", None) is not None:
+        stray = [flag for flag, given in (("--map", args.map != RunSettings().map),
+                                          ("--spacing", args.spacing is not None)) if given]
+        if stray:  # a held-out check's `--object blob --map bumps` ignored the map
+            raise ConfigError(f"{' and '.join(stray)} belong{'s' if len(stray) == 1 else ''} "
+                              "to a finger's map; a hand holding --object has none: leave "
+                              f"{'it' if len(stray) == 1 else 'them'} out")
         return start_hand_emulator(args)
     hand = load_hand(args.hand)
     settings = settings_from_args(args, radius=hand.radius)

@@ -72,6 +72,20 @@ def add_object_world_options(g: argparse._ActionsContainer) -> None:
                         "it (default: the threshold)")
 
 
+def object_options_given(args: argparse.Namespace) -> list[str]:
+    """The options of a hand holding an object that `args` sets away from their defaults,
+    as flags: without --object they would be ignored (a held-out check's `--mu 0.9` and
+    `--no-gate` on a map ran as if not given)."""
+    from service.episode.hand_scenario import HandSettings
+
+    d = HandSettings()
+    defaults = {"roll": d.step, "threshold": d.threshold_n, "no_gate": False,
+                "single_finger": False, "plane": None, "object_units": "m", "mu": d.mu,
+                "mass": d.mass_kg, "margin": d.margin_n, "start_quality": d.start_n}
+    return ["--" + name.replace("_", "-") for name, default in defaults.items()
+            if hasattr(args, name) and getattr(args, name) != default]
+
+
 def hand_settings(args: argparse.Namespace, **overrides):
     from service.episode.hand_scenario import HandSettings
 

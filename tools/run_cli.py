@@ -22,7 +22,7 @@ from service.localization.map_check import check_map
 from service.localization.maps import load_map
 from service.localization.policies.base import MOVE_NAMES
 from service.registry import BACKENDS
-from tools.hand_cli import add_object_options, run_hand
+from tools.hand_cli import add_object_options, object_options_given, run_hand
 from tools.outputs import check_outputs
 from tools.scenario_options import add_scenario_options, settings_from_args
 from tools.words import (
@@ -70,6 +70,13 @@ def run(args: argparse.Namespace) -> int:
     budget = cycle_budget_option(args)  # refused before anything else is done
     if args.object is not None:
         return run_hand(args, budget)
+    stray = object_options_given(args)
+    if stray:
+        raise ConfigError(f"{', '.join(stray)} appl{'ies' if len(stray) == 1 else 'y'} to a "
+                          "hand holding an object: give --object NAME, or leave "
+                          f"{'it' if len(stray) == 1 else 'them'} out")
+    if args.port is not None and args.backend == "sim":
+        raise ConfigError("--port is a servo bus's: it needs --backend dynamixel")
     if args.hand is not None and args.backend == "sim":
         raise ConfigError(f"--hand {args.hand} without --object: a simulated finger on a map "
                           "needs no hand; give --object NAME for a hand holding an object, or "

@@ -256,3 +256,9 @@ def test_the_table_keeps_its_columns_with_object_files(capsys):
     rows = [line for line in capsys.readouterr().out.splitlines() if " ok " in line]
     assert len(rows) == 4 and len({line.index(" ok ") for line in rows}) == 1
     assert "two_asym" in rows[2] and "/lab/" not in rows[2]
+
+
+def test_units_without_an_object_file_are_refused(capsys):
+    """A held-out check: `--object-units mm` with the families alone ran, ignored."""
+    assert main(["bench", "grasp", "--runs", "1", "--object-units", "mm"]) == 2
+    assert "--object-units applies to object files" in capsys.readouterr().err

@@ -289,3 +289,16 @@ def test_an_unknown_option_is_the_commands_one_line(argv, said, capsys):
     assert main(argv) == 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and err.startswith(said)
+
+
+@pytest.mark.parametrize("argv, said", [
+    # a held-out check: each ran as if the option had not been given
+    (["run", "--mu", "0.9", "--no-gate"], "--no-gate, --mu apply to a hand holding an object"),
+    (["run", "--plane", "z=0"], "--plane applies to a hand holding an object"),
+    (["run", "--port", "/dev/ttyUSB0"], "--port is a servo bus's: it needs --backend"),
+    (["emulate", "--hand", "two-finger", "--object", "blob", "--map", "bumps"],
+     "--map belongs to a finger's map; a hand holding --object has none"),
+])
+def test_an_option_that_would_be_ignored_is_refused(argv, said, capsys):
+    assert main(argv) == 2
+    assert said in capsys.readouterr().err
