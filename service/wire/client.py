@@ -30,6 +30,7 @@ import zmq
 
 from service.errors import ConfigError, ServiceError
 from service.wire import envelope as wire
+from service.wire.security import allow_ipv6
 from service.wire.stream import TOPICS
 
 DEFAULT_ENDPOINTS = {"pub": "tcp://127.0.0.1:5560", "cmd": "tcp://127.0.0.1:5561"}
@@ -64,6 +65,7 @@ def _apply(sock: zmq.Socket, options: dict[int, Any] | None) -> None:
 def _connect(sock: zmq.Socket, endpoint: str) -> None:
     """Connect, or close the socket and say what is wrong with the endpoint."""
     try:
+        allow_ipv6(sock, endpoint)
         sock.connect(endpoint)
     except zmq.ZMQError as exc:
         sock.close(linger=0)

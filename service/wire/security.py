@@ -50,6 +50,13 @@ def is_loopback(endpoint: str) -> bool:
         return False  # '*', an interface name or a host name: treat as exposed
 
 
+def allow_ipv6(sock: zmq.Socket, endpoint: str) -> None:
+    """Let `sock` use an IPv6 address where `endpoint` names one (tcp://[::1]:5561):
+    ZeroMQ sockets are IPv4-only by default, and a bind there failed "No such device"."""
+    if "://[" in endpoint:
+        sock.setsockopt(zmq.IPV6, 1)
+
+
 def bind_server_socket(ctx: zmq.Context, kind: int, endpoint: str,
                        options: dict[int, Any], curve: CurveServer | None = None
                        ) -> tuple[zmq.Socket, str]:
@@ -60,6 +67,7 @@ def bind_server_socket(ctx: zmq.Context, kind: int, endpoint: str,
             sock.setsockopt(option, value)
         if curve is not None:
             curve.apply(sock)
+        allow_ipv6(sock, endpoint)
         sock.bind(endpoint)
     except zmq.ZMQError as exc:
         sock.close(linger=0)

@@ -197,3 +197,24 @@ def test_curve_keys_own_leases_and_revocation_needs_no_restart(tmp_path: Path) -
                         retries=0) as again, pytest.raises(CommandTimeout):
                 again.call("ping")  # a new connection fails the handshake
             assert lab.call("deactivate")["state"] == "inactive"  # the lab is unaffected
+
+
+def test_the_daemon_answers_on_ipv6_loopback() -> None:
+    """A held-out C client's `tcp://[::1]:...` failed "No such device ... is another hapticd
+    running there?": ZeroMQ sockets take IPv6 only when asked."""
+    import socket
+
+    if not socket.has_ipv6:
+        pytest.skip("this machine has no IPv6")
+    try:
+        probe = socket.socket(socket.AF_INET6)
+        probe.bind(("::1", 0))
+        probe.close()
+    except OSError:
+        pytest.skip("this machine has no IPv6 loopback")
+    config = loopback_config()
+    config = dataclasses.replace(config, endpoints=dataclasses.replace(
+        config.endpoints, pub="tcp://[::1]:*", cmd="tcp://[::1]:*"))
+    with running_node(config) as node, Controller(node.endpoints["cmd"]) as ctl:
+        assert node.endpoints["cmd"].startswith("tcp://[::1]:")
+        assert ctl.call("ping") == {"pong": True}
