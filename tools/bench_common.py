@@ -57,8 +57,6 @@ def check_bench_args(args: argparse.Namespace) -> None:
     if args.runs < 1:
         raise ConfigError(f"--runs must be at least 1, got {args.runs}")
     check_seeds(getattr(args, "first_seed", 0), args.runs)
-    if getattr(args, "workers", None) is not None and args.workers < 1:
-        raise ConfigError(f"--workers must be at least 1, got {args.workers}")
     check_outputs(args.json, figures=(args.plot,))
 
 

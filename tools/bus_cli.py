@@ -40,7 +40,7 @@ def register(p: argparse.ArgumentParser) -> None:
     _port_options(read, hand=True)
     read.add_argument("--count", type=integer(1, 10**9), default=None, metavar="N",
                       help="stop after N readings (default: until Ctrl-C)")
-    read.add_argument("--interval", type=number(0.001, 3600, "s"), default=0.1, metavar="S",
+    read.add_argument("--interval", type=number(0.0, 3600, "s"), default=0.1, metavar="S",
                       help="seconds between readings (default: %(default)s)")
     read.set_defaults(handler=cmd_read)
     check = verbs.add_parser("check", help="configuration sanity: latency timer, return "

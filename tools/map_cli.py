@@ -36,7 +36,7 @@ def register(p: argparse.ArgumentParser) -> None:
     check.add_argument("map", metavar="FILE|PRESET",
                        help="a preset (see `haptic map list`) or a .npy/.csv/.txt grid of "
                             "heights in metres, rows along y")
-    check.add_argument("--spacing", type=setting(RunSettings, "spacing"), metavar="M",
+    check.add_argument("--spacing", type=float, metavar="M",  # checked as `haptic run` does
                        help="metres between samples (map files only)")
     check.add_argument("--radius", type=setting(RunSettings, "radius"),
                        default=DEFAULT_RADIUS, metavar="M",
@@ -56,8 +56,7 @@ def register(p: argparse.ArgumentParser) -> None:
                     "heights seen from above, in metres above the table the part rests on "
                     "(its lowest point). Rows of the map run along y.")
     mesh.add_argument("mesh", type=Path, metavar="MESH", help="a mesh file trimesh reads")
-    mesh.add_argument("--spacing", type=setting(RunSettings, "spacing"), required=True,
-                      metavar="M",
+    mesh.add_argument("--spacing", type=float, required=True, metavar="M",
                       help="metres between samples, e.g. 0.0005")
     mesh.add_argument("-o", "--output", type=Path, required=True, metavar="FILE",
                       help="where to write the map: .npy (or .csv/.txt)")

@@ -33,6 +33,7 @@ from tools.cli import main
     ("watch --count 0", "--count"),
     ("view --duration nan", "--duration"),
     ("bench paper --runs 1 --workers 100000", "--workers"),
+    ("map check peaks --step 1e9", "--step"),
     ("map check peaks --step inf", "--step"),
     ("map check peaks --radius 1e-300", "--radius"),
     ("record x.mcap --state-hz nan", "--state-hz"),

@@ -40,14 +40,21 @@ def test_an_unreachable_scheduler_is_a_one_line_error(capsys, monkeypatch):
     assert "cannot reach the Dask scheduler" in err and err.count("\n") == 1
 
 
-@pytest.mark.parametrize("args, message", [(["--workers", "0"], "--workers must be at least 1"),
-                                           (["--first-seed", "-1"],
-                                            "--first-seed must be at least 0"),
+@pytest.mark.parametrize("args, message", [(["--first-seed", "-1"],
+                                            "--first-seed -1 with --runs 1 gives seeds outside"),
                                            (["--workers", "2", "--scheduler", "tcp://x:1"],
                                             "own workers")])
 def test_bad_executor_options(args, message, capsys):
     assert main(["bench", "realistic", "--runs", "1", *args]) == 2
     assert message in capsys.readouterr().err
+
+
+def test_a_worker_count_out_of_range_is_refused_as_it_is_parsed(capsys):
+    with pytest.raises(SystemExit) as stopped:
+        main(["bench", "realistic", "--runs", "1", "--workers", "0"])
+    assert stopped.value.code == 2
+    assert "argument --workers: must be an integer in [1, 256], got '0'" in (
+        capsys.readouterr().err)
 
 
 def test_ctrl_c_inside_a_compiled_kernel_stops_the_run_and_is_no_episodes_error():
