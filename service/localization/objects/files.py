@@ -81,7 +81,19 @@ def _csv(path: Path, scale: float) -> Contour:
                           f"({numpy_reason(exc)}): each row needs two numbers separated by a "
                           "comma") from None
     _check_units(points, scale, path)
-    return make_contour(points * scale, path.stem, closed=True)
+    return make_contour(_counter_clockwise(points) * scale, path.stem, closed=True)
+
+
+def _counter_clockwise(rows: np.ndarray) -> np.ndarray:
+    """A closed outline's rows (the first repeated last) run counter-clockwise, from the
+    same first vertex: an outline and its reverse are one contour, vertex for vertex, so a
+    seed starts the object in the same place (a held-out lab's reversed file started it
+    elsewhere: the contour's own turn began a vertex on)."""
+    if rows.ndim != 2 or rows.shape[1] != 2 or len(rows) < 4:
+        return rows  # make_contour says what is wrong
+    x, z = rows[:, 0], rows[:, 1]
+    clockwise = float(np.dot(x[:-1], z[1:]) - np.dot(x[1:], z[:-1])) < 0
+    return rows[::-1] if clockwise else rows
 
 
 def _check_units(points: np.ndarray, scale: float, path: Path) -> None:
