@@ -18,6 +18,7 @@ from firmware_if.dynamixel_backend import check_cycle_budget
 from firmware_if.errors import HandConfigError
 from firmware_if.hand import load_hand
 from service.bounds import check_fields, check_keywords, same_as, setting
+from service.daemon.port_choice import check_patterns
 from service.daemon.quiet_files import quiet_hand_error
 from service.episode.hand_scenario import HandSettings, hand_for_backend
 from service.episode.scenario import RunSettings, for_backend
@@ -250,6 +251,7 @@ class SecurityConfig:
 
     def __post_init__(self) -> None:
         check_fields(self, "security.")
+        check_patterns(self.serial_ports)
         if self.curve and not (self.server_secret_key and self.authorized_clients):
             raise ConfigError("security.curve needs server_secret_key and authorized_clients")
 

@@ -17,7 +17,7 @@ from typing import TYPE_CHECKING, Any
 from firmware_if.errors import HardwareFault
 from service.daemon.explorer import Explorer
 from service.daemon.lifecycle import State
-from service.daemon.port_choice import check_port_choice
+from service.daemon.port_choice import chosen_port
 from service.daemon.reconfigure import Reconfiguration, check_backend_options
 from service.errors import StateError
 from service.wire.commands import Deferred
@@ -77,8 +77,11 @@ class CommandHandlers:
         new = self.config.updated(changes)
         settings = new.run_settings()
         check_backend_options(new, settings)
-        check_port_choice(new.backend.options.get("port"), self.config.backend.options.get(
+        port = chosen_port(new.backend.options.get("port"), self.config.backend.options.get(
             "port"), self.operator_ports, self.config.security.serial_ports)
+        if port != new.backend.options.get("port"):  # held by its real path from now on
+            new = dataclasses.replace(new, backend=dataclasses.replace(
+                new.backend, options={**new.backend.options, "port": port}))
         self.link.start()  # (again, if the compute process died)
         rebuild = (self.backend is None or new.backend != self.config.backend
                    or new.backend.name == "sim"

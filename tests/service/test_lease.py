@@ -57,6 +57,28 @@ def test_a_stranger_is_told_the_holders_slow_request_keeps_the_lease() -> None:
         lease.claim(stranger)
 
 
+def test_a_departed_holders_slow_request_keeps_the_lease_till_it_ends() -> None:
+    """A second held-out check: the holder closed its connection during its `set_map`; a
+    stranger took the lease at once, and the departed client's map then took effect under
+    the stranger's lease."""
+    from service.wire.lease import LeaseHeld
+
+    now = [0]
+    lease = Lease(2.0, clock=lambda: now[0])
+    lease.claim(Peer(b"conn", fd=7, label="alice"))
+    lease.busy += 1
+    lease.disconnected(7)
+    stranger = Peer(b"other", fd=8)
+    now[0] = int(5e9)
+    assert lease.expire_due() is None
+    with pytest.raises(LeaseHeld, match="ends when its slow request .* has finished"):
+        lease.claim(stranger)
+    lease.busy -= 1  # the request ended
+    assert lease.expire_due() == ("alice", "disconnected")
+    lease.claim(stranger)
+    assert lease.holds(stranger)
+
+
 def test_the_holders_label_stays_when_its_later_requests_carry_none() -> None:
     """A C client from the docs alone: `activate` labelled "alice", then a request with no
     label on the same connection: `lease_holder` and the later `lease_expired` said

@@ -11,7 +11,7 @@ import pytest
 
 from service.daemon.config import DaemonConfig, SecurityConfig, load_config
 from service.daemon.harness import loopback_config, running_node
-from service.daemon.port_choice import check_port_choice
+from service.daemon.port_choice import chosen_port
 from service.errors import ConfigError
 from service.wire.client import CommandFailed, Controller
 
@@ -19,38 +19,59 @@ DEFAULT = SecurityConfig().serial_ports
 
 
 def test_usb_adapters_are_allowed_and_terminals_are_not() -> None:
-    check_port_choice("/dev/ttyUSB3", None, (), DEFAULT)
-    check_port_choice("/dev/ttyACM0", None, (), DEFAULT)
-    for port in ("/dev/pts/1", "/dev/tty0", "/etc/shadow", "/nonexistent/tty"):
+    assert chosen_port("/dev/ttyUSB3", None, (), DEFAULT) == "/dev/ttyUSB3"
+    assert chosen_port("/dev/ttyACM0", None, (), DEFAULT) == "/dev/ttyACM0"
+    for port in ("/dev/pts/1", "/dev/tty0", "/etc/shadow", "/nonexistent/tty",
+                 "/dev/ttyUSB0/../pts/0", "/dev/tty\0USB0"):
         with pytest.raises(ConfigError, match="serial_ports") as refused:
-            check_port_choice(port, None, (), DEFAULT)
-        assert str(refused.value).count(port) == 1  # the same words, existing or not
+            chosen_port(port, None, (), DEFAULT)
+        assert str(refused.value).count(repr(port)) == 1  # the same words, existing or not
 
 
-def test_the_port_in_use_and_the_operators_own_stay_allowed(tmp_path) -> None:
-    check_port_choice("/dev/pts/4", "/dev/pts/4", (), DEFAULT)  # unchanged
-    check_port_choice("/dev/pts/4", "/dev/ttyUSB0", ("/dev/pts/4",), DEFAULT)
-    check_port_choice("/dev/pts/4", None, (), ("/dev/pts/*",))
-    check_port_choice(3, None, (), DEFAULT)  # not a port: the backend's checks name it
+def test_the_port_in_use_and_the_operators_own_stay_allowed() -> None:
+    assert chosen_port("/dev/pts/4", "/dev/pts/4", (), DEFAULT) == "/dev/pts/4"  # unchanged
+    assert chosen_port("/dev/pts/4", "/dev/ttyUSB0", ("/dev/pts/4",), DEFAULT) == "/dev/pts/4"
+    assert chosen_port("/dev/pts/4", None, (), ("/dev/pts/*",)) == "/dev/pts/4"
+    assert chosen_port(3, None, (), DEFAULT) == 3  # not a port: the backend's checks name it
 
 
-def test_a_link_is_judged_by_its_name_or_where_it_leads(tmp_path) -> None:
+def test_a_link_is_held_by_the_path_it_leads_to(tmp_path) -> None:
+    """A second held-out check: a link in /tmp to a missing /dev/ttyUSB5 passed, was
+    re-pointed at a terminal while the configure prepared its map, and the daemon opened
+    the terminal (and again at a `reset`). The daemon holds the real path now."""
     link = tmp_path / "ttyDXL"
-    link.symlink_to("/dev/ttyUSB0")
-    check_port_choice(str(link), None, (), DEFAULT)  # leads to an adapter
+    link.symlink_to("/dev/ttyUSB5")
+    assert chosen_port(str(link), None, (), DEFAULT) == "/dev/ttyUSB5"
+    link.unlink()
+    link.symlink_to("/dev/tty0")  # too late: the path held is the first one's
+    with pytest.raises(ConfigError):
+        chosen_port(str(link), None, (), DEFAULT)
     sneaky = tmp_path / "ttyUSB9"
     sneaky.symlink_to("/dev/tty0")
-    with pytest.raises(ConfigError):  # named like none of the patterns, leads to a terminal
-        check_port_choice(str(sneaky), None, (), DEFAULT)
+    with pytest.raises(ConfigError):  # named like a pattern, leads to a terminal
+        chosen_port(str(sneaky), None, (), ("/tmp/*/ttyUSB*", *DEFAULT))
+
+
+def test_a_pattern_is_matched_against_the_real_path_one_folder_at_a_time() -> None:
+    """The check matched `/dev/pts/../ptmx` against `/dev/pts/*` as text (`*` crossing
+    `/`), and the daemon opened /dev/ptmx and wrote servo packets to it."""
+    pts = ("/dev/pts/*",)
+    for port in ("/dev/pts/../ptmx", "/dev/pts/../null", "/dev/pts/0/../../tty0"):
+        with pytest.raises(ConfigError):
+            chosen_port(port, None, (), pts)
 
 
 def test_serial_ports_is_a_list_of_strings(tmp_path) -> None:
     path = tmp_path / "d.toml"
     path.write_text('[security]\nserial_ports = ["/dev/ttyUSB*", "/dev/pts/*"]\n')
     assert load_config(path).security.serial_ports == ("/dev/ttyUSB*", "/dev/pts/*")
-    for bad in ('"/dev/ttyUSB*"', "[1, 2]", "[" + ", ".join(['"a"'] * 65) + "]"):
+    for bad in ('"/dev/ttyUSB*"', "[1, 2]", "[" + ", ".join(['"/a"'] * 65) + "]"):
         path.write_text(f"[security]\nserial_ports = {bad}\n")
         with pytest.raises(ConfigError, match="security.serial_ports must be a list"):
+            load_config(path)
+    for bad in ('[""]', '["relative/*"]', '["ttyUSB*"]'):  # were taken without a word
+        path.write_text(f"[security]\nserial_ports = {bad}\n")
+        with pytest.raises(ConfigError, match="is not an absolute path pattern"):
             load_config(path)
     assert DaemonConfig().security.serial_ports == DEFAULT
 
