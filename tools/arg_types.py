@@ -7,6 +7,7 @@ inf` and `bench anytime --budget-ms nan` tracebacks, `bench service --subscriber
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import math
 from collections.abc import Callable
 from typing import Any
@@ -52,7 +53,7 @@ def number(lo: float, hi: float, unit: str = "") -> Callable[[str], float]:
 def setting(cls: type, name: str) -> Callable[[str], Any]:
     """What the setting `name` of the configuration class `cls` takes (`service.bounds`),
     as the daemon's own configuration would check it: declared once."""
-    bound = bound_of(cls, name)
+    bound = dataclasses.replace(bound_of(cls, name), optional=False)  # given: a value
     convert = {"int": int, "float": float}[bound.kind]
 
     def parse(text: str) -> Any:

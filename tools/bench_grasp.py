@@ -26,6 +26,7 @@ import numpy as np
 from service.errors import ConfigError, ServiceError
 from service.localization.objects.files import OBJECT_FILE_SUFFIXES
 from service.localization.surface import HeightMap
+from tools.arg_types import integer, number
 from tools.bench_common import (
     check_seeds,
     executor_for,
@@ -60,8 +61,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "default: z through each mesh's centroid")
     p.add_argument("--object-units", choices=("m", "mm"), default="m",
                    help="units of every object file in --objects (default: %(default)s)")
-    p.add_argument("--max-steps", type=int, default=60, help="(default: %(default)s)")
-    p.add_argument("--start-quality", type=float, metavar="N", help="grasp quality (newtons) "
+    p.add_argument("--max-steps", type=integer(1, 10_000), default=60,
+                   help="(default: %(default)s)")
+    p.add_argument("--start-quality", type=number(0.0, 1000.0, "N"), metavar="N",
+                   help="grasp quality (newtons) "
                    "every hand starts with at least; the policy relies on it (default: the "
                    "threshold)")
     p.add_argument("--no-ablation", action="store_true", help="skip the runs without the gate")

@@ -14,7 +14,9 @@ import numpy as np
 
 from service.errors import ConfigError
 from service.localization.maps import load_map
+from service.localization.presets import SIZES
 from service.registry import LOCALIZERS
+from tools.arg_types import integer
 from tools.bench_common import B2_DEFAULTS as DEFAULTS
 from tools.bench_common import (
     add_bench_options,
@@ -40,7 +42,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.set_defaults(algorithm=None)  # none given: compare Algorithms IV and III
     p.add_argument("--sizes", default="20,40,80", metavar="UNITS,...",
                    help="map sizes in units, comma separated (default: %(default)s)")
-    p.add_argument("--map-seed", type=int, default=1,
+    p.add_argument("--map-seed", type=integer(0, 2**63 - 1), default=1,
                    help="seed of the bumps maps (default: %(default)s)")
 
 
@@ -51,6 +53,10 @@ def _sizes(text: str) -> list[float]:
         raise ConfigError(f"--sizes takes numbers separated by commas, got '{text}'") from None
     if not sizes:
         raise ConfigError("--sizes needs at least one size")
+    bad = [s for s in sizes if not SIZES[0] <= s <= SIZES[1]]  # nan too
+    if bad:
+        raise ConfigError(f"--sizes must each be {SIZES[0]:g}..{SIZES[1]:g} units, got "
+                          f"{', '.join(f'{s:g}' for s in bad)}")
     return sizes
 
 

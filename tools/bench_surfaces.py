@@ -21,6 +21,8 @@ from service.episode.simulate import EpisodeReport
 from service.errors import ConfigError
 from service.localization.map_check import check_map
 from service.localization.maps import load_map
+from service.localization.presets import SIZES
+from tools.arg_types import number
 from tools.bench_common import (
     B2_DEFAULTS,
     check_bench_args,
@@ -47,7 +49,7 @@ def add_surface_options(p: argparse.ArgumentParser, *, families: str, seeds: str
                    help="surface families, comma separated (default: %(default)s)")
     p.add_argument("--map-seeds", default=seeds, metavar="N,...",
                    help="seeds of the surfaces of each family (default: %(default)s)")
-    p.add_argument("--size", type=float, default=size, metavar="UNITS",
+    p.add_argument("--size", type=number(*SIZES, "units of 10 mm"), default=size, metavar="UNITS",
                    help="side (or length) of each surface in units of 10 mm "
                         "(default: %(default)s)")
 

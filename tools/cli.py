@@ -177,8 +177,9 @@ def _quiet_broken_pipe() -> None:
 
 
 def _name(argv: list[str]) -> str:
-    """The command's name for messages: the first word (the top level has no options)."""
-    return next((w for w in argv if not w.startswith("-")), "")
+    """The command's name for messages: its first word, and the second for a group's
+    (`bench scale`; the top level has no options)."""
+    return " ".join(w for w in argv[:2 if argv[:1] in GROUPS else 1] if not w.startswith("-"))
 
 
 COMMA_VALUES = ("--start",)
@@ -204,8 +205,7 @@ def main(argv: list[str] | None = None) -> int:
         with signals_interrupt(), _one_blas_thread():
             args, unknown = build_parser().parse_known_args(argv)
             if unknown:  # in the command's one line, not the top level's usage block
-                name = " ".join(w for w in argv[:2 if argv[:1] in GROUPS else 1]
-                                if not w.startswith("-"))
+                name = _name(argv)
                 print(f"haptic {name}: error: unrecognized arguments: {' '.join(unknown)} "
                       f"(`haptic {name} --help` lists the options)", file=sys.stderr)
                 return 2

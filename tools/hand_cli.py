@@ -12,6 +12,7 @@ from pathlib import Path
 
 from service.errors import ConfigError
 from service.localization.objects.files import OBJECT_FILE_SUFFIXES
+from tools.arg_types import number
 from tools.outputs import check_outputs
 from tools.words import (
     EXIT_FAULT,
@@ -35,9 +36,10 @@ def add_object_options(parser: argparse.ArgumentParser) -> None:
         "a hand holding an object (with --object; --hand names the hand, default "
         f"{DEFAULT_HAND}; --seed, --noise, --max-steps, --algorithm, --plot and --json apply)")
     add_object_world_options(g)
-    g.add_argument("--roll", type=float, default=d.step, metavar="M",
+    g.add_argument("--roll", type=number(1e-4, 0.02, "m"), default=d.step, metavar="M",
                    help="how far a finger rolls per step, metres (default: %(default)s)")
-    g.add_argument("--threshold", type=float, default=d.threshold_n, metavar="N",
+    g.add_argument("--threshold", type=number(0.0, 1000.0, "N"), default=d.threshold_n,
+                   metavar="N",
                    help="grasp quality every move must keep (default: %(default)s)")
     g.add_argument("--no-gate", action="store_true",
                    help="the ablation: explore without the grasp-quality gate")
@@ -60,14 +62,15 @@ def add_object_world_options(g: argparse._ActionsContainer) -> None:
                         "default: z through the mesh's centroid")
     g.add_argument("--object-units", choices=("m", "mm"), default="m",
                    help="units of an object file (default: %(default)s)")
-    g.add_argument("--mu", type=float, default=d.mu, help="friction coefficient "
+    g.add_argument("--mu", type=number(1e-3, 10.0), default=d.mu, help="friction coefficient "
                    "(default: %(default)s)")
-    g.add_argument("--mass", type=float, default=d.mass_kg, metavar="KG",
+    g.add_argument("--mass", type=number(0.0, 100.0, "kg"), default=d.mass_kg, metavar="KG",
                    help="the object's mass (default: %(default)s)")
-    g.add_argument("--margin", type=float, default=d.margin_n, metavar="N",
+    g.add_argument("--margin", type=number(0.0, 1000.0, "N"), default=d.margin_n, metavar="N",
                    help="disturbance the grasp must resist beyond the weight; below it the "
                         "object drops (default: %(default)s)")
-    g.add_argument("--start-quality", type=float, default=d.start_n, metavar="N",
+    g.add_argument("--start-quality", type=number(0.0, 1000.0, "N"), default=d.start_n,
+                   metavar="N",
                    help="grasp quality the hand starts with at least; the policy relies on "
                         "it (default: the threshold)")
 

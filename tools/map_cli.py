@@ -11,7 +11,7 @@ import json
 from pathlib import Path
 
 from service.episode.scenario import RunSettings
-from tools.arg_types import setting
+from tools.arg_types import number, setting
 
 DEFAULT_RADIUS = 0.008
 DEFAULT_STEP = 0.01
@@ -56,7 +56,8 @@ def register(p: argparse.ArgumentParser) -> None:
                     "heights seen from above, in metres above the table the part rests on "
                     "(its lowest point). Rows of the map run along y.")
     mesh.add_argument("mesh", type=Path, metavar="MESH", help="a mesh file trimesh reads")
-    mesh.add_argument("--spacing", type=float, required=True, metavar="M",
+    mesh.add_argument("--spacing", type=setting(RunSettings, "spacing"), required=True,
+                      metavar="M",
                       help="metres between samples, e.g. 0.0005")
     mesh.add_argument("-o", "--output", type=Path, required=True, metavar="FILE",
                       help="where to write the map: .npy (or .csv/.txt)")
@@ -64,7 +65,7 @@ def register(p: argparse.ArgumentParser) -> None:
                       help="the mesh's axis that points up, away from the table; y turns the "
                            "mesh a quarter turn about x (map y = -mesh z), x a quarter turn "
                            "about y (map x = -mesh z) (default: %(default)s)")
-    mesh.add_argument("--scale", type=float, default=1.0, metavar="FACTOR",
+    mesh.add_argument("--scale", type=number(1e-6, 1e6), default=1.0, metavar="FACTOR",
                       help="multiply the mesh's coordinates by this to get metres: 0.001 for "
                            "a mesh in millimetres (default: %(default)s)")
     mesh.add_argument("--region", metavar="XMIN,YMIN,XMAX,YMAX",

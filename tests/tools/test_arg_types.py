@@ -42,6 +42,16 @@ from tools.cli import main
     ("explore --wait nan", "--wait"),
     ("ctl status --timeout -1", "--timeout"),
     ("bus scan --port /dev/null --baud 0", "--baud"),  # 0 was taken as "the default"
+    # a second held-out check's: tracebacks, or errors that named no option
+    ("map from-mesh x.stl -o y.npy --spacing 1e308", "--spacing"),
+    ("map from-mesh x.stl -o y.npy --spacing 0.001 --scale 1e308", "--scale"),
+    ("run --object blob --mu 1e308", "--mu"),
+    ("run --object blob --mu 0", "--mu"),
+    ("run --object blob --mass inf", "--mass"),
+    ("run --object blob --threshold nan", "--threshold"),
+    ("bench grasp --start-quality 1e308", "--start-quality"),
+    ("bench objects --size nan", "--size"),
+    ("bench scale --map-seed -1", "--map-seed"),
 ])
 def test_a_bad_number_is_one_line_naming_its_option(argv, option, capsys):
     with pytest.raises(SystemExit) as stopped:  # argparse's own exit, before any work

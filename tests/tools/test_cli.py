@@ -248,7 +248,7 @@ def test_ctrl_c_during_a_bus_exchange_waits_for_it_and_ends_cleanly(monkeypatch,
     monkeypatch.setattr(bus_cli, "_bus", lambda args, hand: Bus())
     assert main(["bus", "read", "--port", "/dev/null", "--hand", "spatial"]) == 130
     assert exchanges == ["sent", "answered"]
-    assert capsys.readouterr().err.strip() == "haptic bus: interrupted"
+    assert capsys.readouterr().err.strip() == "haptic bus read: interrupted"
 
 
 def test_a_start_with_a_minus_or_many_turns_is_taken_as_typed(tmp_path, capsys):
