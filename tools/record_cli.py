@@ -127,7 +127,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
         return 0
     import zmq
 
-    from service.wire.security import is_loopback
+    from service.wire.security import allow_ipv6, is_loopback
 
     if not is_loopback(args.publish):
         raise InputError(f"--publish {args.publish}: replays bind loopback only "
@@ -136,6 +136,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
     sock = ctx.socket(zmq.PUB)
     try:
         try:
+            allow_ipv6(sock, args.publish)
             sock.bind(args.publish)
         except zmq.ZMQError as exc:
             raise InputError(f"cannot bind {args.publish}: {exc}") from None

@@ -221,7 +221,11 @@ def test_a_cloud_survives_json_exactly_in_fewer_bytes() -> None:
     assert len(text) < 0.7 * len(as_doubles)  # float32's shortest digits, not float64's
 
 
-def test_replay_republishes_the_messages_as_the_daemon_sent_them(tmp_path: Path) -> None:
+@pytest.mark.parametrize("host", ["127.0.0.1", "::1"])
+def test_replay_republishes_the_messages_as_the_daemon_sent_them(tmp_path: Path,
+                                                                  host: str) -> None:
+    """On IPv6 loopback too: a held-out check's `--publish tcp://[::1]:P` passed the
+    loopback check, then failed "No such device"."""
     import socket
     import threading
 
@@ -241,9 +245,14 @@ def test_replay_republishes_the_messages_as_the_daemon_sent_them(tmp_path: Path)
     with McapRecorder(rec) as recorder:
         for i, msg in enumerate(sent):
             recorder.write(msg.topic, msg, received_ns=1_000_000_000 + i * 100_000_000)
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        endpoint = f"tcp://127.0.0.1:{s.getsockname()[1]}"
+    family = socket.AF_INET6 if ":" in host else socket.AF_INET
+    try:
+        with socket.socket(family) as s:
+            s.bind((host, 0))
+            port = s.getsockname()[1]
+    except OSError:
+        pytest.skip(f"no {host} on this machine")
+    endpoint = f"tcp://[{host}]:{port}" if ":" in host else f"tcp://{host}:{port}"
     with Subscriber(endpoint) as sub:  # connects as soon as the replay binds
         player = threading.Thread(target=main, args=(
             ["replay", str(rec), "--publish", endpoint, "--delay", "1"],))
