@@ -212,6 +212,11 @@ FLOOR = 0.002
 """Smallest reading sd (in steps) a spread or a comparison of fits assumes: what a map
 sampled at a millimetre or so knows of heights between its samples."""
 
+RESIDUAL_FLOOR = 0.0001
+"""Smallest reading sd (in steps) a noise-free residual is judged at: a micrometre at a 10
+mm step, what interpolating a map by a wall's samples leaves (the truth's fit on plate:20:1
+was 2.4 um off there). `FLOOR` itself let a pose 4.8 mm off a smooth shell pass."""
+
 SETTLED = 2.0
 """How far (in the rule's largest spreads) a declared pose may have moved since the previous
 update: consecutive fits of a settled pose differ by about their spread, not more."""
@@ -519,26 +524,30 @@ def distinct_places(history: np.ndarray, cell: float) -> int:
 
 def _with_floored_spread(surface: ContactSurface, history: np.ndarray, fit: Fit, sigma: float,
                          position_sigma: float, step_length: float) -> Fit:
-    """`fit` with its spread and residuals recomputed at a reading sd of at least `FLOOR`
-    steps.
+    """`fit` with its spread recomputed at a reading sd of at least `FLOOR` steps, and its
+    residuals at one of at least `RESIDUAL_FLOOR` steps.
 
     Noise-free the sensor sd is 0.1 um, and even a nearly flat patch of map (where every
     pose reads the same heights to within that) would look pinned; the floor makes the
     spread say how well the *shape* of the readings fixes the pose, to about what a
     sampled map can say (a round boss meshed at 1 mm is round only to some 10 um, and at
-    0.5 um its poses round the boss looked pinned). The residuals are judged at that sd
-    too: judged at 0.1 um, a reading beside a pocket's wall lay 23.65 sds off a fit 0.0 mm
-    and 0.0 degrees from the truth, and plate:20:1 (seed 0) went 100 steps undeclared.
+    0.5 um its poses round the boss looked pinned). The residuals get a floor of their
+    own: judged at 0.1 um, a reading beside a pocket's wall lay 23.65 sds off a fit 0.0 mm
+    and 0.0 degrees from the truth, and plate:20:1 (seed 0) went 100 steps undeclared;
+    judged at `FLOOR`, a pose 4.8 mm off on a smooth shell passed (shell:20:11, seed 30).
     """
     floor = max(sigma, FLOOR * step_length)
     if floor <= sigma:
         return _with_model_error(surface, history, fit, sigma, position_sigma, step_length)
-    spread = assess(surface, history, np.asarray(fit.pose),
-                    reading_sigmas(surface, history, np.asarray(fit.pose), floor,
-                                   position_sigma))
+    pose = np.asarray(fit.pose)
+    spread = assess(surface, history, pose,
+                    reading_sigmas(surface, history, pose, floor, position_sigma))
+    fitted = assess(surface, history, pose,
+                    reading_sigmas(surface, history, pose,
+                                   max(sigma, RESIDUAL_FLOOR * step_length), position_sigma))
     return dataclasses.replace(fit, position_sd=spread.position_sd,
-                               heading_sd=spread.heading_sd, rms=spread.rms,
-                               max_abs=spread.max_abs)
+                               heading_sd=spread.heading_sd, rms=fitted.rms,
+                               max_abs=fitted.max_abs)
 
 
 def _with_model_error(surface: ContactSurface, history: np.ndarray, fit: Fit, sigma: float,
