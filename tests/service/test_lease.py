@@ -240,3 +240,13 @@ def test_the_daemon_answers_on_ipv6_loopback() -> None:
     with running_node(config) as node, Controller(node.endpoints["cmd"]) as ctl:
         assert node.endpoints["cmd"].startswith("tcp://[::1]:")
         assert ctl.call("ping") == {"pong": True}
+
+
+@pytest.mark.parametrize("endpoint", ["tcp://[::1]", "tcp://127.0.0.1", "tcp://[::1]:x"])
+def test_an_endpoint_without_a_port_is_named_at_once(endpoint: str) -> None:
+    """A held-out check: `haptic ctl --cmd tcp://[::1]` connected somewhere, waited for
+    every retry and asked whether hapticd was running (exit 3)."""
+    from service.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="it names no port"):
+        Controller(endpoint, timeout_s=0.1)
