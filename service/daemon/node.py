@@ -493,9 +493,11 @@ class Node(CommandHandlers):
             self._event("shutdown", state=self.lifecycle.state.value)
             self.pub.close()
         self.backend = None
+        served = self.pub is not None or self.cmd is not None
         if self.cmd is not None:
             self.cmd.close()
-        _log("exited")
+        if served:  # a start refused before binding is its one error line, nothing more
+            _log("exited")
 
 
 def _preload() -> None:
