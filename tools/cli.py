@@ -32,7 +32,7 @@ WRITE_FAILURES = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.EROFS
 """OS errors of an output that passed its check and failed as it was written (a full
 disk, `--json /dev/full`): one line, not a traceback."""
 
-GROUPS = (["bench"], ["bus"], ["map"])
+GROUPS = ("bench", "bus", "map")
 """Commands whose next word names a command of its own (`haptic bench paper`)."""
 
 COMMANDS: dict[str, tuple[str, str]] = {
@@ -179,7 +179,8 @@ def _quiet_broken_pipe() -> None:
 def _name(argv: list[str]) -> str:
     """The command's name for messages: its first word, and the second for a group's
     (`bench scale`; the top level has no options)."""
-    return " ".join(w for w in argv[:2 if argv[:1] in GROUPS else 1] if not w.startswith("-"))
+    words = argv[:2] if argv and argv[0] in GROUPS else argv[:1]
+    return " ".join(w for w in words if not w.startswith("-"))
 
 
 COMMA_VALUES = ("--start",)

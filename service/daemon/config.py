@@ -27,6 +27,7 @@ from service.localization.maps import MAP_FILE_SUFFIXES, check_map_spec
 from service.localization.objects.files import check_object_spec
 from service.registry import BACKENDS
 from service.wire.envelope import MAX_FRAME_BYTES
+from service.wire.security import port_of
 
 OVERRUN_POLICIES = ("skip", "catch_up")
 REMOVED = {("loop", "work_fraction"): "the localizer no longer works inside ticks",
@@ -213,7 +214,7 @@ class EndpointConfig:
             if "://" not in value:
                 raise ConfigError(f"endpoints.{name} must be a ZeroMQ endpoint like "
                                   f"tcp://127.0.0.1:5560, got {value!r}")
-            port = _port_of(value)
+            port = port_of(value)
             if port is not None and port != "*" and not (port.isdigit()
                                                          and 1 <= int(port) <= 65535):
                 # ZeroMQ takes the number modulo 65536: a typed 556000 bound 31712
@@ -221,19 +222,10 @@ class EndpointConfig:
                     f"{value!r} has no port")
                 raise ConfigError(f"endpoints.{name}: {what}: give 1-65535, or * for any "
                                   "free one")
-        if self.pub == self.cmd and _port_of(self.pub) != "*":
+        if self.pub == self.cmd and port_of(self.pub) != "*":
             # the second bind failed as "Address already in use; is another hapticd running?"
             raise ConfigError(f"endpoints.pub and endpoints.cmd are one endpoint "
                               f"({self.pub!r}): the stream and the commands need one each")
-
-
-def _port_of(endpoint: str) -> str | None:
-    """The port part of a TCP or WebSocket endpoint (None for ipc:// and the like)."""
-    scheme, _, address = endpoint.partition("://")
-    if scheme not in ("tcp", "ws", "wss"):
-        return None
-    host_port = address.split("/", 1)[0]
-    return host_port.rpartition(":")[2] if ":" in host_port else ""
 
 
 @dataclass(frozen=True)

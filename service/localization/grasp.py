@@ -74,17 +74,16 @@ class GraspSpec:
                             ("start grasp quality", self.start_n)):
             if value is not None and not math.isfinite(value):
                 raise ConfigError(f"{name} must be a finite number, got {value}")
-        if not (math.isfinite(self.mu) and self.mu > 0):
+        if not self.mu > 0:
             raise ConfigError(f"friction coefficient mu must be > 0, got {self.mu}")
-        if not (math.isfinite(self.mass_kg) and self.mass_kg >= 0):
+        if not self.mass_kg >= 0:
             raise ConfigError(f"object mass must be >= 0 kg, got {self.mass_kg}")
-        if not (math.isfinite(self.margin_n) and self.margin_n >= 0):
+        if not self.margin_n >= 0:
             raise ConfigError(f"disturbance margin must be >= 0 N, got {self.margin_n}")
-        if not (math.isfinite(self.threshold_n) and self.threshold_n >= self.margin_n):
+        if not self.threshold_n >= self.margin_n:
             raise ConfigError(f"grasp quality threshold ({self.threshold_n} N) must be at "
                               f"least the disturbance margin ({self.margin_n} N)")
-        if self.start_n is not None and not (math.isfinite(self.start_n)
-                                             and self.start_n >= self.threshold_n):
+        if self.start_n is not None and not self.start_n >= self.threshold_n:
             raise ConfigError(f"start grasp quality ({self.start_n} N) must be at least the "
                               f"threshold ({self.threshold_n} N)")
 

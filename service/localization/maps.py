@@ -78,17 +78,18 @@ def _read_npy(path: Path, spec: str) -> np.ndarray:
         read_header = (np.lib.format.read_array_header_1_0 if version == (1, 0)
                        else np.lib.format.read_array_header_2_0)
         shape, _, dtype = read_header(f)
-        start = f.tell()
-    samples = int(np.prod(shape, dtype=object))
-    if samples > MAX_SAMPLES:
-        raise MapError(f"map file '{spec}' is {' x '.join(map(str, shape))} samples (at "
-                       f"most {MAX_SAMPLES:,}): sample it more coarsely, or cut out the part "
-                       "the finger explores")
-    if not dtype.hasobject and start + samples * dtype.itemsize > path.stat().st_size:
-        raise MapError(f"map file '{spec}' is cut short: its header promises "
-                       f"{' x '.join(map(str, shape))} samples of {dtype.itemsize} bytes, more "
-                       "than the file holds; write it again with numpy.save(path, heights)")
-    return np.load(path, allow_pickle=False)
+        samples = int(np.prod(shape, dtype=object))
+        if samples > MAX_SAMPLES:
+            raise MapError(f"map file '{spec}' is {' x '.join(map(str, shape))} samples (at "
+                           f"most {MAX_SAMPLES:,}): sample it more coarsely, or cut out the "
+                           "part the finger explores")
+        if not dtype.hasobject and f.tell() + samples * dtype.itemsize > path.stat().st_size:
+            raise MapError(f"map file '{spec}' is cut short: its header promises "
+                           f"{' x '.join(map(str, shape))} samples of {dtype.itemsize} "
+                           "bytes, more than the file holds; write it again with "
+                           "numpy.save(path, heights)")
+        f.seek(0)  # the header checked, the array from the same open file
+        return np.lib.format.read_array(f, allow_pickle=False)
 
 
 def load_rows(path: Path, delimiter: str | None, header: bool = False) -> np.ndarray:

@@ -30,7 +30,7 @@ import zmq
 
 from service.errors import ConfigError, ServiceError
 from service.wire import envelope as wire
-from service.wire.security import allow_ipv6
+from service.wire.security import allow_ipv6, port_of
 from service.wire.stream import TOPICS
 
 DEFAULT_ENDPOINTS = {"pub": "tcp://127.0.0.1:5560", "cmd": "tcp://127.0.0.1:5561"}
@@ -53,15 +53,6 @@ class CommandFailed(ServiceError):
         self.code = code
 
 
-def _has_port(endpoint: str) -> bool:
-    """Whether a TCP endpoint ends in a port number (others need none)."""
-    scheme, _, address = endpoint.partition("://")
-    if scheme != "tcp":
-        return True
-    after_host = address.rpartition("]")[2] if address.startswith("[") else address
-    return after_host.rpartition(":")[2].isdigit() if ":" in after_host else False
-
-
 class CommandTimeout(ServiceError):
     """No reply after all retries: the daemon is down, busy or unreachable."""
 
@@ -73,7 +64,8 @@ def _apply(sock: zmq.Socket, options: dict[int, Any] | None) -> None:
 
 def _connect(sock: zmq.Socket, endpoint: str) -> None:
     """Connect, or close the socket and say what is wrong with the endpoint."""
-    if not _has_port(endpoint):  # tcp://[::1] connected somewhere, and requests waited
+    port = port_of(endpoint)
+    if port is not None and not port.isdigit():  # tcp://[::1] connected somewhere and waited
         sock.close(linger=0)
         raise ConfigError(f"cannot connect to '{endpoint}': it names no port; an endpoint "
                           "looks like tcp://127.0.0.1:5561, tcp://[::1]:5561 or ipc:///path")

@@ -50,6 +50,17 @@ def is_loopback(endpoint: str) -> bool:
         return False  # '*', an interface name or a host name: treat as exposed
 
 
+def port_of(endpoint: str) -> str | None:
+    """The port part of a TCP or WebSocket endpoint ("" when it names none; None for
+    ipc:// and the like), after an IPv6 host's brackets (tcp://[::1]:5561)."""
+    scheme, _, address = endpoint.partition("://")
+    if scheme not in ("tcp", "ws", "wss"):
+        return None
+    host_port = address.split("/", 1)[0]
+    after_host = host_port.rpartition("]")[2] if host_port.startswith("[") else host_port
+    return after_host.rpartition(":")[2] if ":" in after_host else ""
+
+
 def allow_ipv6(sock: zmq.Socket, endpoint: str) -> None:
     """Let `sock` use an IPv6 address where `endpoint` names one (tcp://[::1]:5561):
     ZeroMQ sockets are IPv4-only by default, and a bind there failed "No such device"."""

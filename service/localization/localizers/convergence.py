@@ -36,6 +36,7 @@ from service.localization.localizers.refine import (
     assess,
     correlated_spread,
     reading_sigmas,
+    reading_sigmas_at,
     refine,
     shared_error,
     worst_over_whole_error,
@@ -214,8 +215,9 @@ sampled at a millimetre or so knows of heights between its samples."""
 
 RESIDUAL_FLOOR = 0.0001
 """Smallest reading sd (in steps) a noise-free residual is judged at: a micrometre at a 10
-mm step, what interpolating a map by a wall's samples leaves (the truth's fit on plate:20:1
-was 2.4 um off there). `FLOOR` itself let a pose 4.8 mm off a smooth shell pass."""
+mm step, about what interpolating a map between a wall's samples leaves (a reading there
+lay 23.65 sds of 0.1 um off the truth's fit on plate:20:1). `FLOOR` itself let a pose 4.8
+mm off a smooth shell pass."""
 
 SETTLED = 2.0
 """How far (in the rule's largest spreads) a declared pose may have moved since the previous
@@ -540,11 +542,11 @@ def _with_floored_spread(surface: ContactSurface, history: np.ndarray, fit: Fit,
     if floor <= sigma:
         return _with_model_error(surface, history, fit, sigma, position_sigma, step_length)
     pose = np.asarray(fit.pose)
-    spread = assess(surface, history, pose,
-                    reading_sigmas(surface, history, pose, floor, position_sigma))
-    fitted = assess(surface, history, pose,
-                    reading_sigmas(surface, history, pose,
-                                   max(sigma, RESIDUAL_FLOOR * step_length), position_sigma))
+    at_floor, at_residual_floor = reading_sigmas_at(
+        surface, history, pose, (floor, max(sigma, RESIDUAL_FLOOR * step_length)),
+        position_sigma)
+    spread = assess(surface, history, pose, at_floor)
+    fitted = assess(surface, history, pose, at_residual_floor)
     return dataclasses.replace(fit, position_sd=spread.position_sd,
                                heading_sd=spread.heading_sd, rms=fitted.rms,
                                max_abs=fitted.max_abs)

@@ -60,6 +60,14 @@ def reading_sigmas(surface: ContactSurface, history: np.ndarray, pose: np.ndarra
     return _slope_sigmas(jac, sigma, position_sigma)
 
 
+def reading_sigmas_at(surface: ContactSurface, history: np.ndarray, pose: np.ndarray,
+                      sigmas: tuple[float, ...], position_sigma: float
+                      ) -> list[np.ndarray]:
+    """`reading_sigmas` at `pose` for each height sd of `sigmas`, the slopes read once."""
+    _, jac = heights_and_jacobian(surface, np.asarray(pose, dtype=np.float64), history)
+    return [_slope_sigmas(jac, sigma, position_sigma) for sigma in sigmas]
+
+
 def reading_sigmas_each(surface: ContactSurface, history: np.ndarray, poses: np.ndarray,
                         sigma: float, position_sigma: float) -> np.ndarray:
     """`reading_sigmas` for every pose of `poses` (N, 3) at once: (N, K)."""
