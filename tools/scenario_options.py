@@ -84,7 +84,9 @@ def add_scenario_options(parser: argparse.ArgumentParser, *, defaults: RunSettin
     g.add_argument("--max-steps", type=int, default=defaults.max_steps, metavar="N",
                    help="give up after N steps (default: %(default)s)")
     g.add_argument("--headings", type=int, default=defaults.headings, metavar="N",
-                   help="headings in a discrete pose table (default: %(default)s)")
+                   help="headings in the pose table: a noise-free simulated start's and "
+                        "elimination's candidates (default: %(default)s); a grid's own is "
+                        "--localizer-option headings=N")
     g.add_argument("--sweep", choices=("paper", "full"), default=None,
                    help="elimination only: the paper's band test plus 5 exact tests per "
                         "step (paper, default), or the exact test on every candidate (full)")
@@ -140,6 +142,7 @@ def settings_from_args(args: argparse.Namespace, **overrides: Any) -> RunSetting
         if algorithm != "elimination":
             raise ConfigError("--sweep applies only to --algorithm elimination")
         options["sweep"] = args.sweep
+    _refuse_unread_headings(args, algorithm, noise=overrides.get("noise", args.noise))
     fields: dict[str, Any] = dict(
         map=args.map, spacing=args.spacing, step=args.step, noise=args.noise,
         localizer_options=options,
@@ -150,3 +153,20 @@ def settings_from_args(args: argparse.Namespace, **overrides: Any) -> RunSetting
             fields[name] = getattr(args, name)
     fields.update(overrides)
     return RunSettings(**fields)
+
+
+def _refuse_unread_headings(args: argparse.Namespace, algorithm: str | None, *,
+                            noise: bool) -> None:
+    """`--headings` shapes the pose table: a noise-free simulated start is drawn from it and
+    elimination's candidates fill it. Anywhere else nothing reads it, and a held-out check's
+    `--noise --headings 72` went without a word: refused, saying where it applies."""
+    headings = getattr(args, "headings", None)
+    if headings is None or headings == RunSettings().headings or algorithm == "elimination":
+        return
+    drawn_from_table = (not noise and getattr(args, "start", None) is None
+                        and getattr(args, "backend", "sim") == "sim")
+    if not drawn_from_table:
+        raise ConfigError("--headings shapes the pose table, which only a noise-free simulated "
+                          "start without --start and --algorithm elimination read; here "
+                          "nothing would: leave it out (a grid's own headings are "
+                          "--localizer-option headings=N)")

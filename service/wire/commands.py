@@ -341,7 +341,9 @@ class CommandServer:
                 self._defer(result, cmd, peer, rid, key, bytes(payload), head,
                             took=before[0] is None and self.lease.holds(peer))
                 return None
-            return self._accepted(cmd, peer, rid, key, bytes(payload), result)
+            # a release of a lease no one held changes nothing: no `command` event
+            quiet = cmd == "release" and before[0] is None
+            return self._accepted(cmd, peer, rid, key, bytes(payload), result, quiet=quiet)
         except Exception as exc:
             out = self._error(rid, *error_code(exc))
             if key is not None:  # a refusal is answered again as it was, like an acceptance
@@ -349,12 +351,13 @@ class CommandServer:
             return out
 
     def _accepted(self, cmd: str, peer: Peer, rid: Any, key: tuple[Any, ...], payload: bytes,
-                  result: dict[str, Any]) -> bytes:
+                  result: dict[str, Any], *, quiet: bool = False) -> bytes:
         if TABLE[cmd].lease:
             self._controls_accepted += 1
         if cmd == "release":
             self.lease.release()
-        self.controls.on_command(cmd, peer.name())
+        if not quiet:
+            self.controls.on_command(cmd, peer.name())
         out = self._encode(rid, True, result=result)
         self._remember(key, payload, out)
         return out

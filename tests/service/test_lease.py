@@ -250,3 +250,22 @@ def test_an_endpoint_without_a_port_is_named_at_once(endpoint: str) -> None:
 
     with pytest.raises(ConfigError, match="it names no port"):
         Controller(endpoint, timeout_s=0.1)
+
+
+def test_a_release_of_a_free_lease_changes_nothing_and_is_not_announced(node) -> None:
+    ctx = zmq.Context.instance()
+    stranger = ctx.socket(zmq.DEALER)
+    stranger.setsockopt(zmq.LINGER, 0)
+    stranger.connect(node.endpoints["cmd"])
+    with Subscriber(node.endpoints["pub"], ["event"]) as events, \
+            Client(node.endpoints["cmd"], client_id="lab") as holder:
+        try:
+            assert holder.status()["lease"]["holder"] is None
+            reply = raw_request(stranger, "release", "someone", 1)
+            assert reply["ok"], reply
+        finally:
+            stranger.close()
+        assert holder.status()["lease"]["holder"] is None
+        holder.call("set_policy", name="info-gain")  # announced: the stream's next command
+        first = events.wait_for(lambda m: m["event"] == "command", 5.0)
+        assert first is not None and first["cmd"] == "set_policy", first

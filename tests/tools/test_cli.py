@@ -298,6 +298,9 @@ def test_an_unknown_option_is_the_commands_one_line(argv, said, capsys):
     (["run", "--port", "/dev/ttyUSB0"], "--port is a servo bus's: it needs --backend"),
     (["emulate", "--hand", "two-finger", "--object", "blob", "--map", "bumps"],
      "--map belongs to a finger's map; a hand holding --object has none"),
+    (["run", "--noise", "--headings", "72"], "--headings shapes the pose table"),
+    (["run", "--start", "0.1,0.1,0", "--headings", "12"], "--headings shapes the pose table"),
+    (["bench", "realistic", "--headings", "5"], "--headings shapes the pose table"),
 ])
 def test_an_option_that_would_be_ignored_is_refused(argv, said, capsys):
     assert main(argv) == 2
