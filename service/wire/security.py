@@ -96,7 +96,8 @@ def check_binds(endpoints: list[str], security: SecurityConfig) -> None:
     if exposed and not security.curve:
         raise ConfigError(f"refusing to bind {', '.join(exposed)} without CurveZMQ: set "
                           f"[security] curve = true with keys from `haptic keygen`, or bind "
-                          f"127.0.0.1")
+                          f"127.0.0.1 (a host name other than localhost counts as exposed, "
+                          f"whatever it resolves to now)")
 
 
 class KeyRing:

@@ -20,6 +20,7 @@ from service.wire.security import check_binds, client_curve_options, generate_ke
     ("tcp://[::1]:5560", True), ("ipc:///tmp/x", True), ("inproc://x", True),
     ("tcp://0.0.0.0:5560", False), ("tcp://*:5560", False), ("tcp://192.168.1.4:1", False),
     ("tcp://eth0:5560", False), ("udp://127.0.0.1:1", False),
+    ("tcp://vm:5560", False),  # a host name is exposed, whatever it resolves to now
 ])
 def test_loopback_detection(endpoint: str, local: bool) -> None:
     assert is_loopback(endpoint) is local
@@ -28,6 +29,8 @@ def test_loopback_detection(endpoint: str, local: bool) -> None:
 def test_exposed_bind_needs_curve() -> None:
     with pytest.raises(ConfigError, match="without CurveZMQ"):
         check_binds(["tcp://127.0.0.1:1", "tcp://*:5561"], SecurityConfig())
+    with pytest.raises(ConfigError, match="a host name other than localhost counts as exposed"):
+        check_binds(["tcp://vm:5561"], SecurityConfig())
     config = loopback_config()
     exposed = dataclasses.replace(config, endpoints=dataclasses.replace(
         config.endpoints, pub="tcp://0.0.0.0:*"))
