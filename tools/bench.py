@@ -16,8 +16,9 @@ SCENARIOS: dict[str, tuple[str, str]] = {
     "realistic": ("tools.bench_realistic", "B2: continuous pose, noise, model mismatch"),
     "scale": ("tools.bench_scale", "B3: compute per step as the map grows"),
     "objects": ("tools.bench_objects", "surfaces like real objects (plates, shells, terrain) "
-                                       "under B2's noise"),
-    "profile": ("tools.bench_profile", "B5: 1-D profiles for the planar finger, B2's noise"),
+                                       "under B2's noise (your own map: realistic --map)"),
+    "profile": ("tools.bench_profile", "B5: 1-D profiles for the planar finger, B2's noise "
+                                       "(your own profile: realistic --map)"),
     "service": ("tools.bench_service", "B4: the real-time loop under load"),
     "soak": ("tools.bench_soak", "the daemon for minutes with subscriber processes "
                                  "reconnecting and stuck: gaps, overruns, memory"),
