@@ -111,8 +111,10 @@ def ping_times(bus: DxlBus, ids: Sequence[int]) -> dict[int, float]:
     got: dict[int, float] = {}
     for sid in ids:
         sent[sid] = time.monotonic_ns()  # before the write: a host descheduled after it
-        port.writePort(list(packet(sid, INST_PING)))  # timed a 100 ms servo at 98 ms
-        # (not txPacket: it would settle, dropping the answers still awaited)
+        # not txPacket: it would settle, dropping the answers still awaited; through the
+        # bus's guard, so a port that fails here is PortLost (a held-out client's kill
+        # during a reset's check was answered `internal`: a SerialException)
+        bus._sdk("ping", port.writePort, list(packet(sid, INST_PING)))
         _take_answers(bus, sent, got, SETUP_TIMEOUT_MS, until=sid)
     _take_answers(bus, sent, got, LATE_LIMIT_S * 1e3)
     return got

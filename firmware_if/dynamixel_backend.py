@@ -236,11 +236,13 @@ class DynamixelBackend(HandOfOne):
         self._step = None
         self._pending_goals = None
         rebooted: list[str] = []
+        words = ""
         for attempt in range(2):  # once more: a late reply still in flight can spoil one
             try:
                 self.bus.reopen()
                 rebooted += self.bus.reset()
                 self._set_up(look_for_strangers=self._port_lost)
+                words = late_words(self.bus)  # servos that would fail the next cycles
                 break
             except FirmwareError as exc:
                 self.bus.close()
@@ -253,7 +255,7 @@ class DynamixelBackend(HandOfOne):
                         "the servos on the port: another hand's bus?)", exc.servo_ids) from exc
                 if attempt == 1 or isinstance(exc, PortLost):
                     raise
-        if words := late_words(self.bus):  # servos that would fail the next cycles
+        if words:
             self._fault = f"reset failed: {words}"
             raise HardwareFault(f"{self._fault}; reset again once they answer in time")
         self._fault, self._port_lost = None, False

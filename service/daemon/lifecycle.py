@@ -33,14 +33,16 @@ TRANSITIONS: dict[str, dict[State, State]] = {
 }
 """event -> {from state: to state}; anything missing is refused."""
 
-WAY_OUT: dict[State, str] = {
-    State.UNCONFIGURED: "configure the daemon first",
-    State.INACTIVE: "activate first",
-    State.ACTIVE: "deactivate first",
-    State.FAULT: "reset clears the fault once its cause is mended",
+WAY_OUT: dict[State, tuple[State, str]] = {
+    State.UNCONFIGURED: (State.INACTIVE, "configure the daemon first"),
+    State.INACTIVE: (State.ACTIVE, "activate first"),
+    State.ACTIVE: (State.INACTIVE, "deactivate first"),
+    State.FAULT: (State.INACTIVE, "reset clears the fault once its cause is mended"),
 }
-"""What leaves each state toward the others, for a refusal's words: a client refused
-"while fault" was not told that `reset` is the way out (a held-out lab)."""
+"""What leaves each state, and the state it leads to, for a refusal's words: a client
+refused "while fault" was not told that `reset` is the way out (a held-out lab). Said only
+where it leads to a state that allows the request: "cannot reset while inactive ...
+(activate first)" sent a held-out client the wrong way."""
 
 
 class Lifecycle:
@@ -62,8 +64,12 @@ class Lifecycle:
             raise StateError(f"unknown lifecycle event '{event}'")
         if self.state not in table:
             allowed = ", ".join(s.value for s in table)
+            leads_to, way_out = WAY_OUT[self.state]
+            hint = (f" ({way_out})" if leads_to in table
+                    else " (no fault is latched: nothing to reset)" if event == "reset"
+                    else "")
             raise StateError(f"cannot {command or event} while {self.state.value}; allowed in: "
-                             f"{allowed} ({WAY_OUT[self.state]})")
+                             f"{allowed}{hint}")
         return table[self.state]
 
     def apply(self, event: str, reason: str | None = None) -> tuple[State, State]:

@@ -260,3 +260,34 @@ def test_a_hand_file_that_is_not_the_bus_s_is_named(tmp_path: Path) -> None:
     finally:
         backend.close()
         bus.stop()
+
+
+def test_a_port_lost_while_reset_checks_the_servos_is_a_fault_not_an_os_error(
+        rig, monkeypatch) -> None:
+    """A held-out client killed the emulator 20-60 ms into a `reset`: the reply was
+    `internal` ("SerialException: write failed: [Errno 5]"), the check's pings having gone
+    past the bus's guard on port errors."""
+    import firmware_if.dynamixel_backend as backend_module
+
+    backend, bus, link = rig
+    bus.stop()
+    assert backend.read_state().fault
+    fresh = emulator(link=link)
+    real = backend_module.late_words
+
+    def port_dies_first(dxl_bus):
+        fresh.stop()  # the emulator dies just as the reset pings its servos
+        return real(dxl_bus)
+
+    monkeypatch.setattr(backend_module, "late_words", port_dies_first)
+    with pytest.raises(PortLost, match="serial port"):
+        backend.clear_fault()
+    assert backend.read_state().fault  # still faulted, and says so
+    monkeypatch.setattr(backend_module, "late_words", real)
+    again = emulator(link=link)
+    try:
+        backend.clear_fault()  # a reset onto a new emulator recovers
+        assert backend.read_state().fault is None
+    finally:
+        backend.close()
+        again.stop()

@@ -114,6 +114,11 @@ def test_lifecycle_table() -> None:
     assert lc.allowed("configure")  # a new backend, perhaps on a new port, clears it too
     lc.apply("reset")
     assert lc.state is State.INACTIVE and lc.fault is None and not lc.valid_read
+    # a held-out client was told "(activate first)", which never allows a reset
+    with pytest.raises(StateError) as refused:
+        lc.check("reset")
+    assert str(refused.value) == ("cannot reset while inactive; allowed in: fault (no fault "
+                                  "is latched: nothing to reset)")
 
 
 def test_hardware_backends_assume_encoder_noise_unless_told() -> None:
