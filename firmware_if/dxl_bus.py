@@ -20,6 +20,7 @@ from __future__ import annotations
 import contextlib
 import functools
 import os
+import threading
 import time
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass
@@ -107,7 +108,8 @@ class BusStats:
 
 
 class DxlBus:
-    """A servo bus on one serial port. No I/O before `open()`; use from one thread."""
+    """A servo bus on one serial port. No I/O before `open()`; use from one thread (a
+    fault's diagnosis may run on one of its own: `diagnose_in_background`)."""
 
     def __init__(self, port: str, ids: Sequence[int], *, baud: int = 1_000_000,
                  cycle_budget_s: float = 0.01, failure_tolerance: int = 3,
@@ -131,6 +133,17 @@ class DxlBus:
         self._asked_ns = self._received_ns = 0
         """When the latest sync read began to go out, and when its replies were in
         (monotonic)."""
+        self.diagnose_in_background = False
+        """Whether the words a fault gets from asking each servo (`why_cycles_failed`, up
+        to a second of pings) are found on a thread of their own, so the caller's loop
+        keeps its rate: a held-out client saw a daemon's state and replies stop for 0.7-1 s
+        when the servos fell silent. Meanwhile the bus is that thread's: other I/O waits
+        for it (`_require`), but a best-effort torque off, which the latch has sent, does
+        not. `diagnosed` then holds the fault's message before and after."""
+        self._diagnosis: threading.Thread | None = None
+        self.diagnosed: tuple[str, str] | None = None
+        """(the message the latch raised, the same with the diagnosis's words) once a
+        background diagnosis has ended, until `take_diagnosis`."""
 
     # -- lifecycle -----------------------------------------------------------------------
     def open(self) -> None:
@@ -149,6 +162,7 @@ class DxlBus:
 
     def close(self) -> None:
         """Torque off (best effort) and release the port. Safe to call twice."""
+        self._await_diagnosis()
         if self._port is None:
             return
         try:
@@ -161,6 +175,7 @@ class DxlBus:
     def reopen(self, port: str | None = None) -> None:
         """Release the port (whatever state it is in) and open it again, or `port` instead:
         how a bus recovers from a lost adapter or a restarted emulator."""
+        self._await_diagnosis()
         if self._port is not None:
             with contextlib.suppress(*PORT_ERRORS, ValueError):
                 self._port.closePort()
@@ -180,7 +195,25 @@ class DxlBus:
     def is_open(self) -> bool:
         return self._port is not None
 
+    @property
+    def diagnosing(self) -> bool:
+        """A fault's diagnosis is asking the servos on its own thread."""
+        return self._diagnosis is not None and self._diagnosis.is_alive()
+
+    def take_diagnosis(self) -> tuple[str, str] | None:
+        """`diagnosed`, once: (the fault's message as latched, with the diagnosis's words)."""
+        told, self.diagnosed = self.diagnosed, None
+        return told
+
+    def _await_diagnosis(self) -> None:
+        """Let a background diagnosis end before other I/O (not from its own thread)."""
+        diagnosis = self._diagnosis
+        if diagnosis is not None and diagnosis is not threading.current_thread():
+            diagnosis.join()
+            self._diagnosis = None
+
     def _require(self) -> PacedPortHandler:
+        self._await_diagnosis()
         if self._port is None:
             raise NotReadyError(f"bus on {self.port_name} is not open: call open() first")
         return self._port
@@ -316,8 +349,8 @@ class DxlBus:
 
     def torque(self, on: bool, *, best_effort: bool = False) -> None:
         """Torque on or off for every servo (one Sync Write)."""
-        if self._port is None and best_effort:
-            return
+        if self._port is None and best_effort or not on and best_effort and self.diagnosing:
+            return  # nothing to send on; or the latch sent it before the diagnosis began
         port = self._require()
         writer = GroupSyncWrite(port, self._ph, REG["torque_enable"].address, 1)
         for sid in self.ids:
@@ -488,14 +521,33 @@ class DxlBus:
 
     def _latch(self, reason: str, explain: Callable[[], str] | None = None) -> None:
         """Latch `reason` as the fault and send torque off, then add what `explain` (which
-        may take a few timeouts) finds to the fault's words."""
+        may take a few timeouts) finds to the fault's words: at once, or on a thread of its
+        own (`diagnose_in_background`)."""
         self.fault = reason
         self.torque(False, best_effort=True)
+        if explain is not None and self.diagnose_in_background:
+            self.diagnosed = None
+            self._diagnosis = threading.Thread(target=self._diagnose, args=(reason, explain),
+                                               name="bus-diagnosis", daemon=True)
+            self._diagnosis.start()
+            raise HardwareFault(self._fault_message(reason))
         if explain is not None:
             self.fault = reason + explain()
+        raise HardwareFault(self._fault_message(self.fault))
+
+    def _fault_message(self, fault: str) -> str:
         # torque off goes out by sync write, which no servo acknowledges: say it was sent
-        raise HardwareFault(f"bus on {self.port_name}: {self.fault}; torque off sent to every "
-                            "servo, reset to recover")
+        return (f"bus on {self.port_name}: {fault}; torque off sent to every servo, reset to "
+                "recover")
+
+    def _diagnose(self, reason: str, explain: Callable[[], str]) -> None:
+        """The background diagnosis: `explain`'s words join the fault (`diagnosed`)."""
+        try:
+            words = explain()
+        except Exception as exc:  # a diagnosis never takes the fault's own words away
+            words = f"; (asking the servos why failed: {type(exc).__name__}: {exc})"
+        self.fault = reason + words
+        self.diagnosed = (self._fault_message(reason), self._fault_message(self.fault))
 
     def reset(self) -> list[str]:
         """Clear a latched fault: reboot servos that report a hardware error (their RAM

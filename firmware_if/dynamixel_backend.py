@@ -93,6 +93,8 @@ class DynamixelBackend(HandOfOne):
         self._q = np.asarray(hand.fingers[0].home, dtype=np.float64)
         self._torque = False
         self._fault: str | None = None
+        self._diagnosed: tuple[str, str] | None = None
+        """The latest background diagnosis: (the fault's message, with its words)."""
         self._port_lost = False
         """The port itself failed since the bus last opened: what answers when it opens
         again may be another bus (a restarted emulator of another hand, an adapter moved)."""
@@ -276,10 +278,32 @@ class DynamixelBackend(HandOfOne):
         self._state = state
         return state
 
+    @property
+    def diagnosing(self) -> bool:
+        """The bus is asking its servos why its cycles failed, on a thread of its own
+        (`DxlBus.diagnose_in_background`): the fault's words are not all in yet."""
+        return self.bus.diagnosing
+
+    def with_diagnosis(self, text: str) -> str:
+        """`text` (a fault's words that quote this backend's) with the diagnosis's words
+        added where it quotes the latched message, waiting for a diagnosis under way."""
+        self.bus._await_diagnosis()
+        self._take_diagnosis()
+        return text if self._diagnosed is None else text.replace(*self._diagnosed)
+
+    def _take_diagnosis(self) -> None:
+        """A background diagnosis that has ended adds its words to the fault they explain."""
+        told = self.bus.take_diagnosis()
+        if told is not None:
+            self._diagnosed = told
+            if self._fault is not None:
+                self._fault = self._fault.replace(*told)
+
     def _poll(self):
         """One bus cycle, sending any goals waiting: the new reading, or None when there is
         none (a fault latched now or before: torque off and a step under way ends blocked;
         or a missed cycle, whose goals go with the next). Shared by every hand of servos."""
+        self._take_diagnosis()
         if self._fault and not self.bus.is_open:  # a reset could not reopen the port
             return None
         self._require_open()

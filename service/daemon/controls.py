@@ -101,6 +101,7 @@ class CommandHandlers:
     def _commit(self: Node, rc: Reconfiguration) -> None:
         """Everything worked: swap in the new backend, scenario and settings."""
         self.reconf = None
+        self._tell_fault(wait=True)  # the old backend's fault, before it goes
         self.configure_error = None
         if rc.backend is not None:
             if self.backend is not None:
@@ -193,6 +194,7 @@ class CommandHandlers:
         self._not_configuring()
         if self.backend is None:
             raise StateError("no backend: configure first")
+        self._tell_fault(wait=True)  # the fault's own event comes before its end
         # raises (a FirmwareError) if it cannot: still faulted
         rebooted = self.backend.clear_fault()
         for line in rebooted:

@@ -91,6 +91,9 @@ class Node(CommandHandlers):
         self.pub: Publisher | None = None
         self.cmd: CommandServer | None = None
         self._hold_until_ns: int | None = None
+        self._fault_to_tell: tuple[str, dict[str, Any] | None] | None = None
+        """A fault's reason and the episode it cut, held back while the bus asks its servos
+        why (`_tell_fault`)."""
         self._next_cloud_ns = 0
         self._timing_cache: dict[str, Any] = {}
         self.error: BaseException | None = None
@@ -214,6 +217,7 @@ class Node(CommandHandlers):
                 self._deactivate("lease expired")
                 self._event("stopped", reason="lease expired")
         state = self._read()
+        self._tell_fault()
         if self.reconf is not None:
             self._reconfigure(replies)
         if (state is not None and self.lifecycle.state is State.ACTIVE and self.explorer
@@ -432,7 +436,23 @@ class Node(CommandHandlers):
             with contextlib.suppress(Exception):  # torque off is best effort on a lost bus
                 self.backend.set_torque(False)
         self._transition("fault", reason)
-        self._event("fault", reason=reason)
+        if not again and getattr(self.backend, "diagnosing", False):
+            self._fault_to_tell = (reason, cut)  # its words are still coming
+        else:
+            self._event("fault", reason=reason)
+            self._episode_cut(cut)
+
+    def _tell_fault(self, *, wait: bool = False) -> None:
+        """Publish the `fault` event, and the end of the episode it cut, held back while
+        the bus asked its servos why its cycles failed (on a thread of its own: the loop
+        goes on): with the words that found, once found (`wait`: now)."""
+        if self._fault_to_tell is None or not wait and self.backend.diagnosing:
+            return
+        (reason, cut), self._fault_to_tell = self._fault_to_tell, None
+        told = reason if self.backend is None else self.backend.with_diagnosis(reason)
+        if self.lifecycle.fault:
+            self.lifecycle.fault = self.lifecycle.fault.replace(reason, told, 1)
+        self._event("fault", reason=told)
         self._episode_cut(cut)
 
     def _deactivate(self, reason: str | None = None) -> None:
@@ -474,6 +494,7 @@ class Node(CommandHandlers):
         if self.reconf is not None:
             self.reconf.abandon()
             self.reconf = None
+        self._tell_fault(wait=True)
         cut = self.explorer.stop("shutdown") if self.explorer else None
         if self.backend is not None:
             with contextlib.suppress(Exception):

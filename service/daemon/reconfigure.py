@@ -191,8 +191,9 @@ def make_backend(config: DaemonConfig, settings: RunSettings | HandSettings,
         factory = getattr(cls, "from_cli", None)
         try:
             if factory is not None:
-                return factory(radius=settings.radius, step=settings.step, **options)
-            return cls(**options)
+                return _beside_the_loop(factory(radius=settings.radius, step=settings.step,
+                                                **options))
+            return _beside_the_loop(cls(**options))
         except HandConfigError as exc:  # a hand file's content is not the client's business
             raise quiet_hand_error(str(options.get("hand", "")), exc) from None
         except TypeError as exc:
@@ -224,9 +225,20 @@ def _hand_backend(config: DaemonConfig, settings: HandSettings) -> Backend:
     from firmware_if.dynamixel_hand import DynamixelHand
 
     try:
-        return DynamixelHand.from_cli(hand=settings.hand, **config.backend.options)
+        return _beside_the_loop(DynamixelHand.from_cli(hand=settings.hand,
+                                                       **config.backend.options))
     except TypeError as exc:
         raise ConfigError(f"backend '{config.backend.name}' options for a hand: {exc}") from None
+
+
+def _beside_the_loop(backend: Backend) -> Backend:
+    """A daemon's servo bus asks its servos why its cycles failed on a thread of its own
+    (`DxlBus.diagnose_in_background`): in the tick that latched the fault, the control
+    loop stopped for 0.7-1 s, its state stream and every reply with it."""
+    bus = getattr(backend, "bus", None)
+    if bus is not None:
+        bus.diagnose_in_background = True
+    return backend
 
 
 def _check_required(name: str, factory: Any, options: dict[str, Any],

@@ -277,3 +277,37 @@ def test_a_reset_after_a_servo_fault_keeps_the_bus_as_it_was(rig) -> None:
     assert "servo 2" in wait_fault(sub)["reason"]
     reply = ctl.call("reset")
     assert reply["state"] == "inactive" and reply["warnings"] == []
+
+
+def test_the_loop_keeps_its_rate_while_a_silent_servo_is_asked_why(rig) -> None:
+    """A held-out client: when the servos fell silent, state and replies stopped for
+    0.7-1 s (the fault's diagnosis pinged each servo in the tick that latched it, waiting
+    0.6 s for late answers). It asks on a thread of its own now: the state stream and
+    the replies go on between the lifecycle's turn to fault and the fault event, which
+    still names the servo and comes before the episode's end."""
+    node, sub, ctl, buses, link = rig
+    explore_until_moving(sub, ctl)
+    buses[-1].fault(2).mute = True  # servo 2 unplugged: every cycle's read fails
+    turned = sub.wait_for(lambda m: m.topic == "event" and m["event"] == "lifecycle"
+                          and m["state"] == "fault", 10.0)
+    assert turned is not None
+    assert ctl.call("ping") == {"pong": True}  # answered while the servos are asked
+    between = []
+    fault = None
+    while fault is None:
+        msg = sub.recv(5.0)
+        assert msg is not None, "no fault event"
+        assert not (msg.topic == "event" and msg["event"] == "episode_done"), \
+            "the episode's end came before its fault"
+        if msg.topic == "event" and msg["event"] == "fault":
+            fault = msg.body
+        elif msg.topic == "state":
+            between.append(msg)
+    assert between and all(m["state"] == "fault" for m in between)
+    assert "servo 2 does not answer a ping" in fault["reason"], fault["reason"]
+    done = sub.wait_for(lambda m: m.topic == "event" and m["event"] == "episode_done", 5.0)
+    assert done is not None and done["reason"] == "fault"
+    assert "servo 2 does not answer a ping" in ctl.status()["fault"]
+    buses[-1].fault(2).mute = False
+    assert ctl.call("reset")["state"] == "inactive"
+    explore_until_moving(sub, ctl)
