@@ -228,7 +228,10 @@ def _print_summary(report, on_servos: bool = False) -> None:
         print("estimate  none")
     else:
         state = "converged" if est.converged else "not converged"
-        print(f"estimate  {_pose_text(est.pose)}  ({state})")
+        spread = ("" if est.position_sd is None or est.heading_sd is None else
+                  f"; sd {est.position_sd * 1e3:.2f} mm / "
+                  f"{math.degrees(est.heading_sd):.2f} deg")  # a held-out lab found it only
+        print(f"estimate  {_pose_text(est.pose)}  ({state}{spread})")  # in the JSON
     steps = len(report.result.steps)
     s = report.score
     if report.result.fault is not None:
