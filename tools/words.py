@@ -95,7 +95,16 @@ def belief_text(position_sd: float | None, heading_sd: float | None,
                        else f" / {math.degrees(heading_sd):.1f} deg")
     if mode_mass is None or not math.isfinite(mode_mass):
         return spread
-    return f"{spread}, leading mode {100 * mode_mass:.0f} %"
+    return f"{spread}, leading mode {percent(mode_mass)} %"
+
+
+def percent(share: float) -> str:
+    """A share as a whole percentage, but never rounded up to 100 when short of it: a
+    held-out check read "(100 %)" beside "its share 99.6 % ... of the 99.9 % needed"."""
+    p = 100 * share
+    if 99.5 <= p < 100:
+        return f"{math.floor(p * 100) / 100:.2f}".rstrip("0").rstrip(".")
+    return f"{p:.0f}"
 
 
 def why_not_converged(*, candidates: int, steps: int, max_steps: int,
@@ -112,7 +121,7 @@ def why_not_converged(*, candidates: int, steps: int, max_steps: int,
     parts = []
     if steps >= max_steps:
         parts.append(f"out of steps ({steps} of at most {max_steps})")
-    lead = "" if mode_mass is None else f" ({100 * mode_mass:.0f} %)"
+    lead = "" if mode_mass is None else f" ({percent(mode_mass)} %)"
     if held_back and (runner_up is None or runner_up_mass is None or runner_up_mass < 0.005):
         parts.append(f"the leading pose {pose_text(pose, second=second)}{lead} is not yet "
                      f"confirmed: {held_back}")
@@ -121,7 +130,7 @@ def why_not_converged(*, candidates: int, steps: int, max_steps: int,
                      "confirmed: its fit to every reading, its spread, or another pose "
                      f"{where} that fits nearly as well holds it back")
     elif runner_up is not None:
-        share = "" if runner_up_mass is None else f" ({100 * runner_up_mass:.0f} %)"
+        share = "" if runner_up_mass is None else f" ({percent(runner_up_mass)} %)"
         poses = [f"{pose_text(pose, second=second)}{lead}",
                  f"{pose_text(runner_up, second=second)}{share}"]
         if (runner_up_mass or 0.0) > (mode_mass or 0.0):  # the likelier first: a leader

@@ -4,7 +4,7 @@ import math
 
 import pytest
 
-from tools.words import belief_text, fault_result
+from tools.words import belief_text, fault_result, percent
 
 
 def test_a_spread_no_reading_bounds_reads_in_words():
@@ -78,3 +78,10 @@ def test_one_step_is_one_step():
     from tools.words import steps_text
 
     assert (steps_text(1), steps_text(0), steps_text(8)) == ("1 step", "0 steps", "8 steps")
+
+
+@pytest.mark.parametrize("share, said", [(0.996, "99.6"), (0.99999, "99.99"), (1.0, "100"),
+                                         (0.5, "50"), (0.994, "99")])
+def test_a_share_short_of_all_is_never_said_to_be_100_percent(share, said):
+    """A held-out check read "(100 %)" beside "its share 99.6 % ... of the 99.9 % needed"."""
+    assert percent(share) == said
