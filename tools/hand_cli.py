@@ -139,6 +139,7 @@ def run_hand(args: argparse.Namespace, budget: dict[str, float] | None = None) -
     """The body of `haptic run --object ...`."""
     from service.episode.hand_episode import simulate_hand
     from service.episode.hand_scenario import hand_for_backend, load_parts
+    from service.localization.objects.symmetry import symmetry_warning
 
     if args.start is not None:
         raise ConfigError("--start places a finger on a map; an object's start is drawn "
@@ -168,6 +169,8 @@ def run_hand(args: argparse.Namespace, budget: dict[str, float] | None = None) -
             print(f"          the section's {parts.contour.holes} inner loop(s) are left out: "
                   "holes the fingers never reach; the object is its outer outline, the "
                   "centroid that outline's")
+    if (warning := symmetry_warning(parts.field)) is not None:
+        print(f"warning: {warning}")
     report = simulate_hand(settings, parts, on_step=None if args.quiet else _print_step,
                            snapshot_steps=(0,) if args.plot else (),
                            backend_factory=backend_factory)

@@ -189,3 +189,22 @@ def test_the_least_quality_is_told_apart_from_the_margin():
     assert _beside(0.196, 0.2) == "0.196"
     assert _beside(0.2004, 0.2) == "0.2004"
     assert _beside(1.56, 0.2) == "1.56" and _beside(0.12, 0.2) == "0.12"
+
+
+@pytest.mark.parametrize("obj, said", [
+    ("ellipse", "the outline nearly repeats under a turn of 180 degrees"),
+    ("tests/service/data/slender_with_unequal_ends.csv", "nearly repeats under a turn of -178"),
+    ("blob", None),
+])
+def test_an_outline_that_nearly_repeats_under_a_turn_is_warned_of(obj, said, capsys):
+    """A held-out lab's slender outline (its ends 15 % apart in thickness) got no word of
+    its half turn, as a map gets of its symmetries, and one run declared the image."""
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[2]
+    path = str(root / obj) if obj.endswith(".csv") else obj
+    assert main(["run", "--hand", "three-finger", "--object", path, "--max-steps", "1",
+                 "--quiet"]) == 0
+    warnings = [line for line in capsys.readouterr().out.splitlines()
+                if line.startswith("warning:")]
+    assert (said is None and not warnings) or (said is not None and said in warnings[0])
