@@ -171,10 +171,25 @@ def certify(weighing: Weighing, history: np.ndarray, pose: np.ndarray, cert: Cer
     rivals, scores = np.empty((0, 3)), np.empty(0)
     weights = np.ones(len(history))
     for first in range(0, len(leaves), POLISHED):
-        starts = on_pose_space(surface, unanchored(leaves[first:first + POLISHED], anchor))
+        boxes = leaves[first:first + POLISHED]
+        starts = on_pose_space(surface, unanchored(boxes, anchor))
         polished = gauss_newton(surface, starts, history, weights, iterations=POLISH,
                                 max_move=2 * LEAF * step)
         ll = slope_weighed(weighing, history, polished, sd)
+        short = np.flatnonzero(ll < lead - SLACK)
+        short = short[np.argsort(-ll[short], kind="stable")[:AGAIN]]
+        if len(short):  # from a box's centre least squares may stop short of its best
+            again = on_pose_space(surface, unanchored(_inner_starts(boxes[short], step),
+                                                      anchor))
+            tried = gauss_newton(surface, again, history, weights, iterations=POLISH,
+                                 max_move=2 * LEAF * step)
+            tried_ll = slope_weighed(weighing, history, tried, sd).reshape(-1, len(short))
+            best = np.argmax(tried_ll, axis=0)
+            better = tried_ll[best, np.arange(len(short))] > ll[short]
+            pick = (best * len(short) + np.arange(len(short)))[better]
+            polished[short[better]] = tried[pick]
+            ll[short[better]] = tried_ll.T[better].max(axis=1)
+            cert.work += POLISH_WORK * len(again)
         keep = (ll >= lead - SLACK) & ~within(polished, pose, *near)
         rivals = np.vstack([rivals, polished[keep]])
         scores = np.concatenate([scores, ll[keep]])
@@ -182,6 +197,23 @@ def certify(weighing: Weighing, history: np.ndarray, pose: np.ndarray, cert: Cer
         yield POLISHED
     cert.rivals = rivals[distinct(rivals, scores, *weighing.same_pose)[:RIVALS]]
     cert.complete = True
+
+
+AGAIN = 8
+"""Fine boxes of a slice whose centres' polish fell short (the best of them) polished again
+from inside (`_inner_starts`)."""
+INNER = np.array([[a, b, c] for a in (-0.5, 0.5) for b in (-0.5, 0.5) for c in (-0.5, 0.5)])
+"""Where in a fine box, in its half sides, least squares starts again."""
+
+
+def _inner_starts(boxes: np.ndarray, step: float) -> np.ndarray:
+    """Anchor poses half-way to each corner of every fine box, corner by corner: beside a
+    wall the misfit kinks, and from a box's centre least squares stopped short of an exact
+    pose inside it (pattern:20:2, seed 0, noise-free, step 31: the truth fitted every
+    reading, the fine boxes round it fell at least 63 nats short, and the certificate found
+    no rival to a pose a quarter turn off that fitted as well)."""
+    half = np.array([LEAF * step, LEAF * step, LEAF_TURN])
+    return np.vstack([boxes[:, :3] + corner * half for corner in INNER])
 
 
 def _roots(surface: ContactSurface, step: float, margin: float
