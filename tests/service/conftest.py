@@ -68,6 +68,23 @@ def holes_map(tmp_path: Path) -> Path:
     return _map_file(tmp_path / "holes.npy", holes_grid())
 
 
+@pytest.fixture()
+def pockets_map(tmp_path: Path) -> Path:
+    """`four_pockets_and_a_dimple` as a map file."""
+    return _map_file(tmp_path / "pockets.npy", four_pockets_and_a_dimple())
+
+
+def four_pockets_and_a_dimple() -> np.ndarray:
+    """A plain 10 mm high with four identical square pockets 30 mm wide and 4 mm deep,
+    sharp-walled, and one dimple 3 mm wide: the quarter turns differ only at the dimple."""
+    heights = np.full((201, 201), 0.010)
+    for cx in (0.055, 0.145):
+        for cy in (0.055, 0.145):
+            heights[(cx - 0.015 <= _X) & (cx + 0.015 >= _X) & (cy - 0.015 <= _Y)
+                    & (cy + 0.015 >= _Y)] -= 0.004
+    return heights - 0.0015 * np.exp(-((_X - 0.100) ** 2 + (_Y - 0.130) ** 2) / 0.0015**2)
+
+
 def _map_file(path: Path, heights: np.ndarray) -> Path:
     np.save(path, heights)
     return path

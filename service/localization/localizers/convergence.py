@@ -219,6 +219,10 @@ mm step, about what interpolating a map between a wall's samples leaves (a readi
 lay 23.65 sds of 0.1 um off the truth's fit on plate:20:1). `FLOOR` itself let a pose 4.8
 mm off a smooth shell pass."""
 
+RESTART = (0.003, 0.001)
+"""Steps and radians a noise-free fit that misses a reading is restarted from, each way on
+each axis (`_restarted`)."""
+
 SETTLED = 2.0
 """How far (in the rule's largest spreads) a declared pose may have moved since the previous
 update: consecutive fits of a settled pose differ by about their spread, not more."""
@@ -334,6 +338,8 @@ def judge(surface: ContactSurface, history: np.ndarray, modes: Modes, *, sigma: 
         # wrong pose; with noise, at most one reading in eight may be set aside
         outliers = len(history) // 8 if noisy else 0
         fit = refine(surface, history, best, sds, max_outliers=outliers)
+        if not noisy and fit.max_abs > rule.max_abs:
+            fit = _restarted(surface, history, fit, sds, step_length)
         # the rivals that still matter are refined too, and the leader must beat them
         # as fitted, not as sampled
         rivals = [i for i, w in zip(order[1:1 + refined_rivals],
@@ -522,6 +528,24 @@ def distinct_places(history: np.ndarray, cell: float) -> int:
     """How many `cell`-sized squares the readings (K, 3) fall in."""
     ix, iy = np.round(history[:, :2] / cell).astype(np.int64).T
     return len(np.unique(ix * (1 << 32) + iy))
+
+
+def _restarted(surface: ContactSurface, history: np.ndarray, fit: Fit, sds: np.ndarray,
+               step_length: float) -> Fit:
+    """A noise-free `fit` refined again from `RESTART` each way on each axis, the best of
+    them kept: beside a wall the misfit kinks, and least squares can stop short of the pose
+    that explains every reading. A plate with four sharp-walled pockets (a helper's, seed
+    0) held the truth within 0.02 mm for 64 steps, undeclared, its fit stopped 16 um off
+    with a reading 7.5 sds out; restarted 30 um away it settles on the truth, exactly. (It
+    first declared a quarter-turned pose on pattern:20:2, seed 0, whose exact rival the
+    certificate missed: `certificate.AGAIN`.)"""
+    pose = np.asarray(fit.pose)
+    moves = np.diag([RESTART[0] * step_length, RESTART[0] * step_length, RESTART[1]])
+    for start in np.vstack([pose + moves, pose - moves]):
+        tried = refine(surface, history, start, sds, max_outliers=0)
+        if tried.rms < fit.rms:
+            fit = tried
+    return fit
 
 
 def _with_floored_spread(surface: ContactSurface, history: np.ndarray, fit: Fit, sigma: float,
