@@ -162,7 +162,7 @@ class DxlBus:
 
     def close(self) -> None:
         """Torque off (best effort) and release the port. Safe to call twice."""
-        self._await_diagnosis()
+        self.wait_for_diagnosis()
         if self._port is None:
             return
         try:
@@ -175,7 +175,7 @@ class DxlBus:
     def reopen(self, port: str | None = None) -> None:
         """Release the port (whatever state it is in) and open it again, or `port` instead:
         how a bus recovers from a lost adapter or a restarted emulator."""
-        self._await_diagnosis()
+        self.wait_for_diagnosis()
         if self._port is not None:
             with contextlib.suppress(*PORT_ERRORS, ValueError):
                 self._port.closePort()
@@ -205,7 +205,7 @@ class DxlBus:
         told, self.diagnosed = self.diagnosed, None
         return told
 
-    def _await_diagnosis(self) -> None:
+    def wait_for_diagnosis(self) -> None:
         """Let a background diagnosis end before other I/O (not from its own thread)."""
         diagnosis = self._diagnosis
         if diagnosis is not None and diagnosis is not threading.current_thread():
@@ -213,7 +213,7 @@ class DxlBus:
             self._diagnosis = None
 
     def _require(self) -> PacedPortHandler:
-        self._await_diagnosis()
+        self.wait_for_diagnosis()
         if self._port is None:
             raise NotReadyError(f"bus on {self.port_name} is not open: call open() first")
         return self._port
@@ -349,7 +349,7 @@ class DxlBus:
 
     def torque(self, on: bool, *, best_effort: bool = False) -> None:
         """Torque on or off for every servo (one Sync Write)."""
-        if self._port is None and best_effort or not on and best_effort and self.diagnosing:
+        if best_effort and (self._port is None or (not on and self.diagnosing)):
             return  # nothing to send on; or the latch sent it before the diagnosis began
         port = self._require()
         writer = GroupSyncWrite(port, self._ph, REG["torque_enable"].address, 1)

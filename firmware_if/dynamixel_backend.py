@@ -287,7 +287,7 @@ class DynamixelBackend(HandOfOne):
     def with_diagnosis(self, text: str) -> str:
         """`text` (a fault's words that quote this backend's) with the diagnosis's words
         added where it quotes the latched message, waiting for a diagnosis under way."""
-        self.bus._await_diagnosis()
+        self.bus.wait_for_diagnosis()
         self._take_diagnosis()
         return text if self._diagnosed is None else text.replace(*self._diagnosed)
 

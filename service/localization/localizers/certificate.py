@@ -69,6 +69,11 @@ POLISHED = 512
 """Fine boxes a slice polishes."""
 POLISH_WORK = 4
 """A fine box polished costs about as much as this many boxes judged (`Certificate.work`)."""
+AGAIN = 8
+"""Fine boxes of a slice whose centres' polish fell short (the best of them) polished again
+from inside (`_inner_starts`)."""
+INNER = np.array([[a, b, c] for a in (-0.5, 0.5) for b in (-0.5, 0.5) for c in (-0.5, 0.5)])
+"""Where in a fine box, in its half sides, least squares starts again."""
 
 
 @dataclass(frozen=True)
@@ -184,11 +189,11 @@ def certify(weighing: Weighing, history: np.ndarray, pose: np.ndarray, cert: Cer
             tried = gauss_newton(surface, again, history, weights, iterations=POLISH,
                                  max_move=2 * LEAF * step)
             tried_ll = slope_weighed(weighing, history, tried, sd).reshape(-1, len(short))
-            best = np.argmax(tried_ll, axis=0)
-            better = tried_ll[best, np.arange(len(short))] > ll[short]
-            pick = (best * len(short) + np.arange(len(short)))[better]
-            polished[short[better]] = tried[pick]
-            ll[short[better]] = tried_ll.T[better].max(axis=1)
+            best = np.argmax(tried_ll, axis=0)  # corner by corner: row best, column box
+            column = np.arange(len(short))
+            better = tried_ll[best, column] > ll[short]
+            polished[short[better]] = tried[(best * len(short) + column)[better]]
+            ll[short[better]] = tried_ll[best, column][better]
             cert.work += POLISH_WORK * len(again)
         keep = (ll >= lead - SLACK) & ~within(polished, pose, *near)
         rivals = np.vstack([rivals, polished[keep]])
@@ -197,13 +202,6 @@ def certify(weighing: Weighing, history: np.ndarray, pose: np.ndarray, cert: Cer
         yield POLISHED
     cert.rivals = rivals[distinct(rivals, scores, *weighing.same_pose)[:RIVALS]]
     cert.complete = True
-
-
-AGAIN = 8
-"""Fine boxes of a slice whose centres' polish fell short (the best of them) polished again
-from inside (`_inner_starts`)."""
-INNER = np.array([[a, b, c] for a in (-0.5, 0.5) for b in (-0.5, 0.5) for c in (-0.5, 0.5)])
-"""Where in a fine box, in its half sides, least squares starts again."""
 
 
 def _inner_starts(boxes: np.ndarray, step: float) -> np.ndarray:
