@@ -260,7 +260,7 @@ def _print_summary(report, on_servos: bool = False) -> None:
             mode_mass=None if est is None else est.mode_mass,
             runner_up=None if est is None else est.runner_up,
             runner_up_mass=None if est is None else est.runner_up_mass, second="z",
-            where="of the object in the hand")
+            where="of the object in the hand", held_back="" if est is None else est.held_back)
         print(f"result    not localized after {steps} steps: {why}")
     if math.isfinite(report.min_quality):
         margin = report.settings.margin_n

@@ -208,3 +208,12 @@ def test_an_outline_that_nearly_repeats_under_a_turn_is_warned_of(obj, said, cap
     warnings = [line for line in capsys.readouterr().out.splitlines()
                 if line.startswith("warning:")]
     assert (said is None and not warnings) or (said is not None and said in warnings[0])
+
+
+def test_a_hand_not_yet_says_what_holds_the_declaration_back(capsys):
+    """A held-out lab read "its fit to every reading, its spread, or another pose ... holds
+    it back": three causes, and not which. The judge now says which, as a finger's does."""
+    assert main(["run", "--hand", "three-finger", "--object", "blob:37", "--seed", "7",
+                 "--max-steps", "6", "--quiet"]) == 0
+    out = capsys.readouterr().out
+    assert "is not yet confirmed: 3 readings since the last turn, of the 4 needed" in out, out

@@ -147,7 +147,7 @@ class ObjectElimination(TrackJudged):
                             converged=self.converged, position_sd=self.fit.position_sd,
                             heading_sd=self.fit.heading_sd, mode_mass=self.mode_mass,
                             runner_up=self.runner_up, runner_up_mass=self.runner_up_mass,
-                            pending=self.pending)
+                            pending=self.pending, held_back=self.held_back)
         if len(self.poses) == 0:
             return Estimate(pose=None, candidates=0, converged=False)
         pos_sd, head_sd = pose_spread(self.poses)

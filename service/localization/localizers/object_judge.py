@@ -230,6 +230,9 @@ class ObjectVerdict:
     leader: tuple[float, float, float] | None = None
     """With no `fit`, the pose `mode_mass` and `runner_up` are reckoned beside (the tracks'
     heaviest): the estimate shows it, so it is never shown beside itself as its own rival."""
+    held_back: str = ""
+    """What holds the declaration back, in words, as a finger's judge says it (a held-out
+    lab's "not yet" named three possible causes and not which)."""
 
     @property
     def pose(self) -> tuple[float, float, float] | None:
@@ -249,7 +252,7 @@ def judge(ctx: ObjectContext, points: np.ndarray, radii: np.ndarray, tracks: Obj
     manipulations only a track carried through all of them may be declared: a pose found
     since has never been asked to explain the readings from before."""
     if len(tracks.centres) == 0:
-        return ObjectVerdict(None, 0.0, None, 0.0, False)
+        return ObjectVerdict(None, 0.0, None, 0.0, False, held_back="no pose fits the readings")
     if len(points) < FRESH:
         return _as_tracked(ctx, tracks, motions, points, radii)
     scale = ctx.scale
@@ -281,8 +284,10 @@ def judge(ctx: ObjectContext, points: np.ndarray, radii: np.ndarray, tracks: Obj
                                                         best, lead_sd))
     enough_here = distinct_places(points, 0.25 * scale) >= 2
     converged = False
-    if enough_here and rule.loosened().holds(readings=places - 1, noisy=noisy, mode_mass=mass,
-                                             fit=fit, step_length=scale):
+    held = ("" if enough_here else "the readings since the last turn lie in one place") or \
+        rule.loosened().unmet(readings=places - 1, noisy=noisy, mode_mass=mass, fit=fit,
+                              step_length=scale)
+    if not held:
         outliers = len(points) // 8 if noisy else 0
         fit = offset_refit(ctx, lead_points, lead_radii, lead_sd, refine(
             ctx.field, lead_points, lead_radii, best, lead_sd, max_outliers=outliers), outliers)
@@ -318,18 +323,24 @@ def judge(ctx: ObjectContext, points: np.ndarray, radii: np.ndarray, tracks: Obj
                                          mass)
         fit = with_shared_error(ctx, lead_points, lead_radii, lead_sd, widened(
             _floored(ctx, lead_points, lead_radii, fit), patch_temper(ctx, lead_points)))
-        converged = rule.holds(readings=places - 1, noisy=noisy, mode_mass=mass, fit=fit,
-                               step_length=scale)
-        converged &= bool(order[0] < len(tracks.centres)
-                          and tracks.carries[int(order[0])] >= epoch)
-        converged &= not noisy or previous is not None and bool(near(
-            np.asarray([fit.pose]), np.asarray([previous]), rule.max_position_sd * scale,
-            rule.max_heading_sd)[0, 0])
-        converged &= noisy or len(lead_points) == len(points) or _carried_agree(
-            ctx, points, radii, fit)
+        held = rule.unmet(readings=places - 1, noisy=noisy, mode_mass=mass, fit=fit,
+                          step_length=scale)
+        if not held and not (order[0] < len(tracks.centres)
+                             and tracks.carries[int(order[0])] >= epoch):
+            held = "it was found since the last turn: the readings before it are not its own"
+        if not held and noisy and not (previous is not None and bool(near(
+                np.asarray([fit.pose]), np.asarray([previous]), rule.max_position_sd * scale,
+                rule.max_heading_sd)[0, 0])):
+            held = "it moved since the last reading: not settled yet"
+        if not held and not noisy and len(lead_points) > len(points) and not _carried_agree(
+                ctx, points, radii, fit):
+            held = ("the readings since the last turn fit a pose of their own better than the "
+                    "readings carried through it allow")
+        converged = not held
     # the whole-object check, which costs most, is left to `confirm`
     return ObjectVerdict(fit, mass, runner, runner_mass, False,
-                         awaiting=(lead_points, lead_radii, lead_sd) if converged else None)
+                         awaiting=(lead_points, lead_radii, lead_sd) if converged else None,
+                         held_back=held)
 
 
 SPLIT_CHI2 = 11.34
@@ -374,10 +385,13 @@ def _as_tracked(ctx: ObjectContext, tracks: ObjectTracks, motions: np.ndarray,
     share = np.exp(total[order] - total[order[0]])
     share /= share.sum()
     leader = tuple(float(v) for v in centres[order[0]])
+    held = (f"{len(points)} readings since the last turn, of the {FRESH} needed to weigh the "
+            "poses afresh")
     if len(order) < 2:
-        return ObjectVerdict(None, float(share[0]), None, 0.0, False, leader=leader)
+        return ObjectVerdict(None, float(share[0]), None, 0.0, False, leader=leader,
+                             held_back=held)
     return ObjectVerdict(None, float(share[0]), tuple(float(v) for v in centres[order[1]]),
-                         float(share[1]), False, leader=leader)
+                         float(share[1]), False, leader=leader, held_back=held)
 
 
 def _reported_instead(ctx: ObjectContext, points: np.ndarray, radii: np.ndarray,
@@ -393,7 +407,9 @@ def _reported_instead(ctx: ObjectContext, points: np.ndarray, radii: np.ndarray,
     fit = _floored(ctx, points, radii, assess(ctx.field, points, radii, np.asarray(heavier),
                                               ctx.sigma))
     return ObjectVerdict(fit, heavier_mass, leader, leader_mass, False,
-                         np.empty((0, 3)) if found is None else found)
+                         np.empty((0, 3)) if found is None else found,
+                         held_back="another pose weighs more once the readings' shared "
+                                   "error is counted")
 
 
 def confirm(ctx: ObjectContext, points: np.ndarray, radii: np.ndarray, tracks: ObjectTracks,
@@ -418,7 +434,11 @@ def confirm(ctx: ObjectContext, points: np.ndarray, radii: np.ndarray, tracks: O
     if heaviest is not None and ratio > 1.0:  # a pose it found weighs more than the leader
         return _reported_instead(ctx, points, radii, heaviest, mass * ratio, verdict.fit.pose,
                                  mass, found)
-    return ObjectVerdict(verdict.fit, mass, runner, runner_mass, converged, found)
+    held = "" if converged else (
+        f"its share {100 * mass:.2f} % beside the poses the whole-object check found, of the "
+        f"{100 * rule.mode_mass:.1f} % needed")
+    return ObjectVerdict(verdict.fit, mass, runner, runner_mass, converged, found,
+                         held_back=held)
 
 
 def _whole_object(ctx: ObjectContext, points: np.ndarray, radii: np.ndarray,
@@ -552,8 +572,12 @@ class TrackJudged:
     leader: tuple[float, float, float] | None = None
     """The pose the latest verdict leads with (`ObjectVerdict.pose`)."""
 
+    held_back = ""
+    """What the latest verdict says holds the declaration back (`ObjectVerdict.held_back`)."""
+
     def _keep_verdict(self, v: ObjectVerdict) -> None:
         self.fit, self.converged, self.mode_mass = v.fit, v.converged, v.mode_mass
+        self.held_back = v.held_back
         self.leader = v.pose
         self.runner_up, self.runner_up_mass = v.runner_up, v.runner_up_mass
 

@@ -359,7 +359,7 @@ class ObjectParticles(TrackJudged):
         return Estimate(pose=pose, candidates=len(self.poses), converged=self.converged,
                         position_sd=pos_sd, heading_sd=head_sd, mode_mass=self.mode_mass,
                         runner_up=self.runner_up, runner_up_mass=self.runner_up_mass,
-                        pending=self.pending)
+                        pending=self.pending, held_back=self.held_back)
 
     def hypotheses(self, limit: int | None = None) -> Hypotheses:
         """Members weighted at the sensor's own sd (not the range-widened one the pool
