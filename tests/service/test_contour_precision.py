@@ -7,7 +7,7 @@ import pytest
 
 from service.episode.hand_episode import simulate_hand
 from service.episode.hand_scenario import HandSettings
-from service.localization.localizers.object_judge import to_object
+from service.localization.localizers.object_tracks import to_object
 from service.localization.objects.field import contact_field
 from service.localization.objects.presets import preset_object
 from service.localization.policies.contour_precision import ContourSpread

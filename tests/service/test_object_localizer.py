@@ -23,7 +23,7 @@ from service.episode.hand_scenario import (
     streams,
 )
 from service.episode.hand_step import step_json
-from service.localization.localizers import contour_fit, object_judge
+from service.localization.localizers import contour_fit, object_judge, object_tracks
 from service.localization.localizers.base import Estimate, update, wrap_angle
 from service.localization.localizers.contour_fit import assess, refine
 from service.localization.localizers.object_base import HandMeasurement
@@ -201,13 +201,13 @@ def test_three_small_arcs_do_not_declare_a_half_turn_image():
     assert not report.score.wrong_declaration and not report.result.dropped
 
 
-@pytest.mark.parametrize("carried_sd, localizes", [(object_judge.CARRIED_SD, True), (0.0, False)])
+@pytest.mark.parametrize("carried_sd, localizes", [(object_tracks.CARRIED_SD, True), (0.0, False)])
 def test_readings_carried_without_noise_keep_a_floor(monkeypatch, carried_sd, localizes):
     """Without noise the motion model adds no spread to the readings a turn carries, yet
     they moved with the track's pose as fitted then, not with the truth: three fingers on
     keyed:0 (seed 0) kept turning the object and never declared. With the floor they
     localize it, and without it they still do not."""
-    monkeypatch.setattr(object_judge, "CARRIED_SD", carried_sd)
+    monkeypatch.setattr(object_tracks, "CARRIED_SD", carried_sd)
     report = simulate_hand(HandSettings(object="keyed:0", hand="three-finger", seed=0,
                                         noise=False, max_steps=20))
     assert report.score.success == localizes
@@ -384,7 +384,7 @@ def test_a_carry_keeps_the_evidence_as_tempered_as_it_was():
     arc = np.linspace(-0.5, 0.5, 6) * 1e-3
     tip = parts.hand.fingers[0].radius
     points, radii = _on_outline(ctx, truth, arc, tip), np.full(len(arc), tip)
-    tracks = object_judge.ObjectTracks()
+    tracks = object_tracks.ObjectTracks()
     tracks.update(ctx, points, radii, np.vstack([truth, off]), np.zeros(2), sd=ctx.sigma,
                   position_tol=1e-9, heading_tol=1e-9)
     temper = object_judge.patch_temper(ctx, points)
@@ -403,7 +403,7 @@ def _on_outline(ctx, pose, arc, tip) -> np.ndarray:
     start = int(np.argmax(points[:, 0]))
     idx = (start + np.round(arc / 0.0001).astype(int)) % len(points)
     local = points[idx] + tip * normals[idx]
-    return object_judge.from_object(local, pose)
+    return object_tracks.from_object(local, pose)
 
 
 def test_a_declared_heading_lies_within_three_of_its_spreads():
@@ -460,7 +460,7 @@ def test_poses_refined_onto_the_leader_do_not_split_its_mass():
         hand="three-finger", seed=0, noise=True, max_steps=60))
     estimate = report.result.estimate
     assert estimate.mode_mass > 0.99
-    assert estimate.runner_up is None or not object_judge.near(
+    assert estimate.runner_up is None or not object_tracks.near(
         np.asarray([estimate.runner_up]), np.asarray([estimate.pose]), 0.25 * UNIT,
         np.deg2rad(5.0))[0, 0]
 
@@ -492,7 +492,7 @@ def test_the_estimate_is_never_shown_beside_itself_as_its_rival(estimates):
                                hand="three-finger", seed=2, max_steps=10))
     rivals = [(e.pose, e.runner_up) for e in estimates if e.runner_up is not None]
     assert len(rivals) > 5
-    assert not any(object_judge.near(np.asarray([runner]), np.asarray([pose]), 0.25 * UNIT,
+    assert not any(object_tracks.near(np.asarray([runner]), np.asarray([pose]), 0.25 * UNIT,
                                      np.deg2rad(5.0))[0, 0] for pose, runner in rivals)
 
 

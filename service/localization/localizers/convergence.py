@@ -184,8 +184,8 @@ class ConvergenceRule:
         if readings < needed:
             return f"{readings} distinct places read beyond the first, of the {needed} needed"
         if not mode_mass >= self.mode_mass:
-            return (f"its share {_share(mode_mass)} beside the other poses that fit, of the "
-                    f"{_share(self.mode_mass)} needed")
+            return (f"its share {share_text(mode_mass)} beside the other poses that fit, of the "
+                    f"{share_text(self.mode_mass)} needed")
         # with noise, a reading's error is its own and the map's, which the spread counts
         worst = fit.max_abs_shared if np.isfinite(fit.max_abs_shared) else fit.max_abs
         bar = self.max_abs_for(fit.readings) if noisy else self.max_abs
@@ -241,7 +241,7 @@ REFINED_RIVALS = 2
 """Rivals refined by least squares beside the leader before a declaration."""
 
 
-def _share(mass: float) -> str:
+def share_text(mass: float) -> str:
     """A share as a percentage with the digits that tell it from its bar (99.9 %)."""
     return f"{100 * mass:.4g} %" if np.isfinite(mass) else "unknown"
 

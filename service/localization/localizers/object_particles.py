@@ -41,7 +41,8 @@ from service.localization.localizers.object_base import (
     carry_poses,
     object_rule,
 )
-from service.localization.localizers.object_judge import ObjectTracks, TrackJudged
+from service.localization.localizers.object_judge import TrackJudged
+from service.localization.localizers.object_tracks import ObjectTracks
 from service.localization.localizers.pool import (
     AnytimeJob,
     effective_sample_size,

@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from service.localization.localizers.object_judge import from_object
+from service.localization.localizers.object_tracks import from_object
 from service.localization.objects import kernels
 from service.localization.objects.field import ContactField
 from service.localization.policies.precision import correlation

@@ -69,7 +69,8 @@ import numpy as np
 from firmware_if.backend import FingerMove, HandCommand
 from service.localization import chain_kernels
 from service.localization.grasp import hand_quality
-from service.localization.localizers.object_judge import FRESH, to_object
+from service.localization.localizers.object_judge import FRESH
+from service.localization.localizers.object_tracks import to_object
 from service.localization.objects import kinks, rolling
 from service.localization.policies import guarded_poses
 from service.localization.policies.contour_precision import ContourSpread

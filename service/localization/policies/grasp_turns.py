@@ -13,7 +13,7 @@ import numpy as np
 
 from firmware_if.backend import FingerMove, HandCommand
 from service.localization.grasp import hand_quality
-from service.localization.localizers.object_judge import to_object
+from service.localization.localizers.object_tracks import to_object
 from service.localization.objects import rolling
 from service.localization.policies.hand_view import (
     NOVELTY,
