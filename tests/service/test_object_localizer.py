@@ -228,15 +228,14 @@ def test_exact_readings_since_a_turn_hold_back_a_fit_the_carried_ones_pulled_off
     assert np.rad2deg(report.score.heading_error) < 0.5
 
 
-@pytest.mark.xfail(strict=True, reason="found by a held-out hunt, not fixed: the readings "
-                   "since the last turn favour the half-turned image by 14 nats under B2's "
-                   "mismatch, and nothing tempers that enough")
 def test_no_half_turned_image_of_a_slender_outline_is_declared():
     """A helper's 44 x 11 mm outline whose ends differ by 15 % in thickness
     (`data/slender_with_unequal_ends.csv`), three fingers, B2's noise, seed 8: the leader
     was the half-turned image from step 1 and was declared at step 53, 1.9 mm and 177.8
     degrees off, claiming 0.22 mm and 0.52 degrees. The nine readings since the last turn
-    fit the image better than the truth (14 nats at the judge's sd)."""
+    fit the image better than the truth (14 nats at the judge's sd), yet with their shared
+    offset counted the two lay 0.7 nats apart: the truth's track had lost 19 nats before
+    the turn, weighed without the offset the judge allows (`ObjectTracks.update`)."""
     report = simulate_hand(HandSettings(object=str(DATA / "slender_with_unequal_ends.csv"),
                                         hand="three-finger", seed=8, noise=True,
                                         max_steps=53))
@@ -261,14 +260,17 @@ def _unchecked(*args):
 
 @pytest.mark.parametrize("checked", [True, False])
 @pytest.mark.usefixtures("one_step_policy")
-def test_a_pose_the_pool_lost_is_weighed_before_a_declaration(monkeypatch, checked):
+def test_a_pose_the_pool_lost_is_weighed_before_a_declaration(monkeypatch, checked,
+                                                              weigh_without_offset):
     """blob:12, seed 12, one finger on the clamped object: the pool kept a pose 177
     degrees off and lost the truth, which fitted the readings 2.7 nats better; the pose
     was declared at 0.9997 at step 12. The whole-object check finds the truth through the
     first reading, refuses, and hands it to the tracks and the pool: the finger localizes
-    it. Without the check, the wrong pose."""
+    it. Without the check (and the readings' shared offset, as it was found), the wrong
+    pose."""
     if not checked:
         monkeypatch.setattr(object_judge, "_whole_object", _unchecked)
+        weigh_without_offset()
     report = simulate_hand(HandSettings(object="blob:12", hand="two-finger", seed=12,
                                         noise=True, max_steps=20, single_finger=True))
     assert report.score.wrong_declaration != checked
@@ -322,7 +324,8 @@ def test_the_whole_object_check_finds_every_pose_that_fits():
 
 @pytest.mark.parametrize("offset", [True, False])
 @pytest.mark.usefixtures("one_step_policy")
-def test_readings_off_the_truth_alike_are_not_read_as_another_pose(monkeypatch, offset):
+def test_readings_off_the_truth_alike_are_not_read_as_another_pose(monkeypatch, offset,
+                                                                  weigh_without_offset):
     """rounded:8, seed 8, three fingers from a 2 N start: the world's outline lies outside
     the model's under every reading (0.25-0.75 mm on average per finger's arc), and a pose
     125 degrees off fitted them better than the truth; it was declared at step 23. Allowed
@@ -335,6 +338,7 @@ def test_readings_off_the_truth_alike_are_not_read_as_another_pose(monkeypatch, 
         monkeypatch.setattr(object_judge, "offset_log_likelihood", _no_offset)
         monkeypatch.setattr(object_judge, "offset_refit", lambda *args: args[4])
         monkeypatch.setattr(object_judge, "_whole_object", _unchecked)
+        weigh_without_offset()  # nor in the pool's and the tracks' weights
     report = simulate_hand(HandSettings(object="rounded:8", hand="three-finger", seed=8,
                                         noise=True, max_steps=23, start_n=2.0,
                                         start=FOUND_START))
@@ -344,13 +348,16 @@ def test_readings_off_the_truth_alike_are_not_read_as_another_pose(monkeypatch, 
 
 @pytest.mark.parametrize("refit", [True, False])
 @pytest.mark.usefixtures("one_step_policy")
-def test_a_world_off_the_model_alike_does_not_keep_the_declaration_back(monkeypatch, refit):
+def test_a_world_off_the_model_alike_does_not_keep_the_declaration_back(monkeypatch, refit,
+                                                                        weigh_without_offset):
     """blob:27, seed 27, three fingers from a 2 N start: the world's outline lay off the
     model's alike under the fingertips, and the fit's largest residual stayed just beyond
     the rule's limit (4.5 sd against 3.6) to step 60, the pose 0.25 degrees off. Judged
-    with the offset fitted, the hand localizes it; without, it does not."""
+    with the offset fitted, the hand localizes it; without (nor in the pool's and the
+    tracks' weights, as it was found), it does not."""
     if not refit:
         monkeypatch.setattr(object_judge, "offset_refit", lambda *args: args[4])
+        weigh_without_offset()
     report = simulate_hand(HandSettings(object="blob:27", hand="three-finger", seed=27,
                                         noise=True, max_steps=20, start_n=2.0))
     assert report.score.success == refit
@@ -379,7 +386,7 @@ def test_a_carry_keeps_the_evidence_as_tempered_as_it_was():
     parts = load_parts(settings)
     ctx = build_localizer(settings, parts, np.random.default_rng(0)).ctx
     truth = np.zeros(3)
-    off = np.array([0.0005, 0.0, 0.0])  # outward where the readings are (the right)
+    off = np.array([0.001, 0.0, 0.0])  # outward where the readings are (the right)
     # six readings within a millimetre of one another: one patch of the outline
     arc = np.linspace(-0.5, 0.5, 6) * 1e-3
     tip = parts.hand.fingers[0].radius
@@ -523,3 +530,31 @@ def test_the_rival_is_named_while_the_readings_since_a_turn_are_few() -> None:
     est = report.result.estimate
     assert est.mode_mass < 0.6 and est.runner_up is not None
     assert 0.3 < est.runner_up_mass <= 1.0 - est.mode_mass + 1e-9
+
+
+def test_the_policy_weighs_a_pose_under_an_outline_off_alike_as_the_judge_does():
+    """The world's outline may lie off the model's alike under every reading (B2's
+    mismatch): the truth then misses each reading by the same amount, and a pose shifted by
+    it fits them all. Weighed without the readings' shared offset, the members nearest the
+    truth held at most 7e-5 of the weight the gate guards by, and two fingers dropped
+    ellipse:66 (seed 66, with the tracks alone weighing the offset); with it the two are
+    alike within a few nats (`ObjectParticles.hypotheses`)."""
+    settings = HandSettings(object="blob:3", hand="three-finger", noise=True)
+    parts = load_parts(settings)
+    loc = build_localizer(settings, parts, np.random.default_rng(0))
+    ctx = loc.ctx
+    truth = np.zeros(3)
+    shifted = np.array([0.0004, 0.0, 0.0])  # outward where the readings are (the right)
+    tip = parts.hand.fingers[0].radius
+    arc = np.linspace(-1.5, 1.5, 6) * 1e-3
+    points = _on_outline(ctx, truth, arc, tip + 0.0004)  # the world 0.4 mm larger there
+    loc.poses, loc.prior = np.vstack([truth, shifted]), np.zeros(2)
+    loc.points, loc.radii = points, np.full(len(arc), tip)
+    loc.resid = contour_fit.residuals(ctx.field, loc.poses, loc.points, loc.radii)
+    plain = contour_fit.fit_log_likelihood(ctx.field, loc.poses, loc.points, loc.radii,
+                                           ctx.sigma, ctx.outlier_probability,
+                                           ctx.outlier_range)
+    assert plain[1] - plain[0] > 8.0  # without the offset the truth is all but ruled out
+    weights = dict(zip(map(tuple, loc.hypotheses().poses), loc.hypotheses().weights,
+                       strict=True))
+    assert weights[tuple(truth)] > grasp_gated.LIKELY

@@ -37,6 +37,7 @@ from service.localization.localizers.object_judge import TrackJudged
 from service.localization.localizers.object_tracks import ObjectTracks
 from service.localization.localizers.pool import niche
 from service.localization.localizers.refine import Fit
+from service.localization.localizers.shared_error import offset_log_likelihood_of
 from service.localization.localizers.spread import pose_spread
 from service.localization.objects import kernels
 from service.localization.objects.symmetry import near_symmetries
@@ -159,12 +160,13 @@ class ObjectElimination(TrackJudged):
                         runner_up_mass=self.runner_up_mass if self.leader else 0.0)
 
     def hypotheses(self, limit: int | None = None) -> Hypotheses:
-        """Survivors, weighted by how well they fit the readings since the last carry."""
+        """Survivors, weighted by how well they fit the readings since the last carry, their
+        shared offset allowed (as `ObjectParticles.hypotheses`)."""
         if len(self.poses) == 0:
             return Hypotheses(poses=self.poses, weights=np.empty(0))
         if len(self.points):
             r = residuals(self.ctx.field, self.poses, self.points, self.radii)
-            ll = -0.5 * np.sum((r / max(self.sigma, 1e-9)) ** 2, axis=1)
+            ll = offset_log_likelihood_of(self.ctx, r, max(self.sigma, 1e-9), 1.0)
         else:
             ll = np.zeros(len(self.poses))
         order = np.argsort(-ll, kind="stable")[:limit]

@@ -35,10 +35,21 @@ def offset_log_likelihood(ctx: ObjectContext, poses: np.ndarray, points: np.ndar
     if ctx.mismatch_length <= 0:
         return temper * fit_log_likelihood(ctx.field, poses, points, radii, sd,
                                            ctx.outlier_probability, ctx.outlier_range)
-    r = residuals(ctx.field, poses, points, radii)  # (N, K), positive outside
+    return offset_log_likelihood_of(ctx, residuals(ctx.field, poses, points, radii), sd,
+                                    temper)
+
+
+def offset_log_likelihood_of(ctx: ObjectContext, r: np.ndarray, sd: float | np.ndarray,
+                             temper: float) -> np.ndarray:
+    """`offset_log_likelihood` from the residuals (N, K) already computed, positive outside:
+    what a pool that keeps its members' residuals weighs them by."""
+    ok = np.ones(r.shape, dtype=bool)
+    if ctx.mismatch_length <= 0:
+        ll = log_likelihood(r, ok, sd, ctx.outlier_probability, ctx.outlier_range)
+        return temper * np.where(np.isfinite(ll), ll, -np.inf)
     offset = shared_offset(ctx, r, sd)
-    ll = log_likelihood(r - offset[:, None], np.ones(r.shape, dtype=bool), sd,
-                        ctx.outlier_probability, ctx.outlier_range)
+    ll = log_likelihood(r - offset[:, None], ok, sd, ctx.outlier_probability,
+                        ctx.outlier_range)
     ll = temper * np.where(np.isfinite(ll), ll, -np.inf)
     return ll - 0.5 * (offset / ctx.sigma) ** 2
 
