@@ -2,7 +2,8 @@
 
 Each either answers at once or returns a `Deferred` for work that happens off the loop:
 `configure` (and `set_map`, `set_localizer`, `set_policy`) waits for the compute process
-and a new backend; `start_exploration` waits for the episode's first belief. A refused
+and a new backend; `reset` for the bus (`reset_job`); `start_exploration` waits for the
+episode's first belief. A refused
 request changes nothing.
 """
 
@@ -19,6 +20,7 @@ from service.daemon.explorer import Explorer
 from service.daemon.lifecycle import State
 from service.daemon.port_choice import chosen_port
 from service.daemon.reconfigure import Reconfiguration, check_backend_options
+from service.daemon.reset_job import Reset
 from service.errors import StateError
 from service.wire.commands import Deferred
 
@@ -46,6 +48,7 @@ class CommandHandlers:
         return {
             **self._lifecycle_fields(),
             "configuring": self.reconf is not None, "configure_error": self.configure_error,
+            "resetting": self.resetting is not None,
             "estimate": ex.estimate_fields() if ex and ex.estimate else None,
             "lease": {"holder": self.lease.holder_name,
                       "remaining_s": self.lease.remaining_s()},
@@ -67,6 +70,8 @@ class CommandHandlers:
     def _not_configuring(self: Node) -> None:
         if self.reconf is not None:
             raise StateError("a configure is under way; try again when it is answered")
+        if self.resetting is not None:
+            raise StateError("a reset is under way; try again when it is answered")
 
     def configure(self: Node, changes: dict[str, Any], command: str = "configure"
                   ) -> Deferred:
@@ -187,22 +192,36 @@ class CommandHandlers:
         self._episode_cut(cut)
         return {"was_exploring": was}
 
-    def reset(self: Node) -> dict[str, Any]:
-        """Clear the fault: the backend re-opens its port and configures every servo again;
-        if that fails the daemon stays in fault and the reply says why."""
+    def reset(self: Node) -> Deferred:
+        """Clear the fault: the backend re-opens its port and configures every servo again,
+        beside the loop (`reset_job`); if that fails the daemon stays in fault and the reply
+        says why."""
         self.lifecycle.check("reset")
         self._not_configuring()
         if self.backend is None:
             raise StateError("no backend: configure first")
+        self.resetting = Reset(self.backend, Deferred(), self.faults)
+        return self.resetting.deferred
+
+    def _end_reset(self: Node) -> None:
+        """The reset's thread is done: turn the lifecycle, or say why not."""
+        job, self.resetting = self.resetting, None
         self._tell_fault(wait=True)  # the fault's own event comes before its end
-        # raises (a FirmwareError) if it cannot: still faulted
-        rebooted = self.backend.clear_fault()
-        for line in rebooted:
+        if job.error is not None:  # still faulted
+            job.deferred.fail(job.error)
+            return
+        if self.faults != job.fault_count:
+            with contextlib.suppress(Exception):  # the estop's torque off, now the bus is free
+                self.backend.set_torque(False)
+            job.deferred.fail(StateError("a fault was latched (an estop?) during the reset; "
+                                         "still faulted: reset again"))
+            return
+        for line in job.rebooted:
             logging.getLogger("hapticd").warning("reset: %s", line)
         self.last_state = None
         self._transition("reset")
-        return {"state": self.lifecycle.state.value, "rebooted": rebooted,
-                "warnings": list(getattr(self.backend, "warnings", []))}
+        job.deferred.resolve({"state": self.lifecycle.state.value, "rebooted": job.rebooted,
+                              "warnings": list(getattr(self.backend, "warnings", []))})
 
     def estop(self: Node, reason: str) -> dict[str, Any]:
         if self.lifecycle.state is not State.UNCONFIGURED:

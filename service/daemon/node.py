@@ -34,6 +34,7 @@ from service.daemon.lifecycle import Lifecycle, State
 from service.daemon.loop import RateLoop, Samples, Tick
 from service.daemon.priority import Scheduling, set_loop_priority
 from service.daemon.reconfigure import Reconfiguration, Stage
+from service.daemon.reset_job import Reset
 from service.daemon.worker_link import WorkerDied, WorkerLink
 from service.episode.scenario import Truth
 from service.errors import StateError
@@ -76,6 +77,8 @@ class Node(CommandHandlers):
         self.explorer: Explorer | None = None
         self.link = WorkerLink()
         self.reconf: Reconfiguration | None = None
+        self.resetting: Reset | None = None
+        """A `reset` at work on the bus beside the loop (`reset_job`)."""
         self.starting: Deferred | None = None
         """A `start_exploration` waiting for the episode's first belief."""
         self.faults = 0
@@ -216,6 +219,8 @@ class Node(CommandHandlers):
             if self.lifecycle.state is State.ACTIVE:
                 self._deactivate("lease expired")
                 self._event("stopped", reason="lease expired")
+        if self.resetting is not None and self.resetting.done:
+            self._end_reset()  # before the read: the hand read at once after it
         state = self._read()
         self._tell_fault()
         if self.reconf is not None:
@@ -308,8 +313,9 @@ class Node(CommandHandlers):
     def _read(self) -> HandState | None:
         if self.backend is None or self.lifecycle.state is State.UNCONFIGURED:
             return None
-        if self.reconf is not None and self.reconf.opening:
-            return None  # a new backend is opening, perhaps on the same bus: leave it be
+        if self.reconf is not None and self.reconf.opening or self.resetting is not None:
+            return None  # a new backend is opening, perhaps on the same bus, or a reset is
+            # at work on it: leave it be
         try:
             state = self.backend.read_hand()  # every finger, in one bus read
         except FirmwareError as exc:
@@ -432,7 +438,9 @@ class Node(CommandHandlers):
         cut = self.explorer.stop("fault") if self.explorer else None
         self._fail_start(StateError(f"faulted: {reason}"))
         self._hold_until_ns = None
-        if self.backend is not None and not (self.reconf and self.reconf.opening):
+        if self.backend is not None and not (self.reconf and self.reconf.opening
+                                             or self.resetting is not None):
+            # (a reset leaves torque off, and one this fault voids sends it once it is done)
             with contextlib.suppress(Exception):  # torque off is best effort on a lost bus
                 self.backend.set_torque(False)
         self._transition("fault", reason)
@@ -494,6 +502,10 @@ class Node(CommandHandlers):
         if self.reconf is not None:
             self.reconf.abandon()
             self.reconf = None
+        if self.resetting is not None:  # the bus is the reset's until it is done
+            self.resetting.wait()
+            self.resetting.deferred.fail(StateError("shut down during the reset"))
+            self.resetting = None
         self._tell_fault(wait=True)
         cut = self.explorer.stop("shutdown") if self.explorer else None
         if self.backend is not None:

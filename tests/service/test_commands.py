@@ -476,3 +476,39 @@ def test_status_right_after_a_torque_command_tells_what_it_did() -> None:
             assert ctl.status()["torque_on"] is True
             ctl.call("deactivate")
             assert ctl.status()["torque_on"] is False
+
+
+def test_an_estop_during_a_reset_voids_it(node: Node, monkeypatch) -> None:
+    """A reset works on the bus beside the loop (`reset_job`): meanwhile requests are
+    answered, an estop latches its fault at once, and the reset, done, is refused with the
+    daemon still in fault; a reset after it clears the fault."""
+    import threading
+
+    with Client(node.endpoints["cmd"], timeout_s=10.0) as ctl, \
+            Client(node.endpoints["cmd"], timeout_s=10.0) as other:
+        ctl.call("estop", reason="drill")
+        release = threading.Event()
+        clear = node.backend.clear_fault
+        monkeypatch.setattr(node.backend, "clear_fault",
+                            lambda: release.wait(10.0) and clear())
+        outcome: list[object] = []
+
+        def reset() -> None:
+            try:
+                outcome.append(ctl.call("reset"))
+            except CommandFailed as exc:
+                outcome.append(exc)
+
+        asking = threading.Thread(target=reset)
+        asking.start()
+        while not other.status()["resetting"]:
+            assert asking.is_alive()
+        assert other.call("ping") == {"pong": True}
+        assert other.call("estop", reason="again") == {"state": "fault"}
+        assert "again" in other.status()["fault"]
+        release.set()
+        asking.join()
+        assert isinstance(outcome[0], CommandFailed) and outcome[0].code == "bad_state"
+        assert "during the reset" in str(outcome[0])
+        assert ctl.status()["state"] == "fault" and not ctl.status()["resetting"]
+        assert ctl.call("reset")["state"] == "inactive"

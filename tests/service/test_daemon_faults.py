@@ -7,6 +7,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import os
+import threading
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -17,7 +18,7 @@ from firmware_if.registers import BAUD_REGISTER
 from service.daemon.config import SecurityConfig
 from service.daemon.harness import loopback_config, running_node
 from service.localization.maps import load_map
-from service.wire.client import Controller, Subscriber
+from service.wire.client import Client, CommandFailed, Controller, Subscriber
 from sim_backend.emulator import ServoBus
 from sim_backend.emulator.plant import FingerPlant, hand_bus_servos
 from sim_backend.emulator.servo import EmulatedServo
@@ -311,3 +312,38 @@ def test_the_loop_keeps_its_rate_while_a_silent_servo_is_asked_why(rig) -> None:
     buses[-1].fault(2).mute = False
     assert ctl.call("reset")["state"] == "inactive"
     explore_until_moving(sub, ctl)
+
+
+def test_the_loop_keeps_its_rate_while_a_reset_asks_a_silent_servo(rig) -> None:
+    """A held-out client's `reset` took up to 1.54 s while a servo was silent, and ran in
+    the loop's tick: no state and no reply meanwhile. It runs beside the loop now
+    (`reset_job`): `status` says it is under way, state and replies go on, and the reply
+    still says why it failed; then a reset with the servo back clears the fault."""
+    node, sub, ctl, buses, link = rig
+    explore_until_moving(sub, ctl)
+    buses[-1].fault(2).mute = True
+    wait_fault(sub)
+    outcome: list[object] = []
+
+    def reset() -> None:
+        try:
+            outcome.append(ctl.call("reset"))
+        except CommandFailed as exc:
+            outcome.append(exc)
+
+    asking = threading.Thread(target=reset)
+    with Client(node.endpoints["cmd"], timeout_s=10.0) as other:
+        asking.start()
+        seen = False
+        while asking.is_alive() and not seen:
+            seen = other.status()["resetting"]
+        assert seen, "the reset was answered before status ever saw it at work"
+        assert sub.wait_for(lambda m: m.topic == "state" and m["state"] == "fault", 1.0)
+        assert other.call("ping") == {"pong": True}
+        assert other.status()["resetting"], "over before the state and the ping came"
+        asking.join()
+    assert isinstance(outcome[0], CommandFailed) and outcome[0].code == "hardware"
+    assert "servo 2" in str(outcome[0]) and ctl.status()["state"] == "fault"
+    buses[-1].fault(2).mute = False
+    assert ctl.call("reset")["state"] == "inactive"
+    assert not ctl.status()["resetting"]
