@@ -66,8 +66,7 @@ class Lifecycle:
             allowed = ", ".join(s.value for s in table)
             leads_to, way_out = WAY_OUT[self.state]
             hint = (f" ({way_out})" if leads_to in table
-                    else " (no fault is latched: nothing to reset)" if event == "reset"
-                    else "")
+                    else _nothing_to_reset(self.state) if event == "reset" else "")
             raise StateError(f"cannot {command or event} while {self.state.value}; allowed in: "
                              f"{allowed}{hint}")
         return table[self.state]
@@ -109,3 +108,13 @@ def _with_cause(fault: str | None, reason: str | None) -> str:
     if len(causes) > CAUSES:
         causes = [causes[0], "...", *causes[-(CAUSES - 2):]]
     return "; then ".join(causes)
+
+
+def _nothing_to_reset(state: State) -> str:
+    """A refused reset's way out: none needed, or, unconfigured (a start-up whose port was
+    not there), a `configure` (a held-out lab's emulator came back, and `reset` said only
+    that no fault was latched)."""
+    if state is State.UNCONFIGURED:
+        return (" (no fault is latched: send configure, {} to try the daemon's own "
+                "configuration again)")
+    return " (no fault is latched: nothing to reset)"

@@ -64,15 +64,27 @@ class _StderrHandler(logging.StreamHandler):
         pass
 
 
+LOGGERS = ("hapticd", "haptic")
+"""The daemon's own records, and the library's it runs (`haptic.servos`: servos on the
+bus the hand does not use): a held-out lab's JSON-lines reader met that warning as a plain
+line, which Python's last-resort handler wrote."""
+
+
+def log_json_lines(level: str) -> None:
+    """Every record of `LOGGERS` as one JSON line on stderr (the README's log format)."""
+    for name in LOGGERS:
+        logger = logging.getLogger(name)
+        if not logger.handlers:
+            handler = _StderrHandler()
+            handler.setFormatter(JsonFormatter())
+            logger.addHandler(handler)
+        logger.setLevel(level)
+        logger.propagate = False
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    logger = logging.getLogger("hapticd")
-    if not logger.handlers:
-        handler = _StderrHandler()
-        handler.setFormatter(JsonFormatter())
-        logger.addHandler(handler)
-    logger.setLevel(args.log_level.upper())
-    logger.propagate = False
+    log_json_lines(args.log_level.upper())
     try:
         config = config_from_args(args)
     except InputError as exc:

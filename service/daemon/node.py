@@ -504,7 +504,9 @@ class Node(CommandHandlers):
             self.reconf = None
         if self.resetting is not None:  # the bus is the reset's until it is done
             self.resetting.wait()
-            self.resetting.deferred.fail(StateError("shut down during the reset"))
+            self.resetting.deferred.fail(StateError(
+                "hapticd is shutting down (SIGINT or SIGTERM): the reset ended with it, "
+                "torque off; start hapticd again"))
             self.resetting = None
         self._tell_fault(wait=True)
         cut = self.explorer.stop("shutdown") if self.explorer else None

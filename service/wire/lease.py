@@ -72,13 +72,13 @@ class Lease:
         if self.holder is not None and not self.holds(peer):
             if self.busy and self.gone:  # its request goes on: no one else's meanwhile
                 raise LeaseHeld(f"the lease of '{self.holder.name()}' ends when its slow "
-                                f"request (a configure, set_map, ...) has finished; its "
+                                f"request (a configure, a reset, ...) has finished; its "
                                 f"connection has closed: try again then (estop needs no "
                                 f"lease)")
             if self.busy:  # it cannot run out meanwhile (`remaining_s`)
                 raise LeaseHeld(f"'{self.holder.name()}' holds the lease on another "
-                                f"connection and a slow request of its (a configure, "
-                                f"set_map, ...) is still at work; the lease lasts at least "
+                                f"connection and a slow request of its (a configure, a "
+                                f"reset, ...) is still at work; the lease lasts at least "
                                 f"{self.ttl_ns / 1e9:.1f} s after that ends (estop needs no "
                                 f"lease)")
             if self.gone or now >= self.expires_ns:

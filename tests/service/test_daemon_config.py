@@ -119,6 +119,9 @@ def test_lifecycle_table() -> None:
         lc.check("reset")
     assert str(refused.value) == ("cannot reset while inactive; allowed in: fault (no fault "
                                   "is latched: nothing to reset)")
+    # a held-out lab's daemon started without its port: reset named no way out
+    with pytest.raises(StateError, match=r"while unconfigured.*send configure, \{\} to try"):
+        Lifecycle().check("reset")
 
 
 def test_hardware_backends_assume_encoder_noise_unless_told() -> None:
