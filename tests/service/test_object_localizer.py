@@ -558,3 +558,21 @@ def test_the_policy_weighs_a_pose_under_an_outline_off_alike_as_the_judge_does()
     weights = dict(zip(map(tuple, loc.hypotheses().poses), loc.hypotheses().weights,
                        strict=True))
     assert weights[tuple(truth)] > grasp_gated.LIKELY
+
+
+@pytest.mark.xfail(strict=True, reason="found by a held-out hunt, not fixed: the readings' "
+                   "errors are correlated over the world's mismatch, and the judge weighs "
+                   "them as independent within each patch's share")
+def test_no_half_turned_image_of_two_lobes_half_a_millimetre_apart_is_declared():
+    """A helper's outline of two lobes, radii 15 and 15.5 mm
+    (`data/two_lobes_half_mm_apart.csv`), three fingers, B2's noise, seed 19: the half-turned
+    image was declared at step 55, 0.4 mm and 179.2 degrees off, claiming 0.22 mm and 0.5
+    degrees (seed 37 alike, at step 49). On the leader's 64 readings the image fits 4.9
+    nats worse with the readings tempered by their patches as a whole (`patch_temper`),
+    2.3 with each reading weighed by its share of its patch. So weighed throughout (tried,
+    not kept), seed 19 stayed undeclared, but seed 37 declared its image at step 15: its
+    readings alone in their patches favoured the image."""
+    report = simulate_hand(HandSettings(object=str(DATA / "two_lobes_half_mm_apart.csv"),
+                                        hand="three-finger", seed=19, noise=True,
+                                        max_steps=55))
+    assert not report.score.wrong_declaration
