@@ -113,9 +113,10 @@ def symmetry_warning(field: ContactField) -> str | None:
     motions = near_symmetries(field)
     if len(motions) == 0:
         return None
-    if len(motions) > 12:
-        return ("the outline is nearly round: most turns map it onto itself, so its heading "
-                "may never be told ('not yet' is then the right answer)")
+    if len(motions) > 12:  # a D-shaped cam with a 33 mm flat too: its heading is told there
+        return ("the outline is nearly round over most of it: most turns map all but a "
+                "feature onto itself, so only where it departs from round (a flat, a notch, "
+                "a bump) tells the heading, and without one 'not yet' is the right answer")
     turns = ", ".join(f"{np.degrees(t):.0f}" for t in sorted(motions[:, 0], key=abs))
     return (f"the outline nearly repeats under a turn of {turns} degrees: poses a turn "
             "relates differ only where a feature breaks the symmetry, or not at all ('not "
