@@ -310,12 +310,18 @@ class Node(CommandHandlers):
             self.pub.rebind()
             _log("key_revoked", level=logging.WARNING, keys=list(keyring.revoked))
 
+    @property
+    def _bus_elsewhere(self) -> bool:
+        """Another thread works on the bus, and the loop leaves it be: a new backend opening,
+        perhaps on the same bus (`reconfigure`), or a reset (`reset_job`)."""
+        return bool(self.reconf is not None and self.reconf.opening
+                    or self.resetting is not None)
+
     def _read(self) -> HandState | None:
         if self.backend is None or self.lifecycle.state is State.UNCONFIGURED:
             return None
-        if self.reconf is not None and self.reconf.opening or self.resetting is not None:
-            return None  # a new backend is opening, perhaps on the same bus, or a reset is
-            # at work on it: leave it be
+        if self._bus_elsewhere:
+            return None
         try:
             state = self.backend.read_hand()  # every finger, in one bus read
         except FirmwareError as exc:
@@ -438,8 +444,7 @@ class Node(CommandHandlers):
         cut = self.explorer.stop("fault") if self.explorer else None
         self._fail_start(StateError(f"faulted: {reason}"))
         self._hold_until_ns = None
-        if self.backend is not None and not (self.reconf and self.reconf.opening
-                                             or self.resetting is not None):
+        if self.backend is not None and not self._bus_elsewhere:
             # (a reset leaves torque off, and one this fault voids sends it once it is done)
             with contextlib.suppress(Exception):  # torque off is best effort on a lost bus
                 self.backend.set_torque(False)
@@ -454,7 +459,8 @@ class Node(CommandHandlers):
         """Publish the `fault` event, and the end of the episode it cut, held back while
         the bus asked its servos why its cycles failed (on a thread of its own: the loop
         goes on): with the words that found, once found (`wait`: now)."""
-        if self._fault_to_tell is None or not wait and self.backend.diagnosing:
+        if self._fault_to_tell is None or not wait and getattr(self.backend, "diagnosing",
+                                                               False):
             return
         (reason, cut), self._fault_to_tell = self._fault_to_tell, None
         told = reason if self.backend is None else self.backend.with_diagnosis(reason)

@@ -483,32 +483,26 @@ def test_an_estop_during_a_reset_voids_it(node: Node, monkeypatch) -> None:
     answered, an estop latches its fault at once, and the reset, done, is refused with the
     daemon still in fault; a reset after it clears the fault."""
     import threading
+    from concurrent.futures import ThreadPoolExecutor
 
     with Client(node.endpoints["cmd"], timeout_s=10.0) as ctl, \
-            Client(node.endpoints["cmd"], timeout_s=10.0) as other:
+            Client(node.endpoints["cmd"], timeout_s=10.0) as other, \
+            ThreadPoolExecutor(1) as asker:
         ctl.call("estop", reason="drill")
         release = threading.Event()
         clear = node.backend.clear_fault
         monkeypatch.setattr(node.backend, "clear_fault",
                             lambda: release.wait(10.0) and clear())
-        outcome: list[object] = []
-
-        def reset() -> None:
-            try:
-                outcome.append(ctl.call("reset"))
-            except CommandFailed as exc:
-                outcome.append(exc)
-
-        asking = threading.Thread(target=reset)
-        asking.start()
+        asking = asker.submit(ctl.call, "reset")
         while not other.status()["resetting"]:
-            assert asking.is_alive()
+            assert not asking.done()
         assert other.call("ping") == {"pong": True}
         assert other.call("estop", reason="again") == {"state": "fault"}
         assert "again" in other.status()["fault"]
         release.set()
-        asking.join()
-        assert isinstance(outcome[0], CommandFailed) and outcome[0].code == "bad_state"
-        assert "during the reset" in str(outcome[0])
+        with pytest.raises(CommandFailed) as refused:
+            asking.result()
+        assert refused.value.code == "bad_state"
+        assert "during the reset" in str(refused.value)
         assert ctl.status()["state"] == "fault" and not ctl.status()["resetting"]
         assert ctl.call("reset")["state"] == "inactive"

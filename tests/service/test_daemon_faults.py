@@ -7,8 +7,8 @@ from __future__ import annotations
 import dataclasses
 import logging
 import os
-import threading
 from collections.abc import Iterator
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import pytest
@@ -323,27 +323,20 @@ def test_the_loop_keeps_its_rate_while_a_reset_asks_a_silent_servo(rig) -> None:
     explore_until_moving(sub, ctl)
     buses[-1].fault(2).mute = True
     wait_fault(sub)
-    outcome: list[object] = []
-
-    def reset() -> None:
-        try:
-            outcome.append(ctl.call("reset"))
-        except CommandFailed as exc:
-            outcome.append(exc)
-
-    asking = threading.Thread(target=reset)
-    with Client(node.endpoints["cmd"], timeout_s=10.0) as other:
-        asking.start()
+    with Client(node.endpoints["cmd"], timeout_s=10.0) as other, \
+            ThreadPoolExecutor(1) as asker:
+        asking = asker.submit(ctl.call, "reset")
         seen = False
-        while asking.is_alive() and not seen:
+        while not asking.done() and not seen:
             seen = other.status()["resetting"]
         assert seen, "the reset was answered before status ever saw it at work"
         assert sub.wait_for(lambda m: m.topic == "state" and m["state"] == "fault", 1.0)
         assert other.call("ping") == {"pong": True}
         assert other.status()["resetting"], "over before the state and the ping came"
-        asking.join()
-    assert isinstance(outcome[0], CommandFailed) and outcome[0].code == "hardware"
-    assert "servo 2" in str(outcome[0]) and ctl.status()["state"] == "fault"
+        with pytest.raises(CommandFailed) as refused:
+            asking.result()
+    assert refused.value.code == "hardware"
+    assert "servo 2" in str(refused.value) and ctl.status()["state"] == "fault"
     buses[-1].fault(2).mute = False
     assert ctl.call("reset")["state"] == "inactive"
     assert not ctl.status()["resetting"]

@@ -570,8 +570,8 @@ def test_no_half_turned_image_of_two_lobes_half_a_millimetre_apart_is_declared()
     degrees (seed 37 alike, at step 49). On the leader's 64 readings the image fits 4.9
     nats worse with the readings tempered by their patches as a whole (`patch_temper`),
     2.3 with each reading weighed by its share of its patch. So weighed throughout (tried,
-    not kept), seed 19 stayed undeclared, but seed 37 declared its image at step 15: its
-    readings alone in their patches favoured the image."""
+    not kept), seed 19 stayed undeclared, but seed 37 declared its image at step 15 at a
+    share of 99.97 %, where its 18 readings unweighed put the image 3.4 nats behind."""
     report = simulate_hand(HandSettings(object=str(DATA / "two_lobes_half_mm_apart.csv"),
                                         hand="three-finger", seed=19, noise=True,
                                         max_steps=55))

@@ -13,7 +13,6 @@ import numpy as np
 from service.localization.localizers.contour_fit import (
     correlated_spread,
     distinct_places,
-    fit_log_likelihood,
     refine,
     residuals,
 )
@@ -32,9 +31,6 @@ def offset_log_likelihood(ctx: ObjectContext, poses: np.ndarray, points: np.ndar
     far off can fit such readings better than the truth (rounded:8, seed 8, three fingers:
     every reading 0.0-0.9 mm outside the truth, 0.25-0.75 mm on average per finger's arc;
     a pose 125 degrees off was declared at 0.9994). No offset when the model is exact."""
-    if ctx.mismatch_length <= 0:
-        return temper * fit_log_likelihood(ctx.field, poses, points, radii, sd,
-                                           ctx.outlier_probability, ctx.outlier_range)
     return offset_log_likelihood_of(ctx, residuals(ctx.field, poses, points, radii), sd,
                                     temper)
 
@@ -43,13 +39,10 @@ def offset_log_likelihood_of(ctx: ObjectContext, r: np.ndarray, sd: float | np.n
                              temper: float) -> np.ndarray:
     """`offset_log_likelihood` from the residuals (N, K) already computed, positive outside:
     what a pool that keeps its members' residuals weighs them by."""
-    ok = np.ones(r.shape, dtype=bool)
-    if ctx.mismatch_length <= 0:
-        ll = log_likelihood(r, ok, sd, ctx.outlier_probability, ctx.outlier_range)
-        return temper * np.where(np.isfinite(ll), ll, -np.inf)
-    offset = shared_offset(ctx, r, sd)
-    ll = log_likelihood(r - offset[:, None], ok, sd, ctx.outlier_probability,
-                        ctx.outlier_range)
+    offset = (shared_offset(ctx, r, sd) if ctx.mismatch_length > 0
+              else np.zeros(len(r)))
+    ll = log_likelihood(r - offset[:, None], np.ones(r.shape, dtype=bool), sd,
+                        ctx.outlier_probability, ctx.outlier_range)
     ll = temper * np.where(np.isfinite(ll), ll, -np.inf)
     return ll - 0.5 * (offset / ctx.sigma) ** 2
 
