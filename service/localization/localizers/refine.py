@@ -13,6 +13,7 @@ import dataclasses
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.spatial.distance import cdist
 
 from service.localization.localizers.base import wrap_angle
 from service.localization.localizers.fitting import (
@@ -219,8 +220,8 @@ def shared_error(history: np.ndarray, error_sd: float, length: float) -> np.ndar
     """(K, K) covariance of the error the readings share where the map differs from the
     object smoothly: sd `error_sd`, a Gaussian correlation over `length` (as far apart as
     readings a step apart, about 0.6)."""
-    d2 = np.sum((history[:, None, :2] - history[None, :, :2]) ** 2, axis=-1)
-    return error_sd**2 * np.exp(-0.5 * d2 / length**2)
+    xy = history[:, :2]
+    return error_sd**2 * np.exp(-0.5 / length**2 * cdist(xy, xy, "sqeuclidean"))
 
 
 def _sd(variance: float) -> float:
