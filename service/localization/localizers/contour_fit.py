@@ -9,6 +9,7 @@ offset: the hand measures centres in its own frame, and so does the pose.
 from __future__ import annotations
 
 import numpy as np
+from scipy.linalg import solve_triangular
 
 from service.localization.localizers.base import wrap_angle
 from service.localization.localizers.fitting import log_likelihood
@@ -52,6 +53,33 @@ def gauss_newton(field: ContactField, poses: np.ndarray, points: np.ndarray, rad
     lever = max(field.contour.max_radius + 0.01, max_move or 0.0)  # centroid to a tip centre
     return kernels.gauss_newton(*field.args, _rows(poses), _rows(points), _rows(radii),
                                 _rows(weights), iterations, damping, max_move or 0.0, lever)
+
+
+def whitened_fit(field: ContactField, pose: np.ndarray, points: np.ndarray,
+                 radii: np.ndarray, chol: np.ndarray, iterations: int, max_move: float
+                 ) -> tuple[np.ndarray, float]:
+    """Damped Gauss-Newton from `pose` with the readings' errors correlated: covariance
+    `chol` @ `chol`.T (lower Cholesky factor), residuals and Jacobian whitened by it
+    (generalized least squares); steps capped at `max_move` metres (and max_move / lever
+    radians) as `gauss_newton`'s. Returns the pose and its chi-square."""
+    lever = field.contour.max_radius + 0.01
+    pose = np.asarray(pose, dtype=np.float64).copy()
+    for _ in range(iterations):
+        r, j = _model(field, points, radii, pose)
+        white = solve_triangular(chol, np.column_stack([r, j]), lower=True)
+        r, j = white[:, 0], white[:, 1:]
+        normal = j.T @ j
+        normal += 1e-6 * np.diag(np.diag(normal))
+        try:
+            step = -np.linalg.solve(normal, j.T @ r)
+        except np.linalg.LinAlgError:
+            break
+        if not np.all(np.isfinite(step)):
+            break
+        pose += step / max(np.hypot(step[0], step[1]) / max_move,
+                           abs(step[2]) * lever / max_move, 1.0)
+    r = solve_triangular(chol, _model(field, points, radii, pose)[0], lower=True)
+    return pose, float(r @ r)
 
 
 def _model(field: ContactField, points: np.ndarray, radii: np.ndarray, pose: np.ndarray

@@ -33,6 +33,7 @@ from service.localization.localizers.object_certificate import rivals_beyond
 from service.localization.localizers.object_tracks import ObjectTracks, near, tolerance
 from service.localization.localizers.refine import Fit
 from service.localization.localizers.shared_error import (
+    correlated_fits,
     offset_log_likelihood,
     offset_refit,
     patch_temper,
@@ -162,6 +163,10 @@ def judge(ctx: ObjectContext, points: np.ndarray, radii: np.ndarray, tracks: Obj
             _floored(ctx, lead_points, lead_radii, fit), patch_temper(ctx, lead_points)))
         held = rule.unmet(readings=places - 1, noisy=noisy, mode_mass=mass, fit=fit,
                           step_length=scale)
+        if not held and noisy and ctx.mismatch_length > 0 and len(others) and _correlated_mass(
+                ctx, fit, others, lead_points, lead_radii, lead_sd) < rule.mode_mass:
+            held = ("another pose fits nearly as well once the readings' errors are weighed "
+                    "as shared over each patch")
         if not held and not (order[0] < len(tracks.centres)
                              and tracks.carries[int(order[0])] >= epoch):
             held = "it was found since the last turn: the readings before it are not its own"
@@ -178,6 +183,22 @@ def judge(ctx: ObjectContext, points: np.ndarray, radii: np.ndarray, tracks: Obj
     return ObjectVerdict(fit, mass, runner, runner_mass, False,
                          awaiting=(lead_points, lead_radii, lead_sd) if converged else None,
                          held_back=held)
+
+
+def _correlated_mass(ctx: ObjectContext, fit: Fit, others: np.ndarray, points: np.ndarray,
+                     radii: np.ndarray, sd: np.ndarray) -> float:
+    """The leader's share beside `others` (its rivals and images) on the readings it kept,
+    each pose fitted with the readings' errors weighed as shared (`correlated_fits`);
+    poses that fit onto the leader's answer count as the leader."""
+    kept = np.arange(len(points)) if fit.kept is None else fit.kept
+    ends, chi2 = correlated_fits(ctx, np.vstack([[fit.pose], others]), points[kept],
+                                 radii[kept], sd[kept])
+    if not np.isfinite(chi2[0]):
+        return 0.0
+    w = np.exp(-0.5 * (chi2 - chi2.min()))
+    same = near(ends, ends[:1], *tolerance(ctx))[:, 0]
+    same[0] = True
+    return float(w[same].sum() / w.sum())
 
 
 SPLIT_CHI2 = 11.34

@@ -9,16 +9,22 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
+from scipy.linalg import LinAlgError, cholesky
 
 from service.localization.localizers.contour_fit import (
     correlated_spread,
     distinct_places,
     refine,
     residuals,
+    whitened_fit,
 )
 from service.localization.localizers.fitting import log_likelihood
 from service.localization.localizers.object_base import ObjectContext
-from service.localization.localizers.refine import Fit
+from service.localization.localizers.refine import Fit, shared_error
+
+FIT_ITERATIONS = 10
+"""Gauss-Newton steps that fit each pose `correlated_fits` weighs (capped as the images'
+polish is, a quarter of the object's scale a step)."""
 
 
 def offset_log_likelihood(ctx: ObjectContext, poses: np.ndarray, points: np.ndarray,
@@ -52,6 +58,33 @@ def shared_offset(ctx: ObjectContext, r: np.ndarray, sd: float | np.ndarray) -> 
     towards zero by a prior of sd `ctx.sigma`."""
     w = np.broadcast_to(1.0 / np.asarray(sd, dtype=np.float64) ** 2, r.shape[1:])
     return (r * w).sum(axis=1) / (w.sum() + 1.0 / ctx.sigma**2)
+
+
+def correlated_fits(ctx: ObjectContext, poses: np.ndarray, points: np.ndarray,
+                    radii: np.ndarray, sd: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Each of `poses` fitted to the readings with their errors weighed as the world makes
+    them (generalized least squares, `contour_fit.whitened_fit`), and its chi-square: each
+    reading's own sd `sd`, the mismatch readings share over `mismatch_length` (as
+    `with_shared_error`), and the one offset all of them share (prior sd `ctx.sigma`, as
+    `offset_log_likelihood`). Infinite where a covariance cannot be factored or a pose
+    leaves a reading unexplained.
+
+    Tempering by patches counts a patch's readings as one whatever they say. On two lobes
+    0.5 mm apart in radius (three fingers, seed 19) the half-turned image was declared at
+    99.9 %: counted independent, the leader's 64 readings fitted the truth 82 worse in
+    chi-square than the image; weighed so, each pose fitted, 5.3 better."""
+    sd = np.broadcast_to(np.asarray(sd, dtype=np.float64), (len(points),))
+    cov = (np.diag(sd**2) + ctx.sigma**2
+           + shared_error(points, ctx.mismatch_sd, np.sqrt(2.0) * ctx.mismatch_length))
+    try:
+        chol = cholesky(cov, lower=True)
+    except LinAlgError:
+        return np.asarray(poses, dtype=np.float64), np.full(len(poses), np.inf)
+    fitted = [whitened_fit(ctx.field, pose, points, radii, chol, iterations=FIT_ITERATIONS,
+                           max_move=0.25 * ctx.scale) for pose in poses]
+    chi2 = np.array([c for _, c in fitted])
+    return (np.array([pose for pose, _ in fitted]).reshape(-1, 3),
+            np.where(np.isfinite(chi2), chi2, np.inf))
 
 
 def offset_refit(ctx: ObjectContext, points: np.ndarray, radii: np.ndarray, sd: np.ndarray,
