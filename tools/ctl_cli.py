@@ -367,7 +367,7 @@ class Follower:
             print(f"result    localized in {steps_text(steps)}")
             return 0
         if est.get("reason") == "stuck":
-            print(f"result    not localized after {steps} steps: {NO_SAFE_MOVE}")
+            print(f"result    not localized after {steps_text(steps)}: {NO_SAFE_MOVE}")
             return 1
         why = why_not_converged(candidates=int(est.get("candidates", 0)), steps=steps,
                                 max_steps=self.max_steps, pose=est.get("pose"),
@@ -375,7 +375,7 @@ class Follower:
                                 runner_up_mass=est.get("runner_up_mass"), second=axis,
                                 where="of the object in the hand" if self.hand
                                 else "on this map")
-        print(f"result    not localized after {steps} steps: {why}")
+        print(f"result    not localized after {steps_text(steps)}: {why}")
         return 1
 
 

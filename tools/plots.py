@@ -170,12 +170,12 @@ def _legend_handles() -> list[Line2D]:
 def _outcome(report: EpisodeReport) -> str:
     s, steps = report.score, len(report.result.steps)
     if report.result.fault is not None:
-        return f"stopped by a hardware fault after {steps} steps"
+        return f"stopped by a hardware fault after {steps_text(steps)}"
     if s.success:
         return f"localized in {steps_text(steps)}"
     if s.wrong_declaration:
-        return f"WRONG pose declared after {steps} steps"
-    return f"not localized after {steps} steps"
+        return f"WRONG pose declared after {steps_text(steps)}"
+    return f"not localized after {steps_text(steps)}"
 
 
 def step_errors(report: EpisodeReport) -> tuple[np.ndarray, np.ndarray]:

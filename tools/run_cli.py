@@ -166,7 +166,7 @@ def _print_summary(report: EpisodeReport) -> None:
               f"{s.position_error * 1e3:.2f} mm, "
               f"heading error {math.degrees(s.heading_error):.1f} deg")
     elif s.wrong_declaration:
-        print(f"result    WRONG: converged after {steps} steps on a pose "
+        print(f"result    WRONG: converged after {steps_text(steps)} on a pose "
               f"{s.position_error * 1e3:.1f} mm / {math.degrees(s.heading_error):.1f} deg away")
     else:
         why = why_not_converged(
@@ -179,7 +179,7 @@ def _print_summary(report: EpisodeReport) -> None:
             where=("of its pose table (a start between the table's poses fits none: `particles` "
                    "searches the whole map)" if report.settings.algorithm == "elimination"
                    else "on this map"))
-        print(f"result    not localized after {steps} steps: {why}")
+        print(f"result    not localized after {steps_text(steps)}: {why}")
         if est is not None and est.pose is not None and s.position_error is not None:
             print(f"          (the leading pose is {s.position_error * 1e3:.1f} mm / "
                   f"{math.degrees(s.heading_error):.1f} deg from the truth)")

@@ -107,6 +107,11 @@ def percent(share: float) -> str:
     return f"{p:.0f}"
 
 
+OTHERS_NAMED = 0.05
+"""Least share left beyond the two poses named that an ambiguity names too, as "other
+poses"."""
+
+
 def why_not_converged(*, candidates: int, steps: int, max_steps: int,
                       pose: Sequence[float] | None, mode_mass: float | None,
                       runner_up: Sequence[float] | None,
@@ -135,7 +140,11 @@ def why_not_converged(*, candidates: int, steps: int, max_steps: int,
                  f"{pose_text(runner_up, second=second)}{share}"]
         if (runner_up_mass or 0.0) > (mode_mass or 0.0):  # the likelier first: a leader
             poses.reverse()  # whose rival fits better once both are fitted weighs 0 %
-        parts.append(f"still ambiguous between {poses[0]} and {poses[1]}")
+        rest = 1.0 - (mode_mass or 0.0) - (runner_up_mass or 0.0)
+        if mode_mass is not None and runner_up_mass is not None and rest >= OTHERS_NAMED:
+            poses.append(f"other poses ({percent(rest)} %)")  # a held-out check read "between
+            # A (8 %) and B (8 %)", as if two poses shared what 84 % said was anywhere
+        parts.append(f"still ambiguous between {', '.join(poses[:-1])} and {poses[-1]}")
     else:
         parts.append(f"the leading pose {pose_text(pose, second=second)}{lead} is not yet "
                      "clear of the rest")

@@ -15,7 +15,12 @@ from service.localization.objects.contour import check_fits, make_contour
 from service.localization.objects.field import contact_field
 from service.localization.objects.files import check_object_spec, load_object
 from service.localization.objects.presets import PRESETS, preset_object
-from service.localization.objects.symmetry import images, near_symmetries
+from service.localization.objects.symmetry import (
+    images,
+    named_turns,
+    near_symmetries,
+    symmetry_warning,
+)
 
 DATA = Path(__file__).parent / "data"
 
@@ -63,6 +68,17 @@ def test_field_matches_exact_distances_and_has_unit_gradient():
     assert near.sum() > 20
     np.testing.assert_allclose(d[near], exact[near], atol=2e-5)
     np.testing.assert_allclose(np.hypot(gu, gv)[near], 1.0, atol=0.05)
+
+
+def test_a_warning_names_each_near_symmetry_once():
+    """A held-out rounded triangle, one side 0.5 mm longer: its third-turn fitted onto two
+    motions 3 degrees apart, and the warning named turns "116, 119, -119"."""
+    field = contact_field(load_object(
+        str(Path(__file__).parent / "data" / "rounded_triangle_one_side_longer.csv")))
+    assert len(near_symmetries(field)) == 3  # the localizers still test every image
+    warning = symmetry_warning(field)
+    assert warning is not None and "under a turn of 119, -119 degrees" in warning
+    assert named_turns(np.array([[2.0, 0, 0], [2.05, 0, 0], [-2.0, 0, 0]])) == [2.0, -2.0]
 
 
 def test_near_symmetries_find_the_half_turns():

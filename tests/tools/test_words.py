@@ -40,8 +40,23 @@ def test_an_ambiguity_names_the_likelier_pose_first():
     text = why_not_converged(candidates=10, steps=60, max_steps=60, pose=(0.131, 0.048, 4.05),
                              mode_mass=0.0, runner_up=(0.068, 0.151, 0.91),
                              runner_up_mass=0.48)
-    first, second = text.split("still ambiguous between ")[1].split(" and ")
-    assert "x   68.00 mm" in first and first.endswith("(48 %)") and second.endswith("(0 %)")
+    first, second = text.split("still ambiguous between ")[1].split(", ")
+    assert "x   68.00 mm" in first and first.endswith("(48 %)")
+    assert second.endswith("(0 %) and other poses (52 %)")
+
+
+def test_an_ambiguity_says_how_much_lies_beyond_the_two_poses_it_names():
+    """A held-out check read "still ambiguous between A (8 %) and B (8 %)": the other 84 %
+    was on poses it did not name."""
+    from tools.words import why_not_converged
+
+    spread = why_not_converged(candidates=10, steps=60, max_steps=60, pose=(0.1, 0.0, 0.0),
+                               mode_mass=0.08, runner_up=(0.0, 0.1, 1.0),
+                               runner_up_mass=0.08)
+    assert spread.endswith("(8 %) and other poses (84 %)")
+    two = why_not_converged(candidates=10, steps=60, max_steps=60, pose=(0.1, 0.0, 0.0),
+                            mode_mass=0.6, runner_up=(0.0, 0.1, 1.0), runner_up_mass=0.38)
+    assert "other poses" not in two and two.endswith("(38 %)")
 
 
 def test_a_localizer_that_says_what_held_it_back_is_quoted():

@@ -106,6 +106,22 @@ def images(pose: np.ndarray, motions: np.ndarray) -> np.ndarray:
     return np.column_stack([x, z, heading])
 
 
+NAMED_APART = np.deg2rad(5.0)
+"""Turns closer than this are named once in a warning: a near symmetry's fit may land on
+two motions a few degrees apart (a held-out triangle, one side 0.5 mm longer, was warned
+of turns "116, 119, -119")."""
+
+
+def named_turns(motions: np.ndarray) -> list[float]:
+    """The distinct turns of `motions` (best match first), each named once: those within
+    `NAMED_APART` of a better match are the same turn."""
+    named: list[float] = []
+    for turn in motions[:, 0]:
+        if all(abs(np.angle(np.exp(1j * (turn - t)))) >= NAMED_APART for t in named):
+            named.append(float(turn))
+    return named
+
+
 def symmetry_warning(field: ContactField) -> str | None:
     """A warning for an outline that nearly repeats under turns (`near_symmetries`), as a
     map's check gives one: a held-out lab's 44 x 11 mm outline, its ends 15 % apart in
@@ -117,7 +133,7 @@ def symmetry_warning(field: ContactField) -> str | None:
         return ("the outline is nearly round over most of it: most turns map all but a "
                 "feature onto itself, so only where it departs from round (a flat, a notch, "
                 "a bump) tells the heading, and without one 'not yet' is the right answer")
-    turns = ", ".join(f"{np.degrees(t):.0f}" for t in sorted(motions[:, 0], key=abs))
+    turns = ", ".join(f"{np.degrees(t):.0f}" for t in sorted(named_turns(motions), key=abs))
     return (f"the outline nearly repeats under a turn of {turns} degrees: poses a turn "
             "relates differ only where a feature breaks the symmetry, or not at all ('not "
             "yet' is then the right answer)")
