@@ -12,7 +12,12 @@ from scipy import signal
 
 from service.episode.scenario import RunSettings
 from service.episode.simulate import simulate
-from service.localization.localizers.convergence import ConvergenceRule, distinct, group_modes
+from service.localization.localizers.convergence import (
+    ConvergenceRule,
+    distinct,
+    group_modes,
+    share_text,
+)
 from service.localization.localizers.refine import Fit
 from service.localization.localizers.sweep import turns_to_check
 from service.localization.localizers.symmetry import (
@@ -541,6 +546,15 @@ def test_no_near_miss_on_shell_42_seed_14():
     (`test_the_valley_weighs_readings_that_err_together_as_one_error` has its readings)."""
     report = simulate(RunSettings(map="shell:20:42", noise=True, seed=14, max_steps=60))
     assert not report.score.wrong_declaration
+
+
+@pytest.mark.parametrize(("mass", "said"), [(0.998999, "99.89 %"), (0.997199, "99.71 %"),
+                                          (0.97, "97 %"), (0.5, "50 %"), (1.0, "100 %"),
+                                          (0.000123456, "0.01234 %"), (0.0, "0 %")])
+def test_a_share_in_words_is_cut_never_rounded_up_to_its_bar(mass, said):
+    """A share of 0.998999 read "99.9 %" beside a bar of 99.9 %; a held-out check read
+    "(99.71 %)" in the estimate and "its share 99.72 %" in the words after it."""
+    assert share_text(mass) == said
 
 
 @pytest.mark.parametrize(("change", "words"), [
