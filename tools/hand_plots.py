@@ -17,6 +17,7 @@ from service.episode.hand_episode import HandEpisodeReport  # noqa: E402
 from service.localization.grasp import cone_edges  # noqa: E402
 from service.localization.objects.contour import Contour  # noqa: E402
 from service.localization.objects.rolling import contacts  # noqa: E402
+from tools.words import steps_text  # noqa: E402
 
 
 def _placed(contour: Contour, pose) -> np.ndarray:
@@ -104,7 +105,7 @@ def hand_figure(report: HandEpisodeReport, path: Path) -> None:
     if report.result.fault is not None:
         result, why = "stopped by a hardware fault", ""
     left.set_title(f"{report.parts.contour.name} in {report.parts.hand.name}: {result} "
-                   f"after {len(report.result.steps)} steps{why}")
+                   f"after {steps_text(len(report.result.steps))}{why}")
     draw_quality(right, report)
     fig.tight_layout()
     fig.savefig(path, dpi=110)

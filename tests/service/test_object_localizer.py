@@ -136,31 +136,65 @@ def test_refine_recovers_a_pose_from_exact_readings():
     assert pose_error(fit.pose, pose)[0] < 2e-5 and fit.rms < 1.0
 
 
-def test_a_whitened_fit_with_independent_errors_is_least_squares():
-    """`contour_fit.whitened_fit` with a diagonal covariance lands where `refine` does, and
-    its chi-square is the readings' own."""
+def _readings_around(ctx_or_parts, pose, count, tip=0.008, bulge=None):
+    """Fingertip centres of radius `tip` touching the outline under `pose` at `count`
+    places spread around it (each pushed out by `bulge`, metres, if given)."""
+    contour = ctx_or_parts.field.contour if hasattr(ctx_or_parts, "field") else \
+        ctx_or_parts.contour
+    outline, normals = contour.resampled(0.0005)
+    idx = np.linspace(0, len(outline), count, endpoint=False).astype(int)
+    out = tip + (np.zeros(count) if bulge is None else bulge)
+    return object_tracks.from_object(outline[idx] + out[:, None] * normals[idx], pose)
+
+
+def test_a_whitened_fit_is_generalized_least_squares():
+    """`contour_fit.whitened_fit` with readings whose errors are correlated lands where a
+    general least-squares solver on the whitened residuals does, and its chi-square is
+    r^T C^-1 r there."""
+    from scipy.linalg import cholesky, solve_triangular
+    from scipy.optimize import least_squares
+
+    from service.localization.localizers.refine import shared_error
+
     parts = load_parts(THREE)
     pose = np.array([0.001, -0.002, 0.6])
-    outline, normals = parts.contour.resampled(0.004)
-    local = outline[::3] + (0.008 + np.random.default_rng(5).normal(0.0, 2e-4, len(
-        outline[::3])))[:, None] * normals[::3]
-    c, s = np.cos(pose[2]), np.sin(pose[2])
-    points = local @ np.array([[c, s], [-s, c]]) + pose[:2]
-    radii, sd = np.full(len(points), 0.008), 2e-4
+    bumps = np.random.default_rng(5).normal(0.0, 2e-4, 24)
+    points = _readings_around(parts, pose, 24, bulge=bumps)
+    radii = np.full(len(points), 0.008)
+    cov = np.diag(np.full(len(points), 2e-4) ** 2) + shared_error(points, 3e-4, 0.01) + 1e-8
+    chol = cholesky(cov, lower=True)
     start = pose + [0.0005, -0.0003, 0.02]
-    fitted, chi2 = contour_fit.whitened_fit(parts.field, start, points, radii,
-                                            sd * np.eye(len(points)), 12, 0.01)
-    least = refine(parts.field, points, radii, start, sd, max_outliers=0)
-    assert pose_error(fitted, least.pose)[0] < 1e-6
+    fitted, chi2 = contour_fit.whitened_fit(parts.field, start, points, radii, chol, 12, 0.01)
+
+    def whitened(p):
+        r = contour_fit.residuals(parts.field, p[None], points, radii)[0]
+        return solve_triangular(chol, r, lower=True)
+
+    solved = least_squares(whitened, start, xtol=1e-12, ftol=1e-12).x
+    assert np.hypot(*(fitted[:2] - solved[:2])) < 1e-6
+    assert abs(wrap_angle(fitted[2] - solved[2])) < 1e-6
     r = contour_fit.residuals(parts.field, fitted[None], points, radii)[0]
-    assert chi2 == pytest.approx(np.sum((r / sd) ** 2))
+    assert chi2 == pytest.approx(r @ np.linalg.solve(cov, r))
+
+
+def test_a_refined_contour_fit_says_which_readings_it_kept():
+    """`contour_fit.refine` sets an outlier aside, and says so (`Fit.kept`, as the finger's
+    refine does): the judge weighs only the kept readings again."""
+    parts = load_parts(THREE)
+    pose = np.array([0.001, -0.002, 0.6])
+    off = np.zeros(24)
+    off[7] = 0.003  # 3 mm outside the outline
+    points = _readings_around(parts, pose, 24, bulge=off)
+    fit = refine(parts.field, points, np.full(len(points), 0.008), pose, 2e-4, max_outliers=2)
+    assert fit.kept is not None and 7 not in fit.kept and len(fit.kept) == 23
 
 
 def test_errors_shared_over_a_patch_count_as_one_error():
     """`shared_error.correlated_fits`: a world whose outline bulges 0.4 mm over one patch
     pushes every reading there outward alike. Counted independent, the truth misfits them
     by many times the noise; weighed as the world makes them (shared over the patch, and
-    one offset shared by all) the truth costs about what one such error does."""
+    one offset shared by all) it costs about what one such error does. At the truth itself
+    (no steps): fitted, a pose absorbs the bulge either way."""
     settings = HandSettings(object="keyed:3", hand="three-finger", noise=True)
     ctx = build_localizer(settings, load_parts(settings), np.random.default_rng(0)).ctx
     tip = 0.008
@@ -171,8 +205,32 @@ def test_errors_shared_over_a_patch_count_as_one_error():
     radii, sd = np.full(len(points), tip), np.full(len(points), ctx.sigma)
     r = contour_fit.residuals(ctx.field, np.zeros((1, 3)), points, radii)[0]
     assert np.sum((r / sd) ** 2) > 8 * (0.0004 / ctx.sigma) ** 2 * 0.9
-    _, chi2 = shared_error.correlated_fits(ctx, np.zeros((1, 3)), points, radii, sd)
+    _, chi2 = shared_error.correlated_fits(ctx, np.zeros((1, 3)), points, radii, sd,
+                                           iterations=0)
     assert chi2[0] < 2 * (0.0004 / ctx.mismatch_sd) ** 2
+
+
+def test_the_shared_weighing_tells_two_lobes_from_their_half_turn():
+    """`object_judge._correlated_mass` on readings all around two lobes 0.5 mm apart in
+    radius, the world bulging by B2's mismatch: the truth holds nearly all the weight
+    beside its half-turned image, and the image, as the leader, nearly none."""
+    from service.localization.objects.symmetry import images, near_symmetries
+
+    settings = HandSettings(object=str(DATA / "two_lobes_half_mm_apart.csv"),
+                            hand="three-finger", noise=True)
+    ctx = build_localizer(settings, load_parts(settings), np.random.default_rng(0)).ctx
+    truth = np.array([0.001, -0.002, 0.3])
+    (image,) = images(truth, near_symmetries(ctx.field))
+    bulge = np.random.default_rng(3).normal(0.0, ctx.mismatch_sd, 40)
+    points = _readings_around(ctx, truth, 40, bulge=bulge)
+    radii, sd = np.full(len(points), 0.008), np.full(len(points), ctx.sigma)
+
+    def mass(lead, other):
+        fit = assess(ctx.field, points, radii, lead, sd)
+        return object_judge._correlated_mass(ctx, fit, other[None], points, radii, sd)
+
+    assert mass(truth, image) > 0.999
+    assert mass(image, truth) < 0.001
 
 
 def test_the_localizer_follows_a_carried_object():

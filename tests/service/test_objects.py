@@ -79,6 +79,8 @@ def test_a_warning_names_each_near_symmetry_once():
     warning = symmetry_warning(field)
     assert warning is not None and "under a turn of 119, -119 degrees" in warning
     assert named_turns(np.array([[2.0, 0, 0], [2.05, 0, 0], [-2.0, 0, 0]])) == [2.0, -2.0]
+    assert named_turns(np.array([[np.pi - 0.01, 0, 0], [-np.pi + 0.01, 0, 0]])) == [
+        np.pi - 0.01]  # a half turn either way is one turn
 
 
 def test_near_symmetries_find_the_half_turns():

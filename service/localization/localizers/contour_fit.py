@@ -8,6 +8,8 @@ offset: the hand measures centres in its own frame, and so does the pose.
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 from scipy.linalg import solve_triangular
 
@@ -58,28 +60,35 @@ def gauss_newton(field: ContactField, poses: np.ndarray, points: np.ndarray, rad
 def whitened_fit(field: ContactField, pose: np.ndarray, points: np.ndarray,
                  radii: np.ndarray, chol: np.ndarray, iterations: int, max_move: float
                  ) -> tuple[np.ndarray, float]:
-    """Damped Gauss-Newton from `pose` with the readings' errors correlated: covariance
-    `chol` @ `chol`.T (lower Cholesky factor), residuals and Jacobian whitened by it
-    (generalized least squares); steps capped at `max_move` metres (and max_move / lever
-    radians) as `gauss_newton`'s. Returns the pose and its chi-square."""
-    lever = field.contour.max_radius + 0.01
+    """Damped Gauss-Newton from `pose` with the readings' errors correlated, of covariance
+    `chol` @ `chol`.T (`chol` its lower Cholesky factor): residuals and Jacobian whitened
+    by it (generalized least squares). Steps are capped as `gauss_newton`'s (`max_move`
+    metres, and max_move / lever radians; none at or below zero). Returns the best pose
+    met and its chi-square."""
+    lever = max(field.contour.max_radius + 0.01, max_move)
     pose = np.asarray(pose, dtype=np.float64).copy()
-    for _ in range(iterations):
+    best, best_chi2 = pose.copy(), np.inf
+    for i in range(iterations + 1):
         r, j = _model(field, points, radii, pose)
         white = solve_triangular(chol, np.column_stack([r, j]), lower=True)
         r, j = white[:, 0], white[:, 1:]
+        chi2 = float(r @ r)
+        if chi2 < best_chi2:
+            best, best_chi2 = pose.copy(), chi2
+        if i == iterations:
+            break
         normal = j.T @ j
         normal += 1e-6 * np.diag(np.diag(normal))
         try:
             step = -np.linalg.solve(normal, j.T @ r)
         except np.linalg.LinAlgError:
             break
-        if not np.all(np.isfinite(step)):
-            break
-        pose += step / max(np.hypot(step[0], step[1]) / max_move,
-                           abs(step[2]) * lever / max_move, 1.0)
-    r = solve_triangular(chol, _model(field, points, radii, pose)[0], lower=True)
-    return pose, float(r @ r)
+        if max_move > 0:
+            step /= max(np.hypot(step[0], step[1]) / max_move,
+                        abs(step[2]) * lever / max_move, 1.0)
+        pose += step
+    best[2] = wrap_angle(best[2])
+    return best, best_chi2
 
 
 def _model(field: ContactField, points: np.ndarray, radii: np.ndarray, pose: np.ndarray
@@ -138,7 +147,8 @@ def refine(field: ContactField, points: np.ndarray, radii: np.ndarray, start: np
         if r[worst] <= outlier_gate or use.sum() - 1 < 6 or (~use).sum() >= max_outliers:
             break
         use[worst] = False
-    return _fit_at(field, points[use], radii[use], pose, sigma[use])
+    fit = _fit_at(field, points[use], radii[use], pose, sigma[use])
+    return fit if use.all() else dataclasses.replace(fit, kept=np.flatnonzero(use))
 
 
 def _solve(field: ContactField, points: np.ndarray, radii: np.ndarray, sigma: np.ndarray,

@@ -52,6 +52,13 @@ ADOPT = 1e-5
 (`object_certificate`) joins the tracks: the localizer had lost it, and the next updates
 must weigh it. Low enough that rivals which hold a declaration back only together join
 too: else the check refuses at every step while the tracks never learn why."""
+FOUND_WEIGHED = 4
+"""Most poses the whole-object check found, heaviest first, that `confirm` weighs again
+with the readings' errors shared (`_correlated_mass`: a fit of each), beside the rivals."""
+SHARED_HELD = ("another pose fits nearly as well once the readings' errors are weighed as "
+               "shared over each patch")
+
+
 @dataclass(frozen=True)
 class ObjectVerdict:
     fit: Fit | None
@@ -65,6 +72,9 @@ class ObjectVerdict:
     awaiting: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
     """Every other check passed: the leader's readings, radii and sds the whole-object
     check (`confirm`) is still to be run on before the pose is declared."""
+    rivals: np.ndarray = field(default_factory=lambda: np.empty((0, 3)))
+    """With `awaiting`: the rivals and images the final weighing set beside the fit, which
+    `confirm` weighs again with the readings' errors shared."""
     leader: tuple[float, float, float] | None = None
     """With no `fit`, the pose `mode_mass` and `runner_up` are reckoned beside (the tracks'
     heaviest): the estimate shows it, so it is never shown beside itself as its own rival."""
@@ -163,10 +173,6 @@ def judge(ctx: ObjectContext, points: np.ndarray, radii: np.ndarray, tracks: Obj
             _floored(ctx, lead_points, lead_radii, fit), patch_temper(ctx, lead_points)))
         held = rule.unmet(readings=places - 1, noisy=noisy, mode_mass=mass, fit=fit,
                           step_length=scale)
-        if not held and noisy and ctx.mismatch_length > 0 and len(others) and _correlated_mass(
-                ctx, fit, others, lead_points, lead_radii, lead_sd) < rule.mode_mass:
-            held = ("another pose fits nearly as well once the readings' errors are weighed "
-                    "as shared over each patch")
         if not held and not (order[0] < len(tracks.centres)
                              and tracks.carries[int(order[0])] >= epoch):
             held = "it was found since the last turn: the readings before it are not its own"
@@ -182,23 +188,26 @@ def judge(ctx: ObjectContext, points: np.ndarray, radii: np.ndarray, tracks: Obj
     # the whole-object check, which costs most, is left to `confirm`
     return ObjectVerdict(fit, mass, runner, runner_mass, False,
                          awaiting=(lead_points, lead_radii, lead_sd) if converged else None,
-                         held_back=held)
+                         rivals=others if converged else np.empty((0, 3)), held_back=held)
 
 
 def _correlated_mass(ctx: ObjectContext, fit: Fit, others: np.ndarray, points: np.ndarray,
                      radii: np.ndarray, sd: np.ndarray) -> float:
-    """The leader's share beside `others` (its rivals and images) on the readings it kept,
-    each pose fitted with the readings' errors weighed as shared (`correlated_fits`);
-    poses that fit onto the leader's answer count as the leader."""
+    """The share of `fit`'s pose beside `others` (rivals, images, poses found anywhere) on
+    the readings it kept, each pose fitted with the readings' errors weighed as shared
+    (`shared_error.correlated_fits`), one per place they end (the best), those ending
+    within the tolerance of the fit's pose counting as it. 0 if the fit's own pose,
+    so fitted, slides beyond the tolerance: a pose nearby fits better."""
     kept = np.arange(len(points)) if fit.kept is None else fit.kept
     ends, chi2 = correlated_fits(ctx, np.vstack([[fit.pose], others]), points[kept],
                                  radii[kept], sd[kept])
-    if not np.isfinite(chi2[0]):
+    tol = tolerance(ctx)
+    same = near(ends, np.asarray([fit.pose]), *tol)[:, 0]
+    if not same[0]:
         return 0.0
-    w = np.exp(-0.5 * (chi2 - chi2.min()))
-    same = near(ends, ends[:1], *tolerance(ctx))[:, 0]
-    same[0] = True
-    return float(w[same].sum() / w.sum())
+    order = distinct(ends, -chi2, *tol)
+    w = np.exp(-0.5 * (chi2[order] - chi2[order].min()))
+    return float(w[same[order]].sum() / w.sum())
 
 
 SPLIT_CHI2 = 11.34
@@ -295,6 +304,12 @@ def confirm(ctx: ObjectContext, points: np.ndarray, radii: np.ndarray, tracks: O
     held = "" if converged else (
         f"its share {share_text(mass)} beside the poses the whole-object check found, of the "
         f"{share_text(rule.mode_mass)} needed")
+    # and beside every rival, with the readings' errors weighed as the world makes them
+    others = np.vstack([verdict.rivals, found[:FOUND_WEIGHED]])
+    if converged and ctx.mismatch_length > 0 and ctx.mismatch_sd > 0 and len(others) and \
+            _correlated_mass(ctx, verdict.fit, others, lead_points, lead_radii,
+                             lead_sd) < rule.mode_mass:
+        converged, held = False, SHARED_HELD
     return ObjectVerdict(verdict.fit, mass, runner, runner_mass, converged, found,
                          held_back=held)
 

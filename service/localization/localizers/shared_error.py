@@ -9,7 +9,7 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
-from scipy.linalg import LinAlgError, cholesky
+from scipy.linalg import cholesky
 
 from service.localization.localizers.contour_fit import (
     correlated_spread,
@@ -23,8 +23,8 @@ from service.localization.localizers.object_base import ObjectContext
 from service.localization.localizers.refine import Fit, shared_error
 
 FIT_ITERATIONS = 10
-"""Gauss-Newton steps that fit each pose `correlated_fits` weighs (capped as the images'
-polish is, a quarter of the object's scale a step)."""
+"""Gauss-Newton steps that fit each pose `correlated_fits` weighs, as many as the images'
+polish takes (`object_judge._images`)."""
 
 
 def offset_log_likelihood(ctx: ObjectContext, poses: np.ndarray, points: np.ndarray,
@@ -60,31 +60,37 @@ def shared_offset(ctx: ObjectContext, r: np.ndarray, sd: float | np.ndarray) -> 
     return (r * w).sum(axis=1) / (w.sum() + 1.0 / ctx.sigma**2)
 
 
+def correlation_length(ctx: ObjectContext) -> float:
+    """The length of the Gaussian correlation of the world's mismatch between readings:
+    it is white noise smoothed by a Gaussian of sd `mismatch_length` along the outline, so
+    readings d apart share exp(-d^2 / 4 L^2) of it, a correlation of length sqrt(2) L."""
+    return float(np.sqrt(2.0) * ctx.mismatch_length)
+
+
 def correlated_fits(ctx: ObjectContext, poses: np.ndarray, points: np.ndarray,
-                    radii: np.ndarray, sd: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Each of `poses` fitted to the readings with their errors weighed as the world makes
-    them (generalized least squares, `contour_fit.whitened_fit`), and its chi-square: each
-    reading's own sd `sd`, the mismatch readings share over `mismatch_length` (as
-    `with_shared_error`), and the one offset all of them share (prior sd `ctx.sigma`, as
-    `offset_log_likelihood`). Infinite where a covariance cannot be factored or a pose
-    leaves a reading unexplained.
+                    radii: np.ndarray, sd: float | np.ndarray,
+                    iterations: int = FIT_ITERATIONS) -> tuple[np.ndarray, np.ndarray]:
+    """Each of `poses` fitted to the readings (`iterations` Gauss-Newton steps,
+    `contour_fit.whitened_fit`) with their errors weighed as the world makes them, and its
+    chi-square: each reading's own sd `sd`, the mismatch readings share
+    (`correlation_length`), and the one offset all of them share (prior sd `ctx.sigma`, as
+    `offset_log_likelihood`) - generalized least squares. The covariance is positive
+    definite, as every sd is above zero with noise, and every residual is finite (the
+    contact field is clamped at its edge).
 
     Tempering by patches counts a patch's readings as one whatever they say. On two lobes
-    0.5 mm apart in radius (three fingers, seed 19) the half-turned image was declared at
-    99.9 %: counted independent, the leader's 64 readings fitted the truth 82 worse in
-    chi-square than the image; weighed so, each pose fitted, 5.3 better."""
+    0.5 mm apart in radius (three fingers, seed 19) the truth's half-turned image was
+    declared at 99.9 %: on the leader's 64 readings, counted independent, the truth fitted
+    82 worse in chi-square than the declared pose; weighed so, each pose fitted, 5.3
+    better."""
     sd = np.broadcast_to(np.asarray(sd, dtype=np.float64), (len(points),))
     cov = (np.diag(sd**2) + ctx.sigma**2
-           + shared_error(points, ctx.mismatch_sd, np.sqrt(2.0) * ctx.mismatch_length))
-    try:
-        chol = cholesky(cov, lower=True)
-    except LinAlgError:
-        return np.asarray(poses, dtype=np.float64), np.full(len(poses), np.inf)
-    fitted = [whitened_fit(ctx.field, pose, points, radii, chol, iterations=FIT_ITERATIONS,
+           + shared_error(points, ctx.mismatch_sd, correlation_length(ctx)))
+    chol = cholesky(cov, lower=True)
+    fitted = [whitened_fit(ctx.field, pose, points, radii, chol, iterations,
                            max_move=0.25 * ctx.scale) for pose in poses]
-    chi2 = np.array([c for _, c in fitted])
     return (np.array([pose for pose, _ in fitted]).reshape(-1, 3),
-            np.where(np.isfinite(chi2), chi2, np.inf))
+            np.array([chi2 for _, chi2 in fitted]))
 
 
 def offset_refit(ctx: ObjectContext, points: np.ndarray, radii: np.ndarray, sd: np.ndarray,
@@ -136,12 +142,11 @@ def with_shared_error(ctx: ObjectContext, points: np.ndarray, radii: np.ndarray,
     weakly (a near-circle, an ellipse near its round), readings in a few patches that err
     together turn the fit by degrees. Counting patches (`widened`) missed it: keyed:124,
     seed 124, three fingers, declared 3.6 degrees off at a spread of 0.75 degrees; the
-    sandwich says 1.3. The world's noise is white noise smoothed by a Gaussian of sd
-    `mismatch_length` along the outline, so readings d apart share exp(-d^2 / 4 L^2) of it."""
+    sandwich says 1.3."""
     if ctx.mismatch_length <= 0 or ctx.mismatch_sd <= 0 or len(points) < 3:
         return fit
     position_sd, heading_sd = correlated_spread(
         ctx.field, points, radii, np.asarray(fit.pose), np.broadcast_to(sd, (len(points),)),
-        ctx.mismatch_sd, np.sqrt(2.0) * ctx.mismatch_length)
+        ctx.mismatch_sd, correlation_length(ctx))
     return dataclasses.replace(fit, position_sd=max(fit.position_sd, position_sd),
                                heading_sd=max(fit.heading_sd, heading_sd))
