@@ -55,8 +55,6 @@ too: else the check refuses at every step while the tracks never learn why."""
 FOUND_WEIGHED = 4
 """Most poses the whole-object check found, heaviest first, that `confirm` weighs again
 with the readings' errors shared (`_correlated_mass`: a fit of each), beside the rivals."""
-SHARED_HELD = ("another pose fits nearly as well once the readings' errors are weighed as "
-               "shared over each patch")
 
 
 @dataclass(frozen=True)
@@ -306,10 +304,12 @@ def confirm(ctx: ObjectContext, points: np.ndarray, radii: np.ndarray, tracks: O
         f"{share_text(rule.mode_mass)} needed")
     # and beside every rival, with the readings' errors weighed as the world makes them
     others = np.vstack([verdict.rivals, found[:FOUND_WEIGHED]])
-    if converged and ctx.mismatch_length > 0 and ctx.mismatch_sd > 0 and len(others) and \
-            _correlated_mass(ctx, verdict.fit, others, lead_points, lead_radii,
-                             lead_sd) < rule.mode_mass:
-        converged, held = False, SHARED_HELD
+    if converged and ctx.mismatch_length > 0 and ctx.mismatch_sd > 0 and len(others):
+        shared = _correlated_mass(ctx, verdict.fit, others, lead_points, lead_radii, lead_sd)
+        if shared < rule.mode_mass:  # the share said, as every other check says its own
+            converged, held = False, (
+                f"its share {share_text(shared)} once the readings' errors are weighed as "
+                f"shared over each patch, of the {share_text(rule.mode_mass)} needed")
     return ObjectVerdict(verdict.fit, mass, runner, runner_mass, converged, found,
                          held_back=held)
 
