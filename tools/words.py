@@ -153,8 +153,11 @@ def why_not_converged(*, candidates: int, steps: int, max_steps: int,
 
 def hand_step_text(step: dict) -> str:
     """One step of a hand as `haptic run --object --json` records it (and `hapticd` streams
-    it): which finger rolled or whether all turned the object, the hypotheses left, the
-    grasp quality the policy predicted and (simulation) the true one, the update's time."""
+    it): which finger rolled or whether all turned the object, how sure the estimate is (as
+    a finger's step says it; a recording made before steps carried it: the hypotheses
+    left), the grasp quality the policy predicted and (simulation) the true one, the least
+    true quality during the step where it dipped below where it ended, the update's
+    time."""
     what = (f"finger {step['finger']} rolls" if step["kind"] == "explore"
             else "all turn the object")
     if step["blocked"]:
@@ -162,7 +165,9 @@ def hand_step_text(step: dict) -> str:
     predicted, quality = step.get("predicted_quality"), step.get("quality")
     least = step.get("least_quality")
     dipped = quality is not None and least is not None and least < quality - 0.005
-    return (f"step {step['index']:3d}  {what:<26}  candidates {step['candidates']:5d}  "
+    belief = (belief_text(step["position_sd"], step["heading_sd"], step["mode_mass"])
+              if "mode_mass" in step else f"candidates {step['candidates']:5d}")
+    return (f"step {step['index']:3d}  {what:<26}  {belief:<44}  "
             f"{'' if predicted is None else f'predicted {_newtons(predicted)}  '}"
             f"{'' if quality is None else f'quality {_newtons(quality)}  '}"
             f"{f'(least {_newtons(least)})  ' if dipped else ''}"

@@ -51,6 +51,11 @@ class HandStepRecord:
     next move (`HandStepper.confirm`); 0 when none waited."""
     estimate: tuple[float, float, float] | None
     truth: tuple[float, float, float] | None
+    position_sd: float | None = None
+    heading_sd: float | None = None
+    mode_mass: float | None = None
+    """The estimate's spread and its leading mode's share after the step, as a finger's
+    step gives them (a hand's steps gave only a count of hypotheses)."""
 
 
 def plane_centres(state: HandState) -> np.ndarray:
@@ -158,7 +163,8 @@ class HandStepper:
             predicted_quality=decision.predicted_quality, quality=quality,
             least_quality=least_quality, candidates=self.estimate.candidates, compute_ms=compute_ms,
             policy_ms=self.policy_ms, settle_ms=settle_ms, estimate=self.estimate.pose,
-            truth=truth)
+            truth=truth, position_sd=self.estimate.position_sd,
+            heading_sd=self.estimate.heading_sd, mode_mass=self.estimate.mode_mass)
 
 
 def json_number(v: float | None) -> float | None:
@@ -177,4 +183,6 @@ def step_json(s: HandStepRecord) -> dict[str, Any]:
             "candidates": s.candidates, "compute_ms": s.compute_ms, "policy_ms": s.policy_ms,
             "settle_ms": s.settle_ms,
             "estimate": None if s.estimate is None else list(s.estimate),
+            "position_sd": json_number(s.position_sd), "heading_sd": json_number(s.heading_sd),
+            "mode_mass": json_number(s.mode_mass),
             "truth": None if s.truth is None else list(s.truth)}

@@ -100,3 +100,18 @@ def test_one_step_is_one_step():
 def test_a_share_short_of_all_is_never_said_to_be_100_percent(share, said):
     """A held-out check read "(100 %)" beside "its share 99.6 % ... of the 99.9 % needed"."""
     assert percent(share) == said
+
+
+def test_a_hand_step_says_how_sure_the_estimate_is_as_a_finger_step_does():
+    """A hand's step lines gave a count of hypotheses, where a finger's give the spread and
+    the leading mode's share; a recording made before steps carried them still reads."""
+    from tools.words import hand_step_text
+
+    step = {"index": 4, "kind": "explore", "finger": 1, "blocked": False,
+            "predicted_quality": 1.2, "quality": 1.5, "least_quality": 1.5,
+            "candidates": 230, "compute_ms": 1.5}
+    old = hand_step_text(step)
+    assert "candidates   230" in old and "leading mode" not in old
+    new = hand_step_text({**step, "position_sd": 0.0004, "heading_sd": math.radians(0.5),
+                          "mode_mass": 0.92})
+    assert "spread 0.4 mm / 0.5 deg, leading mode 92 %" in new and "candidates" not in new
