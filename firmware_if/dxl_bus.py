@@ -27,7 +27,14 @@ from dataclasses import dataclass
 from typing import Any, TypeVar
 
 from dynamixel_sdk.group_sync_write import GroupSyncWrite
-from dynamixel_sdk.robotis_def import BROADCAST_ID, COMM_SUCCESS
+from dynamixel_sdk.robotis_def import (
+    BROADCAST_ID,
+    COMM_PORT_BUSY,
+    COMM_RX_CORRUPT,
+    COMM_RX_TIMEOUT,
+    COMM_SUCCESS,
+    COMM_TX_FAIL,
+)
 
 from firmware_if.bus_diagnosis import why_cycles_failed
 from firmware_if.errors import (
@@ -83,6 +90,23 @@ def check_port_exists(port_name: str) -> None:
 
 
 T = TypeVar("T")
+
+
+RESULT_WORDS = {
+    COMM_RX_TIMEOUT: "no reply in time",
+    COMM_RX_CORRUPT: "a garbled reply: noise on the bus, another baud rate, or two servos on "
+                     "one id",
+    COMM_TX_FAIL: "the port did not take the packet",
+    COMM_PORT_BUSY: "the port was busy",
+}
+"""Plain words for the SDK's communication results, its own ("[TxRxResult] Incorrect status
+packet!") after them: a fault's first reason was the SDK's words alone until the diagnosis
+after it named the cause."""
+
+
+def _result_words(handler: Any, result: int) -> str:
+    said = handler.getTxRxResult(result)
+    return f"{RESULT_WORDS[result]} (the SDK: {said})" if result in RESULT_WORDS else said
 
 
 @dataclass(frozen=True)
@@ -297,7 +321,7 @@ class DxlBus:
     def _check(self, result: int, error: int, ids: tuple[int, ...], what: str) -> None:
         if result != COMM_SUCCESS:
             cls = BusTimeoutError if result in RX_TIMEOUT_RESULTS else CommunicationError
-            raise cls(f"servo {ids[0]}: {what}: {self._ph.getTxRxResult(result)}", ids)
+            raise cls(f"servo {ids[0]}: {what}: {_result_words(self._ph, result)}", ids)
         if error & 0x7F:
             raise CommunicationError(f"servo {ids[0]}: {what}: {describe_status_error(error)}",
                                      ids)
@@ -365,7 +389,7 @@ class DxlBus:
             raise
         if result != COMM_SUCCESS and not best_effort:
             raise CommunicationError(f"torque {'on' if on else 'off'}: "
-                                     f"{self._ph.getTxRxResult(result)}", self.ids)
+                                     f"{_result_words(self._ph, result)}", self.ids)
         self.torque_on = on
 
     # -- the control cycle -----------------------------------------------------------------
@@ -428,7 +452,7 @@ class DxlBus:
             writer.addParam(sid, list(REG["goal_position"].encode(ticks)))
         result = self._sdk("sync write of goals", writer.txPacket)
         if result != COMM_SUCCESS:
-            raise CommunicationError(f"sync write of goals: {self._ph.getTxRxResult(result)}",
+            raise CommunicationError(f"sync write of goals: {_result_words(self._ph, result)}",
                                      tuple(goals))
 
     def _sync_read(self) -> dict[int, ServoReading]:
@@ -437,14 +461,14 @@ class DxlBus:
         result = self._sdk("sync read", self._ph.syncReadTx, port, SYNC_READ_START,
                            SYNC_READ_LENGTH, list(self.ids), len(self.ids), False)
         if result != COMM_SUCCESS:
-            raise CommunicationError(f"sync read: {self._ph.getTxRxResult(result)}", self.ids)
+            raise CommunicationError(f"sync read: {_result_words(self._ph, result)}", self.ids)
         out = {}
         for sid in self.ids:
             data, result, error = self._sdk("sync read", self._ph.readRx, port, sid,
                                             SYNC_READ_LENGTH)
             if result != COMM_SUCCESS:
                 cls = BusTimeoutError if result in RX_TIMEOUT_RESULTS else CommunicationError
-                raise cls(f"sync read: servo {sid}: {self._ph.getTxRxResult(result)}", (sid,))
+                raise cls(f"sync read: servo {sid}: {_result_words(self._ph, result)}", (sid,))
             out[sid] = _reading(bytes(data), error)
         self._received_ns = time.monotonic_ns()
         return out
@@ -455,7 +479,7 @@ class DxlBus:
         result = self._sdk("fast sync read", self._ph.syncReadTx, port, SYNC_READ_START,
                            SYNC_READ_LENGTH, list(self.ids), len(self.ids), True)
         if result != COMM_SUCCESS:
-            raise CommunicationError(f"fast sync read: {self._ph.getTxRxResult(result)}",
+            raise CommunicationError(f"fast sync read: {_result_words(self._ph, result)}",
                                      self.ids)
         rx, result = self._sdk("fast sync read", self._ph.rxPacket, port, True)
         parts = [(sid, SYNC_READ_LENGTH) for sid in self.ids]
@@ -463,7 +487,7 @@ class DxlBus:
             cls = BusTimeoutError if result in RX_TIMEOUT_RESULTS else CommunicationError
             damaged = first_damaged(bytes(rx), parts)  # a whole reply, spoiled in one part
             where = "" if damaged is None else f" (damaged from servo {damaged}'s part on)"
-            raise cls(f"fast sync read: {self._ph.getTxRxResult(result)}{where}",
+            raise cls(f"fast sync read: {_result_words(self._ph, result)}{where}",
                       self.ids if damaged is None else (damaged,), bytes(rx))
         self._received_ns = time.monotonic_ns()
         try:

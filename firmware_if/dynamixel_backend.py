@@ -154,7 +154,7 @@ class DynamixelBackend(HandOfOne):
             self._set_up()
         except BusTimeoutError as exc:
             self.bus.close()
-            raise BusTimeoutError(  # the SDK's words alone ("There is no status packet!")
+            raise BusTimeoutError(  # "no reply in time" says only that none answered
                 f"{exc}; is every servo of the hand on {self.bus.port_name} at "
                 f"{self.bus.baud} baud? `haptic bus scan --port {self.bus.port_name}` lists "
                 "those that answer: their ids belong in the hand file", exc.servo_ids) from None

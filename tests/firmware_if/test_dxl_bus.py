@@ -391,3 +391,19 @@ def test_a_lost_port_reads_the_same_whichever_layer_noticed():
 
     lost = OSError(5, "Input/output error")
     assert _port_error(termios.error(5, "Input/output error")) == str(lost) == _port_error(lost)
+
+
+def test_the_sdks_results_are_told_in_words_before_its_own():
+    """A held-out client's first fault reason read only "Incorrect status packet" until the
+    diagnosis after it named the cause."""
+    from dynamixel_sdk.protocol2_packet_handler import Protocol2PacketHandler
+    from dynamixel_sdk.robotis_def import COMM_RX_CORRUPT, COMM_RX_TIMEOUT
+
+    from firmware_if.dxl_bus import _result_words
+
+    handler = Protocol2PacketHandler()
+    garbled = _result_words(handler, COMM_RX_CORRUPT)
+    assert garbled.startswith("a garbled reply: noise on the bus, another baud rate")
+    assert garbled.endswith("(the SDK: [TxRxResult] Incorrect status packet!)")
+    assert _result_words(handler, COMM_RX_TIMEOUT).startswith("no reply in time (the SDK: ")
+    assert _result_words(handler, -9000) == handler.getTxRxResult(-9000)
