@@ -122,6 +122,30 @@ def named_turns(motions: np.ndarray) -> list[float]:
     return named
 
 
+ROUND_CLOSER = 0.0005
+"""Metres: an outline round within `near_symmetries`' millimetre is looked at again this
+close, where a gear's teeth tell its turns apart from any turn (a held-out 12-tooth gear was
+called "nearly round over most of it", with no word that it repeats every 30 degrees)."""
+MANY = 12
+"""More turns than this that map the outline onto itself: it is round, not repeating."""
+EVEN = np.deg2rad(3.0)
+"""How far from an even share of the full turn a fitted near symmetry may lie and still be
+said as "every N degrees" (a gear's fits lay 0.6 degrees off)."""
+
+
+def turns_text(motions: np.ndarray) -> str:
+    """The turns of `motions` in words, each once: "every 30 degrees" for four or more
+    multiples of one turn that go all the way round, else "under a turn of 119, -119
+    degrees"."""
+    turns = sorted(named_turns(motions), key=abs)
+    spacing = 2 * np.pi / (len(turns) + 1)  # n turns and the identity, evenly round
+    steps = np.mod(np.array(turns), 2 * np.pi) / spacing  # 1 .. n, if they are
+    if (len(turns) >= 4 and np.all(np.abs(steps - np.round(steps)) * spacing < EVEN)
+            and len(set(np.round(steps).astype(int))) == len(turns)):
+        return f"every {np.degrees(spacing):.0f} degrees"
+    return f"under a turn of {', '.join(f'{np.degrees(t):.0f}' for t in turns)} degrees"
+
+
 def symmetry_warning(field: ContactField) -> str | None:
     """A warning for an outline that nearly repeats under turns (`near_symmetries`), as a
     map's check gives one: a held-out lab's 44 x 11 mm outline, its ends 15 % apart in
@@ -129,11 +153,14 @@ def symmetry_warning(field: ContactField) -> str | None:
     motions = near_symmetries(field)
     if len(motions) == 0:
         return None
-    if len(motions) > 12:  # a D-shaped cam with a 33 mm flat too: its heading is told there
+    if len(motions) > MANY:  # a D-shaped cam with a 33 mm flat too: its heading is told there
+        closer = near_symmetries(field, tolerance=ROUND_CLOSER)
+        repeats = (f"; within {ROUND_CLOSER * 1e3:g} mm it repeats {turns_text(closer)}"
+                   if 0 < len(closer) <= MANY else "")
         return ("the outline is nearly round over most of it: most turns map all but a "
                 "feature onto itself, so only where it departs from round (a flat, a notch, "
-                "a bump) tells the heading, and without one 'not yet' is the right answer")
-    turns = ", ".join(f"{np.degrees(t):.0f}" for t in sorted(named_turns(motions), key=abs))
-    return (f"the outline nearly repeats under a turn of {turns} degrees: poses a turn "
+                f"a bump) tells the heading, and without one 'not yet' is the right "
+                f"answer{repeats}")
+    return (f"the outline nearly repeats {turns_text(motions)}: poses a turn "
             "relates differ only where a feature breaks the symmetry, or not at all ('not "
             "yet' is then the right answer)")
