@@ -133,9 +133,14 @@ def _solve_ik(base_rot: np.ndarray, base_pos: np.ndarray, origins: np.ndarray,
     return q, error
 
 
+def _plain(a: np.ndarray) -> np.ndarray:
+    """`a` as a C-contiguous, writable float64 array (copied only if it is not)."""
+    return np.require(a, dtype=np.float64, requirements=["C", "W"])
+
+
 def jacobians(chain: Chain, q: np.ndarray) -> np.ndarray:
     """d centre / d q (N, 3, n) of joint vectors q (N, n): `kinematics.jacobian`."""
-    return _chain_batch(*_constants(chain)[:7], np.ascontiguousarray(q, dtype=np.float64))[1]
+    return _chain_batch(*_constants(chain)[:7], _plain(q))[1]
 
 
 def inverse(chain: Chain, targets: np.ndarray, q0: np.ndarray, *, damping: float = 1e-3,
@@ -143,7 +148,9 @@ def inverse(chain: Chain, targets: np.ndarray, q0: np.ndarray, *, damping: float
             ) -> tuple[np.ndarray, np.ndarray]:
     """`kinematics.inverse` of targets (N, 3) from q0 (N, n): joint angles (N, n) and
     whether each target is reached within `tolerance` (N,)."""
-    q, error = _solve_ik(*_constants(chain), np.ascontiguousarray(q0, dtype=np.float64),
-                         np.ascontiguousarray(targets, dtype=np.float64), float(damping),
+    # contiguous and writable, whatever came: a read-only q0 (a broadcast row) is a type
+    # of its own to numba, and the first turn compiled the solver again for it inside one
+    # decision (1.5 s on an empty cache; three fingers on blob, seed 0, step 6)
+    q, error = _solve_ik(*_constants(chain), _plain(q0), _plain(targets), float(damping),
                          float(tolerance), int(iterations), STALLED)
     return q, error <= tolerance
