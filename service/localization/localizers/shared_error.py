@@ -60,11 +60,11 @@ def shared_offset(ctx: ObjectContext, r: np.ndarray, sd: float | np.ndarray) -> 
     return (r * w).sum(axis=1) / (w.sum() + 1.0 / ctx.sigma**2)
 
 
-def correlation_length(ctx: ObjectContext) -> float:
+def correlation_length(mismatch_length: float) -> float:
     """The length of the Gaussian correlation of the world's mismatch between readings:
     it is white noise smoothed by a Gaussian of sd `mismatch_length` along the outline, so
     readings d apart share exp(-d^2 / 4 L^2) of it, a correlation of length sqrt(2) L."""
-    return float(np.sqrt(2.0) * ctx.mismatch_length)
+    return float(np.sqrt(2.0) * mismatch_length)
 
 
 def correlated_fits(ctx: ObjectContext, poses: np.ndarray, points: np.ndarray,
@@ -85,7 +85,7 @@ def correlated_fits(ctx: ObjectContext, poses: np.ndarray, points: np.ndarray,
     better."""
     sd = np.broadcast_to(np.asarray(sd, dtype=np.float64), (len(points),))
     cov = (np.diag(sd**2) + ctx.sigma**2
-           + shared_error(points, ctx.mismatch_sd, correlation_length(ctx)))
+           + shared_error(points, ctx.mismatch_sd, correlation_length(ctx.mismatch_length)))
     chol = cholesky(cov, lower=True)
     fitted = [whitened_fit(ctx.field, pose, points, radii, chol, iterations,
                            max_move=0.25 * ctx.scale) for pose in poses]
@@ -147,6 +147,6 @@ def with_shared_error(ctx: ObjectContext, points: np.ndarray, radii: np.ndarray,
         return fit
     position_sd, heading_sd = correlated_spread(
         ctx.field, points, radii, np.asarray(fit.pose), np.broadcast_to(sd, (len(points),)),
-        ctx.mismatch_sd, correlation_length(ctx))
+        ctx.mismatch_sd, correlation_length(ctx.mismatch_length))
     return dataclasses.replace(fit, position_sd=max(fit.position_sd, position_sd),
                                heading_sd=max(fit.heading_sd, heading_sd))

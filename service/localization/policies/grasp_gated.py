@@ -71,6 +71,7 @@ from service.localization import chain_kernels
 from service.localization.grasp import hand_quality
 from service.localization.localizers.object_judge import FRESH
 from service.localization.localizers.object_tracks import to_object
+from service.localization.localizers.shared_error import correlation_length
 from service.localization.objects import kinks, rolling
 from service.localization.policies import guarded_poses
 from service.localization.policies.contour_precision import ContourSpread
@@ -252,7 +253,7 @@ class GraspGatedPolicy(Turns):
         places = np.vstack([self._read_before, to_object(np.asarray(self._read), lead)])
         return ContourSpread.now(view.field, lead, places,
                                  np.asarray(self._read_radii), max(view.sigma, 1e-4), sd,
-                                 np.sqrt(2.0) * length, view.step_length)
+                                 correlation_length(length), view.step_length)
 
     def _precision(self, places: np.ndarray, radii: np.ndarray,
                    moved: np.ndarray | None = None) -> float:
