@@ -102,6 +102,7 @@ class HandStepper:
                         step_length=self.settings.step, sigma=self.sigma,
                         fixed=self.settings.single_finger, blocked=frozenset(self.blocked),
                         spread=(float(est.position_sd), float(est.heading_sd)),
+                        mode_mass=float(est.mode_mass),
                         slope_sd=self.settings.noise_spec.surface_slope_sd,
                         motion=self.localizer.ctx.motion,
                         mismatch=(self.localizer.ctx.mismatch_sd,

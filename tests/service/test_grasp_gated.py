@@ -473,3 +473,27 @@ def test_three_fingers_roll_before_they_turn_a_known_object_again():
     assert report.score.success
     kinds = [step.kind for step in report.result.steps]
     assert "manipulate" in kinds and kinds != ["manipulate"] * len(kinds)
+
+
+@pytest.mark.parametrize(("logits", "stalled"), [
+    ([2.6] * 7, True),  # six rolls at 93 %
+    ([2.6] * 6, False),  # five: not yet
+    ([2.5, 2.6, 2.55, 2.7, 2.65, 2.6, 2.75], True),  # wobbling within 0.3
+    ([1.9, 2.0, 2.2, 2.3, 2.5, 2.7, 2.9], False),  # climbing: the rolls tell
+    ([9.0, 2.6, 2.6, 2.6, 2.6, 2.6, 2.6, 2.6], True),  # only the last six rolls count
+    ([2.6, 2.6, 2.6, float("nan"), 2.6, 2.6, 2.6], False),  # no share to judge by
+    ([-2.9] * 7, False),  # a leader of 5 % among many: rolls strike the many out
+])
+def test_rolls_stall_when_the_leading_share_stays_put(logits, stalled):
+    assert grasp_gated.stalled(logits) is stalled
+
+
+def test_three_fingers_turn_once_their_rolls_stop_telling_the_modes_apart():
+    """rounded:5, seed 5, three fingers: the rolls promised 0.1-0.2 nats each but re-read
+    felt contour, and the leader sat at 93 % from step 25 to step 60, undecided, while a
+    safe turn was on offer throughout."""
+    report = simulate_hand(HandSettings(object="rounded:5", hand="three-finger", seed=5,
+                                        noise=True, max_steps=60))
+    turns = sum(step.kind == "manipulate" for step in report.result.steps)
+    assert report.score.success and not report.result.dropped and turns >= 2
+

@@ -41,6 +41,9 @@ class HandView:
     """(finger, direction) moves found out of reach from here."""
     spread: tuple[float, float] = (0.0, 0.0)
     """The leading pose's own uncertainty (position sd in metres, heading sd in radians)."""
+    mode_mass: float = float("nan")
+    """The localizer's share of its leading mode (`Estimate.mode_mass`); NaN before it has
+    one."""
     slope_sd: float = 0.0
     """Sd (radians) of the slope by which the world's outline differs from the model's
     (`NoiseSpec.surface_slope_sd`); 0: the model is the world."""
