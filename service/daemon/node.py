@@ -504,16 +504,18 @@ class Node(CommandHandlers):
         """Exploring stops, torque goes off and the backend closes; subscribers hear the
         episode end (`episode_done`, reason `shutdown`), the last `state` (torque off) and
         `shutdown`, in that order (a helper's client waited for an `episode_done` that
-        never came, and the last `state` it saw had torque on)."""
+        never came, and the last `state` it saw had torque on). A request under way is
+        answered (a held-out client's `configure` and `start_exploration` got no reply)."""
         if self.reconf is not None:
             self.reconf.abandon()
+            self.reconf.deferred.fail(_shutting_down("the configure ended with it, nothing "
+                                                     "was changed"))
             self.reconf = None
         if self.resetting is not None:  # the bus is the reset's until it is done
             self.resetting.wait()
-            self.resetting.deferred.fail(StateError(
-                "hapticd is shutting down (SIGINT or SIGTERM): the reset ended with it, "
-                "torque off; start hapticd again"))
+            self.resetting.deferred.fail(_shutting_down("the reset ended with it, torque off"))
             self.resetting = None
+        self._fail_start(_shutting_down("the episode ended before its first belief"))
         self._tell_fault(wait=True)
         cut = self.explorer.stop("shutdown") if self.explorer else None
         if self.backend is not None:
@@ -566,3 +568,9 @@ def _event_level(name: str, fields: dict[str, Any]) -> int:
 def _log(event: str, level: int = logging.INFO, **fields: Any) -> None:
     """One structured log record; the daemon's formatter prints it as a JSON line."""
     log.log(level, event, extra={"fields": fields})
+
+
+def _shutting_down(what: str) -> StateError:
+    """The reply to a request a shutdown cut short."""
+    return StateError(f"hapticd is shutting down (SIGINT, SIGTERM or SIGHUP): {what}; start "
+                      "hapticd again")

@@ -6,6 +6,7 @@ import signal
 import subprocess
 import sys
 import tempfile
+import time
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -79,6 +80,26 @@ def test_hapticd_sim_localizes_at_the_true_pose_and_shuts_down_cleanly(daemon) -
     assert proc.wait(10) == 0
     log = proc.stderr.read()
     assert '"event": "listening"' in log and '"event": "exited"' in log
+
+
+def test_hapticd_stops_cleanly_when_its_terminal_closes(daemon) -> None:
+    """A closing terminal sends SIGHUP. By its default a held-out check's `hapticd` died
+    at once, mid-episode, with no `shutdown` and its servos' torque on."""
+    proc, pub, cmd = daemon
+    with Subscriber(pub, ["event", "state"]) as sub, \
+            Client(cmd, timeout_s=15.0, retries=0) as ctl:
+        assert ctl.call("ping") == {"pong": True}
+        deadline = time.monotonic() + 120  # its compute process warms up numba: slow when
+        while ctl.status()["state"] == "unconfigured":  # the machine is busy
+            assert time.monotonic() < deadline, "hapticd never configured its finger"
+            sub.recv(0.05)
+        assert ctl.call("activate")["state"] == "active"
+        proc.send_signal(signal.SIGHUP)
+        seen: list[Message] = []
+        assert sub.wait_for(lambda m: seen.append(m) or (
+            m.topic == "event" and m["event"] == "shutdown"), 10.0) is not None
+    assert proc.wait(10) == 0
+    assert not [m for m in seen if m.topic == "state"][-1]["torque_on"]
 
 
 CONTROLLER = """

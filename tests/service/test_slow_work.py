@@ -70,6 +70,22 @@ def test_estop_during_a_configure_is_answered_and_voids_it(node) -> None:
         assert ctl.call("reset")["state"] == "inactive"
 
 
+def test_a_shutdown_during_a_configure_answers_it() -> None:
+    """A held-out client's `configure` got no reply when SIGTERM came while it was under
+    way; the protocol promises every request one. It is answered, and nothing changed."""
+    with running_node(loopback_config({})) as node, \
+            Client(node.endpoints["cmd"], timeout_s=120.0, retries=0) as ctl, \
+            Client(node.endpoints["cmd"], timeout_s=2.0, retries=0) as other:
+        thread, out = in_background(lambda: ctl.call("set_map", map=BIG_MAP))
+        for _ in range(10_000):  # until the configure is under way
+            if other.call("status")["configuring"]:
+                break
+        node.stop()  # what the SIGINT, SIGTERM and SIGHUP handlers call
+        thread.join(60)
+    assert out["error"].code == "bad_state"
+    assert "shutting down" in str(out["error"]) and "nothing was changed" in str(out["error"])
+
+
 def test_a_map_file_error_says_nothing_about_the_file(node, tmp_path: Path) -> None:
     secret = tmp_path / "notes.txt"
     secret.write_text("hunter2 is the password\n")

