@@ -14,6 +14,7 @@ from service.errors import ConfigError
 from service.localization.objects.files import OBJECT_FILE_SUFFIXES
 from tools.arg_types import number
 from tools.outputs import check_outputs
+from tools.signals import signals_held
 from tools.words import (
     EXIT_FAULT,
     NO_SAFE_MOVE,
@@ -21,6 +22,8 @@ from tools.words import (
     command_record,
     fault_result,
     hand_step_text,
+    interrupted_result,
+    interrupted_status,
     pose_text,
     steps_text,
     why_not_converged,
@@ -174,21 +177,27 @@ def run_hand(args: argparse.Namespace, budget: dict[str, float] | None = None) -
         print(f"warning: {warning}")
     report = simulate_hand(settings, parts, on_step=None if args.quiet else _print_step,
                            snapshot_steps=(0,) if args.plot else (),
-                           backend_factory=backend_factory)
+                           backend_factory=backend_factory, keep_on_interrupt=True)
     _print_summary(report, on_servos=backend_factory is not None)
     failed = report.result.dropped or (report.truth_known and report.score.wrong_declaration)
+    cut = report.result.interrupted
     if args.json:
         import json
 
-        Path(args.json).write_text(json.dumps(command_record(report), indent=1))
+        with signals_held():  # a second Ctrl-C waits for the file
+            Path(args.json).write_text(json.dumps(command_record(report), indent=1))
         print(f"episode written to {args.json}")
-    if args.plot:
+    if args.plot and cut is not None:
+        print(f"no figure: the run was interrupted ({args.plot} not written)")
+    elif args.plot:
         from tools.hand_plots import hand_figure
 
         hand_figure(report, args.plot)
         print(f"figure written to {args.plot}")
     if report.result.fault is not None:
         return EXIT_FAULT
+    if cut is not None:
+        return interrupted_status(cut)
     return 1 if failed else 0  # a wrong pose or a drop: a script must notice
 
 
@@ -240,6 +249,8 @@ def _print_summary(report, on_servos: bool = False) -> None:
     s = report.score
     if report.result.fault is not None:
         print(f"result    {fault_result(report.result.fault, steps)}")
+    elif report.result.interrupted is not None:
+        print(f"result    {interrupted_result(report.result.interrupted, steps)}")
     elif report.result.dropped:
         print(f"result    DROPPED the object at step {steps}")
     elif not report.truth_known:

@@ -258,7 +258,7 @@ def _outcome(ep: dict[str, Any], done: dict[str, Any]) -> dict[str, Any]:
         "x": pose[0], "y": pose[1], "heading": pose[2], "candidates": done["candidates"],
         **{k: done.get(k) for k in ("position_sd", "heading_sd", "mode_mass")}}
     out = {"estimate": estimate, "converged": bool(done.get("converged")), "ended": None,
-           "fault": None, "success": None,
+           "fault": None, "interrupted": None, "success": None,
            "wrong_declaration": None, "position_error": None, "heading_error": None,
            "true_pose_eliminated": done.get("true_pose_eliminated")}
     if ep["truth"] is not None and ep["settings"] is not None:

@@ -25,11 +25,14 @@ from service.registry import BACKENDS
 from tools.hand_cli import add_object_options, object_options_given, run_hand
 from tools.outputs import check_outputs
 from tools.scenario_options import add_scenario_options, settings_from_args
+from tools.signals import signals_held
 from tools.words import (
     EXIT_FAULT,
     belief_text,
     command_record,
     fault_result,
+    interrupted_result,
+    interrupted_status,
     pose_text,
     steps_text,
     why_not_converged,
@@ -111,19 +114,25 @@ def run(args: argparse.Namespace) -> int:
           f"{settings.algorithm} + {settings.policy}{' with noise' if settings.noise else ''}")
     report = simulate(settings, height_map, on_step=None if args.quiet else StepPrinter(),
                       snapshot_steps=FIGURE_STEPS if args.plot else (),
-                      backend_factory=backend_factory)
+                      backend_factory=backend_factory, keep_on_interrupt=True)
     _print_summary(report)
     failed = report.score.wrong_declaration
+    cut = report.result.interrupted
     if args.json:
-        args.json.write_text(json.dumps(command_record(report), indent=1))
+        with signals_held():  # a second Ctrl-C waits for the file
+            args.json.write_text(json.dumps(command_record(report), indent=1))
         print(f"episode written to {args.json}")
-    if args.plot:
+    if args.plot and cut is not None:
+        print(f"no figure: the run was interrupted ({args.plot} not written)")
+    elif args.plot:
         from tools.plots import episode_figure
 
         episode_figure(report, args.plot)
         print(f"figure written to {args.plot}")
     if report.result.fault is not None:
         return EXIT_FAULT
+    if cut is not None:
+        return interrupted_status(cut)
     return 1 if failed else 0  # a script must notice a wrong pose
 
 
@@ -161,6 +170,8 @@ def _print_summary(report: EpisodeReport) -> None:
     s = report.score
     if report.result.fault is not None:
         print(f"result    {fault_result(report.result.fault, steps)}")
+    elif report.result.interrupted is not None:
+        print(f"result    {interrupted_result(report.result.interrupted, steps)}")
     elif s.success:
         print(f"result    localized in {steps_text(steps)}: position error "
               f"{s.position_error * 1e3:.2f} mm, "

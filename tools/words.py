@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import math
 import re
+import signal
 from collections.abc import Sequence
 from typing import Any
 
@@ -47,6 +48,17 @@ def fault_result(fault: str, steps: int) -> str:
     return (f"stopped by a hardware fault during step {steps + 1}, torque off: {cause}. "
             f"Fix what it names (the servo's cable and power, the port) and run again; "
             f"the {steps_text(steps)} before it stand")
+
+
+def interrupted_result(signal_name: str, steps: int) -> str:
+    """The result line of a run a signal cut (`runner.kept_on_interrupt`)."""
+    return (f"interrupted by {signal_name} during step {steps + 1}; the {steps_text(steps)} "
+            "before it stand")
+
+
+def interrupted_status(signal_name: str) -> int:
+    """The exit status of a command a signal cut: 128 + its number, as a shell's."""
+    return 128 + int(signal.Signals[signal_name])
 
 
 def steps_text(count: int) -> str:

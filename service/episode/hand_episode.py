@@ -35,6 +35,7 @@ from service.episode.hand_step import (
     plane_centres,
     step_json,
 )
+from service.episode.runner import kept_on_interrupt
 from service.localization.localizers.base import Budget, Estimate, Hypotheses
 from service.localization.objects.contour import Contour
 from service.localization.policies.grasp_gated import GraspGatedPolicy
@@ -52,6 +53,8 @@ class HandEpisodeResult:
     fault: str | None = None
     """What a latched fault (a lost port, a servo's error) said when it cut the step after
     the last: the episode ended there, and what it had found stands."""
+    interrupted: str | None = None
+    """The signal that cut the step after the last (`runner.kept_on_interrupt`)."""
     start_centres: tuple[tuple[float, float], ...] = ()
 
     @property
@@ -80,47 +83,49 @@ def run_hand_episode(hand: Any, localizer: Any, policy: GraspGatedPolicy, parts:
                      settings: HandSettings, *,
                      on_step: Callable[[HandStepRecord], None] | None = None,
                      truth: Callable[[], tuple[float, float, float]] | None = None,
-                     quality: Callable[[], tuple[float, float]] | None = None
-                     ) -> HandEpisodeResult:
+                     quality: Callable[[], tuple[float, float]] | None = None,
+                     keep_on_interrupt: bool = False) -> HandEpisodeResult:
     """Explore until the localizer converges, `max_steps` pass, the object drops or no safe
-    move is left. `truth`/`quality` read the simulator's hidden state for the record
-    (`quality`: the grasp's after the step, and its least during it)."""
+    move is left (or, with `keep_on_interrupt`, until Ctrl-C or a stop signal:
+    `runner.kept_on_interrupt`). `truth`/`quality` read the simulator's hidden state for
+    the record (`quality`: the grasp's after the step, and its least during it)."""
     state = hand.read_hand()
     stepper = HandStepper(localizer, policy, parts, settings)
     result = HandEpisodeResult(start_centres=tuple(map(tuple, plane_centres(state).tolist())))
     stepper.start(state)
-    for index in range(1, settings.max_steps + 1):
-        if stepper.settled:
-            break
-        decision = stepper.decide(state)
-        if decision.command is None:
-            result.stuck = True
-            break
-        try:
-            state = execute(hand, decision.command)
-        except HardwareFault as exc:  # the cut step tells nothing: end with what was found
-            result.fault = str(exc)
-            break
-        result.dropped = result.dropped or state.dropped
-        measurement = stepper.observe(index, decision, state)
-        compute_ms = settle_ms = 0.0
-        if measurement is not None:
-            t0 = time.perf_counter()
-            localizer.begin_update(measurement)
-            while not localizer.work(Budget.unlimited()):
-                pass
-            compute_ms = (time.perf_counter() - t0) * 1e3
-            stepper.updated()
-            settle_ms = stepper.confirm()  # what a declaration waits on, before another move
-        now, least = (float("nan"), float("nan")) if quality is None else quality()
-        record = stepper.record(index, decision, state, compute_ms=compute_ms,
-                                settle_ms=settle_ms, quality=now, least_quality=least,
-                                truth=None if truth is None else truth())
-        result.steps.append(record)
-        if on_step:
-            on_step(record)
-        if result.dropped:
-            break
+    with kept_on_interrupt(result, keep_on_interrupt):
+        for index in range(1, settings.max_steps + 1):
+            if stepper.settled:
+                break
+            decision = stepper.decide(state)
+            if decision.command is None:
+                result.stuck = True
+                break
+            try:
+                state = execute(hand, decision.command)
+            except HardwareFault as exc:  # the cut step tells nothing: end with what was found
+                result.fault = str(exc)
+                break
+            result.dropped = result.dropped or state.dropped
+            measurement = stepper.observe(index, decision, state)
+            compute_ms = settle_ms = 0.0
+            if measurement is not None:
+                t0 = time.perf_counter()
+                localizer.begin_update(measurement)
+                while not localizer.work(Budget.unlimited()):
+                    pass
+                compute_ms = (time.perf_counter() - t0) * 1e3
+                stepper.updated()
+                settle_ms = stepper.confirm()  # what a declaration waits on, before another move
+            now, least = (float("nan"), float("nan")) if quality is None else quality()
+            record = stepper.record(index, decision, state, compute_ms=compute_ms,
+                                    settle_ms=settle_ms, quality=now, least_quality=least,
+                                    truth=None if truth is None else truth())
+            result.steps.append(record)
+            if on_step:
+                on_step(record)
+            if result.dropped:
+                break
     result.estimate = stepper.estimate
     return result
 
@@ -165,6 +170,7 @@ class HandEpisodeReport:
             "dropped": self.result.dropped,
             "stuck": self.result.stuck,
             "fault": self.result.fault,
+            "interrupted": self.result.interrupted,
             "position_error": self.score.position_error,
             "heading_error": self.score.heading_error,
             "min_quality": json_number(self.min_quality),
@@ -204,9 +210,11 @@ def simulate_hand(settings: HandSettings, parts: HandParts | None = None, *,
                   on_step: Callable[[HandStepRecord], None] | None = None,
                   snapshot_steps: tuple[int, ...] = (),
                   backend_factory: Callable[[], Any] | None = None,
-                  hidden: Any | None = None) -> HandEpisodeReport:
+                  hidden: Any | None = None, keep_on_interrupt: bool = False
+                  ) -> HandEpisodeReport:
     """Run one seeded hand episode on the simulated hand, or on the hand `backend_factory`
-    makes (servos). Same settings, same report.
+    makes (servos). Same settings, same report. With `keep_on_interrupt`, Ctrl-C or a stop
+    signal ends it with what it had found (`runner.kept_on_interrupt`).
 
     `hidden` is the simulated hand behind an emulated bus, if any: the truth and the grasp's
     quality are read from it. Without it a run on servos knows the object's pose only while
@@ -238,8 +246,9 @@ def simulate_hand(settings: HandSettings, parts: HandParts | None = None, *,
                                   on_step=record,
                                   truth=None if world is None else lambda: world.pose,
                                   quality=None if unknown_quality else lambda: (
-                                      world.quality, world.step_min_quality))
-        if 0 in snapshot_steps:
+                                      world.quality, world.step_min_quality),
+                                  keep_on_interrupt=keep_on_interrupt)
+        if 0 in snapshot_steps and result.interrupted is None:
             snapshots.setdefault(0, localizer.hypotheses(limit=SNAPSHOT_LIMIT))
     finally:
         hand.close()

@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
+from typing import Protocol
 
 import numpy as np
 
@@ -55,6 +57,8 @@ class EpisodeResult:
     fault: str | None = None
     """What a latched fault (a lost port, a servo's error) said when it cut the step after
     the last: the episode ended there, and what it had found stands."""
+    interrupted: str | None = None
+    """The signal that cut the step after the last (`kept_on_interrupt`)."""
 
     @property
     def converged(self) -> bool:
@@ -63,9 +67,12 @@ class EpisodeResult:
     @property
     def ended(self) -> str:
         """Why the episode ended, in the words of the daemon's `episode_done` reason:
-        `converged`, `eliminated` (no hypothesis left), `fault` or `out_of_steps`."""
+        `converged`, `eliminated` (no hypothesis left), `fault`, `interrupted` or
+        `out_of_steps`."""
         if self.fault is not None:
             return "fault"
+        if self.interrupted is not None:
+            return "interrupted"
         if self.converged:
             return "converged"
         if self.estimate is None or self.estimate.candidates == 0:
@@ -89,12 +96,32 @@ def execute_step(backend: Backend, step: StepCommand, timeout_s: float = 10.0) -
         time.sleep(0.001)
 
 
+class Interruptible(Protocol):
+    interrupted: str | None
+
+
+@contextmanager
+def kept_on_interrupt(result: Interruptible, keep: bool) -> Iterator[None]:
+    """With `keep`, Ctrl-C or a stop signal ends the block, and with it the episode, with
+    what it had found (`result.interrupted` names the signal) instead of unwinding through
+    the caller: a command's `--json` keeps the steps taken (a held-out check lost 11-14
+    steps on servos). A step cut while under way is not one."""
+    try:
+        yield
+    except KeyboardInterrupt as exc:
+        if not keep:
+            raise
+        result.interrupted = str(exc) or "SIGINT"  # `tools.signals.Interrupted` names it
+
+
 def run_episode(backend: Backend, localizer: Localizer, policy: Policy, *,
                 surface: ContactSurface, step_length: float, max_steps: int,
                 rng: np.random.Generator, walls: bool = False, planar: bool = False,
                 on_step: Callable[[StepRecord], None] | None = None,
-                on_start: Callable[[], None] | None = None) -> EpisodeResult:
-    """Explore until the localizer converges or `max_steps` steps are taken."""
+                on_start: Callable[[], None] | None = None,
+                keep_on_interrupt: bool = False) -> EpisodeResult:
+    """Explore until the localizer converges or `max_steps` steps are taken (or, with
+    `keep_on_interrupt`, until Ctrl-C or a stop signal: `kept_on_interrupt`)."""
     origin = np.asarray(backend.read_state().centre)
     localizer.start(Measurement(step=0, displacement=np.zeros(3)))
     result = EpisodeResult()
@@ -104,50 +131,51 @@ def run_episode(backend: Backend, localizer: Localizer, policy: Policy, *,
         on_start()
     displacement = np.zeros(3)
     blocked_here: set[int] = set()
-    for index in range(1, max_steps + 1):
-        if estimate.converged or estimate.candidates == 0:
-            break
-        t0 = time.perf_counter()
-        view = PolicyInput(hypotheses=localizer.hypotheses(), displacement=displacement[:2],
-                           blocked=frozenset(blocked_here), surface=surface,
-                           step_length=step_length, rng=rng, walls=walls,
-                           estimate=estimate, planar=planar)
-        move = policy.next_move(view)
-        policy_ms = (time.perf_counter() - t0) * 1e3
-        t0 = time.perf_counter()
-        background(localizer)  # while the move is under way (the daemon's worker overlaps them)
-        background_ms = (time.perf_counter() - t0) * 1e3
-        command = MOVES[move] * step_length
-        try:
-            state = execute_step(backend, StepCommand(float(command[0]), float(command[1])))
-        except HardwareFault as exc:  # the cut step tells nothing: end with what was found
-            result.fault = str(exc)
-            break
-        displacement = np.asarray(state.centre) - origin
-        if state.blocked:
-            blocked_here.add(move)
-        else:
-            blocked_here.clear()
-        t0 = time.perf_counter()
-        update(localizer, Measurement(step=index, displacement=displacement,
-                                      blocked=state.blocked, t_ns=state.t_ns,
-                                      command=(float(command[0]), float(command[1]))))
-        compute_ms = (time.perf_counter() - t0) * 1e3
-        estimate, settle_ms = localizer.estimate(), 0.0
-        if estimate.pending:  # the background a declaration waits on, before another move
+    with kept_on_interrupt(result, keep_on_interrupt):
+        for index in range(1, max_steps + 1):
+            if estimate.converged or estimate.candidates == 0:
+                break
             t0 = time.perf_counter()
-            estimate = settle(localizer, estimate)
-            settle_ms = (time.perf_counter() - t0) * 1e3
-        record = StepRecord(index=index, move=move,
-                            command=(float(command[0]), float(command[1])),
-                            measurement=tuple(float(v) for v in displacement),
-                            blocked=state.blocked, candidates=estimate.candidates,
-                            compute_ms=compute_ms, policy_ms=policy_ms, estimate=estimate.pose,
-                            background_ms=background_ms, settle_ms=settle_ms,
-                            position_sd=estimate.position_sd, heading_sd=estimate.heading_sd,
-                            mode_mass=estimate.mode_mass)
-        result.steps.append(record)
-        if on_step:
-            on_step(record)
+            view = PolicyInput(hypotheses=localizer.hypotheses(), displacement=displacement[:2],
+                               blocked=frozenset(blocked_here), surface=surface,
+                               step_length=step_length, rng=rng, walls=walls,
+                               estimate=estimate, planar=planar)
+            move = policy.next_move(view)
+            policy_ms = (time.perf_counter() - t0) * 1e3
+            t0 = time.perf_counter()
+            background(localizer)  # while the move is under way (the daemon's worker overlaps them)
+            background_ms = (time.perf_counter() - t0) * 1e3
+            command = MOVES[move] * step_length
+            try:
+                state = execute_step(backend, StepCommand(float(command[0]), float(command[1])))
+            except HardwareFault as exc:  # the cut step tells nothing: end with what was found
+                result.fault = str(exc)
+                break
+            displacement = np.asarray(state.centre) - origin
+            if state.blocked:
+                blocked_here.add(move)
+            else:
+                blocked_here.clear()
+            t0 = time.perf_counter()
+            update(localizer, Measurement(step=index, displacement=displacement,
+                                          blocked=state.blocked, t_ns=state.t_ns,
+                                          command=(float(command[0]), float(command[1]))))
+            compute_ms = (time.perf_counter() - t0) * 1e3
+            estimate, settle_ms = localizer.estimate(), 0.0
+            if estimate.pending:  # the background a declaration waits on, before another move
+                t0 = time.perf_counter()
+                estimate = settle(localizer, estimate)
+                settle_ms = (time.perf_counter() - t0) * 1e3
+            record = StepRecord(index=index, move=move,
+                                command=(float(command[0]), float(command[1])),
+                                measurement=tuple(float(v) for v in displacement),
+                                blocked=state.blocked, candidates=estimate.candidates,
+                                compute_ms=compute_ms, policy_ms=policy_ms, estimate=estimate.pose,
+                                background_ms=background_ms, settle_ms=settle_ms,
+                                position_sd=estimate.position_sd, heading_sd=estimate.heading_sd,
+                                mode_mass=estimate.mode_mass)
+            result.steps.append(record)
+            if on_step:
+                on_step(record)
     result.estimate = estimate
     return result

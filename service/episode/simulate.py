@@ -56,6 +56,7 @@ class EpisodeReport:
             "converged": self.result.converged,
             "ended": self.result.ended,
             "fault": self.result.fault,
+            "interrupted": self.result.interrupted,
             "success": self.score.success,
             "wrong_declaration": self.score.wrong_declaration,
             "position_error": self.score.position_error,
@@ -81,8 +82,10 @@ def _step_json(s: StepRecord) -> dict[str, Any]:
 def simulate(settings: RunSettings, height_map: HeightMap | None = None, *,
              on_step: Callable[[StepRecord], None] | None = None,
              snapshot_steps: tuple[int, ...] = (),
-             backend_factory: Callable[[Truth], Backend] | None = None) -> EpisodeReport:
-    """Run one seeded episode. Same settings, same report.
+             backend_factory: Callable[[Truth], Backend] | None = None,
+             keep_on_interrupt: bool = False) -> EpisodeReport:
+    """Run one seeded episode. Same settings, same report. With `keep_on_interrupt`, Ctrl-C
+    or a stop signal ends it with what it had found (`runner.kept_on_interrupt`).
 
     The finger is simulated unless `backend_factory` gives another (a real or emulated
     hand); the truth is still drawn from the seed, for scoring.
@@ -114,10 +117,12 @@ def simulate(settings: RunSettings, height_map: HeightMap | None = None, *,
                              step_length=settings.step, max_steps=settings.max_steps,
                              rng=policy_rng, walls=settings.walls,
                              planar=settings.planar, on_step=record,
-                             on_start=lambda: snapshot(0))
+                             on_start=lambda: snapshot(0),
+                             keep_on_interrupt=keep_on_interrupt)
     finally:
         finger.close()
-    if snapshot_steps:  # the end too: a figure's last panel shows the final belief
+    if snapshot_steps and result.interrupted is None:  # the end too: a figure's last panel
+        # shows the final belief (not a localizer cut in the middle of an update)
         snapshots[len(result.steps)] = localizer.hypotheses(limit=SNAPSHOT_LIMIT)
     return EpisodeReport(settings=settings, truth=truth, result=result, height_map=surface.map,
                          score=score(result.estimate, truth, settings.step),

@@ -1,0 +1,59 @@
+"""A run cut by Ctrl-C or a stop signal keeps what it found: a held-out fault campaign's
+`haptic run --backend dynamixel --json` lost the 11-14 steps it had taken."""
+
+from __future__ import annotations
+
+import json
+import signal
+from pathlib import Path
+
+import pytest
+
+from service.episode.hand_episode import simulate_hand
+from service.episode.hand_scenario import HandSettings
+from tools import hand_cli, run_cli
+from tools.cli import main
+from tools.signals import Interrupted
+
+
+def cut_at(step: int, signum: int):
+    """An `on_step` printer that lands `signum` as step `step` is printed."""
+    def on_step(record) -> None:
+        if record.index == step:
+            raise Interrupted(signum)
+    return on_step
+
+
+def test_an_interrupted_run_writes_what_it_found_and_exits_with_the_signal(
+        monkeypatch, tmp_path: Path, capsys) -> None:
+    monkeypatch.setattr(run_cli, "StepPrinter", lambda: cut_at(3, signal.SIGTERM))
+    out = tmp_path / "run.json"
+    status = main(["run", "--noise", "--seed", "1", "--json", str(out), "--plot",
+                   str(tmp_path / "run.png")])
+    assert status == 128 + signal.SIGTERM
+    episode = json.loads(out.read_text())
+    assert episode["ended"] == "interrupted" and episode["interrupted"] == "SIGTERM"
+    assert [s["index"] for s in episode["steps"]] == [1, 2, 3]
+    assert episode["estimate"] is not None and not episode["converged"]
+    printed = capsys.readouterr().out
+    assert "interrupted by SIGTERM during step 4; the 3 steps before it stand" in printed
+    assert not (tmp_path / "run.png").exists() and "no figure" in printed
+
+
+def test_an_interrupted_hand_run_writes_what_it_found(monkeypatch, tmp_path: Path,
+                                                      capsys) -> None:
+    monkeypatch.setattr(hand_cli, "_print_step", cut_at(2, signal.SIGHUP))
+    out = tmp_path / "hand.json"
+    status = main(["run", "--object", "blob", "--hand", "three-finger", "--seed", "2",
+                   "--json", str(out)])
+    assert status == 128 + signal.SIGHUP
+    episode = json.loads(out.read_text())
+    assert episode["interrupted"] == "SIGHUP" and len(episode["steps"]) == 2
+    assert "interrupted by SIGHUP during step 3" in capsys.readouterr().out
+
+
+def test_without_being_asked_an_episode_unwinds_on_ctrl_c() -> None:
+    """Benches and campaigns stop on Ctrl-C: only a command that writes one episode keeps it."""
+    with pytest.raises(KeyboardInterrupt):
+        simulate_hand(HandSettings(object="blob", hand="three-finger", seed=2),
+                      on_step=cut_at(1, signal.SIGINT))
