@@ -23,6 +23,7 @@ from service.errors import InputError, ServiceError
 from service.wire.client import SLOW_COMMANDS, Client, CommandFailed, CommandTimeout, Subscriber
 from service.wire.commands import TABLE
 from tools.arg_types import integer, number
+from tools.signals import signals_held
 from tools.stream_cli import add_endpoint_options, client_from, subscriber_from, unheard_words
 from tools.words import (
     NO_SAFE_MOVE,
@@ -243,10 +244,14 @@ def _say(said: set[str], key: str, text: str) -> None:
 
 
 def _finish(client: Client) -> None:
-    """Stop exploring, torque off, give the lease back: best effort, briefly."""
-    for cmd in ("stop_exploration", "deactivate", "release"):
-        with contextlib.suppress(CommandFailed, CommandTimeout):
-            client.call(cmd, timeout_s=0.5)
+    """Stop exploring, torque off, give the lease back: best effort, briefly, and whole. A
+    second signal waits for it (`timeout` sends its SIGTERM to us and to its process group:
+    a held-out check's `timeout 20 haptic explore` left the daemon exploring, to its lease's
+    expiry, in 2 of 3 runs on servos)."""
+    with signals_held():
+        for cmd in ("stop_exploration", "deactivate", "release"):
+            with contextlib.suppress(CommandFailed, CommandTimeout):
+                client.call(cmd, timeout_s=0.5)
 
 
 class Follower:

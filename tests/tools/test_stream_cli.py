@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import re
+import signal
 import threading
 from collections.abc import Iterator
 from pathlib import Path
@@ -226,3 +227,26 @@ def test_explore_of_a_hand_out_of_steps_names_its_poses_in_the_hand_plane(capsys
     result = next(line for line in capsys.readouterr().out.splitlines()
                   if line.startswith("result"))
     assert " z " in result and " y " not in result, result
+
+
+def test_a_second_signal_waits_for_explore_to_hand_the_finger_back() -> None:
+    """`timeout` sends its SIGTERM to `haptic explore` and again to its process group: the
+    second landed inside the clean-up, and a held-out check's daemon explored on, lease
+    and torque held, until the lease expired (2 of 3 runs on servos)."""
+    from tools import ctl_cli
+    from tools.signals import Interrupted, _on_signal
+
+    class Daemon:
+        def __init__(self) -> None:
+            self.told: list[str] = []
+
+        def call(self, cmd: str, timeout_s: float | None = None) -> dict:
+            self.told.append(cmd)
+            if cmd == "stop_exploration":
+                _on_signal(signal.SIGTERM, None)  # the second SIGTERM lands here
+            return {}
+
+    daemon = Daemon()
+    with pytest.raises(Interrupted):  # it still ends the command, once the finger is back
+        ctl_cli._finish(daemon)
+    assert daemon.told == ["stop_exploration", "deactivate", "release"]
