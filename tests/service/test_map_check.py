@@ -1,5 +1,7 @@
 """Map checks on load: what a map offers a fingertip, and the warnings and refusals."""
 
+import warnings
+
 import numpy as np
 import pytest
 
@@ -353,3 +355,15 @@ def test_a_boss_on_a_profile_is_a_feature_of_its_own_width():
     report = check_map(HeightMap(z[None], 0.001, name="boss"), 0.008)
     assert report.smallest_feature == pytest.approx(0.010)
     assert "smallest 10 mm across" in "\n".join(report.lines())
+
+
+def test_a_strip_narrower_than_the_tip_is_checked_without_numpy_warnings() -> None:
+    """A held-out 12 mm strip of ridges: its symmetries were aligned over no place the tip
+    fits, and numpy's "Mean of empty slice" was printed around the report."""
+    x = np.linspace(0.0, 0.2, 201)
+    strip = HeightMap(np.tile(0.003 * np.sin(2 * np.pi * x / 0.025), (12, 1)), 0.001,
+                      name="strip")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        lines = check_map(strip, 0.008, 0.01).lines()
+    assert any("wider than the map" in line for line in lines)
