@@ -12,7 +12,7 @@ from collections.abc import Sequence
 from typing import TYPE_CHECKING
 
 from dynamixel_sdk.protocol2_packet_handler import PKT_ID
-from dynamixel_sdk.robotis_def import COMM_SUCCESS
+from dynamixel_sdk.robotis_def import COMM_RX_CORRUPT, COMM_SUCCESS
 
 from firmware_if.errors import BusTimeoutError, CommunicationError, FirmwareError, PortLost
 from firmware_if.packets import INST_PING, packet
@@ -47,9 +47,10 @@ def why_cycles_failed(bus: DxlBus, last: CommunicationError) -> str:
     torque off has gone out."""
     bus._require()  # a closed port is the caller's error, not a silent bus
     half_cycle_ms = bus.cycle_budget_s * 1e3 / 2  # what a cycle's read waits
+    damaged: set[int] = set()
     try:
         bus._drain()  # the failed cycles' replies, already coming
-        answered = answer_times(bus)
+        answered = answer_times(bus, damaged=damaged)
     except (PortLost, *PORT_ERRORS, ValueError) as exc:  # the port itself failed
         words = bus.fault if isinstance(exc, PortLost) else f"{type(exc).__name__}: {exc}"
         return (f"; then the serial port itself failed ({words}): its adapter unplugged, "
@@ -69,16 +70,17 @@ def why_cycles_failed(bus: DxlBus, last: CommunicationError) -> str:
                 f"{where}: a noisy or loose cable or connector, or a baud too fast for "
                 "the cable")
     return (_late_words(late, bus.cycle_budget_s)
-            + _silent_words(silent, len(bus.ids), bus.baud))
+            + _silent_words(silent, len(bus.ids), bus.baud, damaged))
 
-def answer_times(bus: DxlBus, tries: int = 3) -> dict[int, float]:
+def answer_times(bus: DxlBus, tries: int = 3, damaged: set[int] | None = None
+                 ) -> dict[int, float]:
     """{id: ms from its ping to its answer} for every servo that answers. One that answers
     later than a cycle's read waits is timed again alone, on a quiet line, keeping its
     quickest: a late servo is as late again, and is timed no more; one that only waited
     behind another's late replies, or met a host's hiccup, comes sooner, and is timed up
     to `tries` times (under load, a healthy servo timed once more at 15 ms was named late
-    beside the late one)."""
-    answered = ping_times(bus, bus.ids)
+    beside the late one). `damaged` gathers the servos whose answers came damaged."""
+    answered = ping_times(bus, bus.ids, damaged)
     half_cycle_ms = bus.cycle_budget_s * 1e3 / 2
     for sid in [s for s, ms in answered.items() if ms > half_cycle_ms]:
         for _ in range(tries):
@@ -94,18 +96,21 @@ def late_words(bus: DxlBus) -> str:
     in a fault's words, without the leading "; "), or "" when every one does: a reset
     checks it (a held-out check: with a servo answering after 10 ms, `reset` answered ok
     and the bus faulted again 0.2 s later)."""
-    answered = answer_times(bus)
+    damaged: set[int] = set()
+    answered = answer_times(bus, damaged=damaged)
     late = {sid: ms for sid, ms in answered.items() if ms > bus.cycle_budget_s * 1e3 / 2}
     silent = [sid for sid in bus.ids if sid not in answered]
     return (_late_words(late, bus.cycle_budget_s)
-            + _silent_words(silent, len(bus.ids), bus.baud)).removeprefix("; ")
+            + _silent_words(silent, len(bus.ids), bus.baud, damaged)).removeprefix("; ")
 
 
-def ping_times(bus: DxlBus, ids: Sequence[int]) -> dict[int, float]:
+def ping_times(bus: DxlBus, ids: Sequence[int], damaged: set[int] | None = None
+               ) -> dict[int, float]:
     """Ping `ids`: {id: ms from its ping to its answer} for those that answer. Each ping
     gets the setup's timeout (or its answer) before the next goes out; answers that come
     later still count, told apart by id and shape, until all have come or the line has
-    been quiet for `LATE_LIMIT_S` (a reply later than that is none)."""
+    been quiet for `LATE_LIMIT_S` (a reply later than that is none). `damaged` gathers
+    the ids of answers that came with a bad checksum."""
     port = bus._require()
     sent: dict[int, int] = {}
     got: dict[int, float] = {}
@@ -115,12 +120,12 @@ def ping_times(bus: DxlBus, ids: Sequence[int]) -> dict[int, float]:
         # bus's guard, so a port that fails here is PortLost (a held-out client's kill
         # during a reset's check was answered `internal`: a SerialException)
         bus._sdk("ping", port.writePort, list(packet(sid, INST_PING)))
-        _take_answers(bus, sent, got, SETUP_TIMEOUT_MS, until=sid)
-    _take_answers(bus, sent, got, LATE_LIMIT_S * 1e3)
+        _take_answers(bus, sent, got, SETUP_TIMEOUT_MS, until=sid, damaged=damaged)
+    _take_answers(bus, sent, got, LATE_LIMIT_S * 1e3, damaged=damaged)
     return got
 
 def _take_answers(bus: DxlBus, sent: dict[int, int], got: dict[int, float], wait_ms: float,
-                  until: int | None = None) -> None:
+                  until: int | None = None, damaged: set[int] | None = None) -> None:
     """Read status packets into `got` (answers to the pings `sent`) until `until` has
     answered within `wait_ms` of its ping, or (no `until`) every ping has answered or no
     status has come for `wait_ms`, at most `LATE_CAP_S`."""
@@ -136,6 +141,9 @@ def _take_answers(bus: DxlBus, sent: dict[int, int], got: dict[int, float], wait
         rx, result = bus._sdk("ping", bus._ph.rxPacket, port, False)
         if result in RX_TIMEOUT_RESULTS:
             return
+        if result == COMM_RX_CORRUPT and damaged is not None and len(rx) > PKT_ID \
+                and rx[PKT_ID] in sent:
+            damaged.add(rx[PKT_ID])  # a whole packet, its checksum spoiled
         if result == COMM_SUCCESS and rx[PKT_ID] in sent and rx[PKT_ID] not in got \
                 and answers(rx, rx[PKT_ID], PING_ANSWER_LENGTH):
             got[rx[PKT_ID]] = (time.monotonic_ns() - sent[rx[PKT_ID]]) / 1e6
@@ -154,8 +162,19 @@ def _late_words(late: dict[int, float], cycle_budget_s: float) -> str:
             "check` tells)")
 
 
-def _silent_words(silent: list[int], servos: int, baud: int) -> str:
-    """A fault's words for servos that answer no ping at all."""
+def _silent_words(silent: list[int], servos: int, baud: int,
+                  damaged: set[int] | frozenset[int] = frozenset()) -> str:
+    """A fault's words for servos that answer no ping at all, or whose every answer came
+    damaged (a held-out check's `corrupt 2 100000` was told "does not answer a ping:
+    check its cable and power")."""
+    spoiled = [sid for sid in silent if sid in damaged]
+    if spoiled:
+        who = (f"servo {spoiled[0]}'s" if len(spoiled) == 1
+               else f"servos {', '.join(map(str, spoiled))}'")
+        rest = [sid for sid in silent if sid not in damaged]
+        return (f"; {who} answers to a ping come damaged (bad checksums): a noisy or loose "
+                "cable or connector between it and the adapter, or a baud too fast for the "
+                "cable" + _silent_words(rest, servos, baud))
     if not silent:
         return ""
     if len(silent) == servos:

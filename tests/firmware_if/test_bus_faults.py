@@ -291,3 +291,19 @@ def test_a_port_lost_while_reset_checks_the_servos_is_a_fault_not_an_os_error(
     finally:
         backend.close()
         again.stop()
+
+
+def test_a_servo_whose_every_reply_comes_damaged_is_told_from_a_silent_one(rig) -> None:
+    """A held-out fault campaign's `corrupt 2 100000` was told "servo 2 does not answer a
+    ping: check its cable and power", though its replies were arriving, damaged."""
+    backend, bus, _ = rig
+    bus.fault(3).corrupt = 100_000
+    for _ in range(SETTINGS.failure_tolerance):
+        state = backend.read_state()
+    assert "servo 3's answers to a ping come damaged (bad checksums)" in state.fault
+    assert "does not answer" not in state.fault
+    with pytest.raises(FirmwareError, match="servo 3: .*a garbled reply"):
+        backend.clear_fault()  # still damaged: the reset names the servo and the garbling
+    bus.fault(3).corrupt = 0
+    backend.clear_fault()
+    assert backend.read_state().fault is None

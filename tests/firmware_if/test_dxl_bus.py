@@ -354,9 +354,9 @@ def test_a_servo_that_waited_behind_a_late_one_is_timed_until_in_time(emulator, 
     emulator.fault(2).late_s = 0.05
     ping_times, pinged = bus_diagnosis.ping_times, []
 
-    def behind_then_a_hiccup(bus_, ids):
+    def behind_then_a_hiccup(bus_, ids, damaged=None):
         pinged.append(tuple(ids))
-        answered = ping_times(bus_, ids)
+        answered = ping_times(bus_, ids, damaged)
         if 1 in answered and len(pinged) <= 2:
             answered[1] += (500.0, 15.0)[len(pinged) - 1]
         return answered
