@@ -14,7 +14,7 @@ from service.errors import ConfigError
 from service.localization.objects.files import OBJECT_FILE_SUFFIXES
 from tools.arg_types import number
 from tools.outputs import check_outputs
-from tools.signals import signals_held
+from tools.signals import closed_whole, signals_held
 from tools.words import (
     EXIT_FAULT,
     NO_SAFE_MOVE,
@@ -215,7 +215,8 @@ def _servo_hand(args: argparse.Namespace, settings, budget: dict[str, float]):
     if settings.single_finger:
         raise ConfigError("--single-finger runs on the simulated hand only")
     check_port_exists(args.port)
-    return lambda: DynamixelHand.from_cli(port=args.port, hand=settings.hand, **budget)
+    return lambda: closed_whole(DynamixelHand.from_cli(port=args.port, hand=settings.hand,
+                                                       **budget))
 
 
 def _print_step(step) -> None:

@@ -25,7 +25,7 @@ from service.registry import BACKENDS
 from tools.hand_cli import add_object_options, object_options_given, run_hand
 from tools.outputs import check_outputs
 from tools.scenario_options import add_scenario_options, settings_from_args
-from tools.signals import signals_held
+from tools.signals import closed_whole, signals_held
 from tools.words import (
     EXIT_FAULT,
     belief_text,
@@ -103,8 +103,9 @@ def run(args: argparse.Namespace) -> int:
 
         def backend_factory(truth: Truth) -> Backend:
             """A hardware hand; the truth is not its to know (the emulator draws its own)."""
-            return cls.from_cli(port=args.port, hand=args.hand, radius=settings.radius,
-                                step=settings.step, **budget)
+            return closed_whole(cls.from_cli(port=args.port, hand=args.hand,
+                                             radius=settings.radius, step=settings.step,
+                                             **budget))
     size = (f"profile of {height_map.shape[1]} samples, {height_map.extent[0] * 1e3:.0f} mm "
             "long" if height_map.is_profile else
             f"{height_map.shape[1]} x {height_map.shape[0]} samples, "

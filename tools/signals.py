@@ -17,6 +17,9 @@ import signal
 import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
+from typing import TypeVar
+
+T = TypeVar("T")
 
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
 """The signals that end a command cleanly."""
@@ -67,6 +70,20 @@ def signals_interrupt() -> Iterator[None]:
     finally:
         for sig, handler in previous.items():
             signal.signal(sig, handler)
+
+
+def closed_whole(backend: T) -> T:
+    """`backend` with its `close` (torque off, then the port released) run whole: a second
+    Ctrl-C waits for it (`signals_held`). The first ends the run and the runner closes
+    the backend; a second, landing inside the torque-off exchange, could cut it."""
+    close = backend.close  # type: ignore[attr-defined]
+
+    def close_whole() -> None:
+        with signals_held():
+            close()
+
+    backend.close = close_whole  # type: ignore[attr-defined]
+    return backend
 
 
 @contextmanager

@@ -57,3 +57,21 @@ def test_without_being_asked_an_episode_unwinds_on_ctrl_c() -> None:
     with pytest.raises(KeyboardInterrupt):
         simulate_hand(HandSettings(object="blob", hand="three-finger", seed=2),
                       on_step=cut_at(1, signal.SIGINT))
+
+
+def test_a_second_signal_waits_for_a_backend_to_close() -> None:
+    """The first signal ends a run on servos and the runner closes the backend (torque off,
+    then the port); a second landing inside that exchange could leave the servos on."""
+    from tools.signals import _on_signal, closed_whole
+
+    class Servos:
+        torque_off = False
+
+        def close(self) -> None:
+            _on_signal(signal.SIGINT, None)  # the second Ctrl-C lands here
+            self.torque_off = True
+
+    servos = closed_whole(Servos())
+    with pytest.raises(Interrupted):  # it still ends the command, once torque is off
+        servos.close()
+    assert servos.torque_off
