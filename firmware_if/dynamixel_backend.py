@@ -252,9 +252,9 @@ class DynamixelBackend(HandOfOne):
                 self._port_lost = self._port_lost or isinstance(exc, PortLost)
                 if isinstance(exc, CommunicationError) and attempt == 1:
                     raise CommunicationError(  # what to do, not only what the SDK said
-                        f"reset failed: a servo does not answer ({exc}); check the bus power "
-                        "and every servo's cable, then reset again (`haptic bus scan` lists "
-                        "the servos on the port: another hand's bus?)", exc.servo_ids) from exc
+                        f"reset failed: {_what_failed(exc)}, then reset again (`haptic bus "
+                        "scan` lists the servos on the port: another hand's bus?)",
+                        exc.servo_ids) from exc
                 if attempt == 1 or isinstance(exc, PortLost):
                     raise
         if words:
@@ -474,3 +474,13 @@ class _Step:
     last: tuple[float, ...] | None = None
     cycles: int = 0
     """Bus cycles since the last goals were sent."""
+
+
+def _what_failed(exc: CommunicationError) -> str:
+    """A reset's words for a servo it could not set up: silent, or answering garbled (a
+    held-out check's servo whose every reply came damaged was told it "does not
+    answer")."""
+    if isinstance(exc, BusTimeoutError):
+        return f"a servo does not answer ({exc}); check the bus power and every servo's cable"
+    return (f"a servo's reply came damaged ({exc}); check every servo's cable and connectors "
+            "(noise, a loose contact) and that the servos use the bus's baud")

@@ -302,7 +302,8 @@ def test_a_servo_whose_every_reply_comes_damaged_is_told_from_a_silent_one(rig) 
         state = backend.read_state()
     assert "servo 3's answers to a ping come damaged (bad checksums)" in state.fault
     assert "does not answer" not in state.fault
-    with pytest.raises(FirmwareError, match="servo 3: .*a garbled reply"):
+    with pytest.raises(FirmwareError, match="reset failed: a servo's reply came damaged "
+                       r"\(servo 3: .*a garbled reply"):
         backend.clear_fault()  # still damaged: the reset names the servo and the garbling
     bus.fault(3).corrupt = 0
     backend.clear_fault()
