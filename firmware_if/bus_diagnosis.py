@@ -143,7 +143,7 @@ def _take_answers(bus: DxlBus, sent: dict[int, int], got: dict[int, float], wait
             return
         if result == COMM_RX_CORRUPT and damaged is not None and len(rx) > PKT_ID \
                 and rx[PKT_ID] in sent:
-            damaged.add(rx[PKT_ID])  # a whole packet, its checksum spoiled
+            damaged.add(rx[PKT_ID])  # its reply, with a spoiled checksum or cut short
         if result == COMM_SUCCESS and rx[PKT_ID] in sent and rx[PKT_ID] not in got \
                 and answers(rx, rx[PKT_ID], PING_ANSWER_LENGTH):
             got[rx[PKT_ID]] = (time.monotonic_ns() - sent[rx[PKT_ID]]) / 1e6
@@ -169,12 +169,17 @@ def _silent_words(silent: list[int], servos: int, baud: int,
     check its cable and power")."""
     spoiled = [sid for sid in silent if sid in damaged]
     if spoiled:
-        who = (f"servo {spoiled[0]}'s" if len(spoiled) == 1
-               else f"servos {', '.join(map(str, spoiled))}'")
         rest = [sid for sid in silent if sid not in damaged]
-        return (f"; {who} answers to a ping come damaged (bad checksums): a noisy or loose "
-                "cable or connector between it and the adapter, or a baud too fast for the "
-                "cable" + _silent_words(rest, servos, baud))
+        if len(spoiled) == 1:
+            words = (f"; servo {spoiled[0]} answers a ping only with damaged replies (bad "
+                     "checksums, or cut short): a noisy or loose cable or connector between "
+                     "it and the adapter, or a baud too fast for the cable")
+        else:
+            words = (f"; servos {', '.join(map(str, spoiled))} answer a ping only with damaged "
+                     "replies (bad checksums, or cut short): noisy or loose cables or "
+                     "connectors between them and the adapter, or a baud too fast for the "
+                     "cables")
+        return words + _silent_words(rest, servos, baud)
     if not silent:
         return ""
     if len(silent) == servos:

@@ -13,17 +13,14 @@ from pathlib import Path
 from service.errors import ConfigError
 from service.localization.objects.files import OBJECT_FILE_SUFFIXES
 from tools.arg_types import number
-from tools.outputs import check_outputs
-from tools.signals import closed_whole, signals_held
+from tools.outputs import check_outputs, write_episode
+from tools.signals import closed_whole
 from tools.words import (
-    EXIT_FAULT,
     NO_SAFE_MOVE,
     belief_text,
-    command_record,
     fault_result,
     hand_step_text,
     interrupted_result,
-    interrupted_status,
     pose_text,
     steps_text,
     why_not_converged,
@@ -179,26 +176,14 @@ def run_hand(args: argparse.Namespace, budget: dict[str, float] | None = None) -
                            snapshot_steps=(0,) if args.plot else (),
                            backend_factory=backend_factory, keep_on_interrupt=True)
     _print_summary(report, on_servos=backend_factory is not None)
-    failed = report.result.dropped or (report.truth_known and report.score.wrong_declaration)
-    cut = report.result.interrupted
-    if args.json:
-        import json
+    return write_episode(report, args.json, args.plot, _draw, failed=report.result.dropped
+                         or (report.truth_known and report.score.wrong_declaration))
 
-        with signals_held():  # a second Ctrl-C waits for the file
-            Path(args.json).write_text(json.dumps(command_record(report), indent=1))
-        print(f"episode written to {args.json}")
-    if args.plot and cut is not None:
-        print(f"no figure: the run was interrupted ({args.plot} not written)")
-    elif args.plot:
-        from tools.hand_plots import hand_figure
 
-        hand_figure(report, args.plot)
-        print(f"figure written to {args.plot}")
-    if report.result.fault is not None:
-        return EXIT_FAULT
-    if cut is not None:
-        return interrupted_status(cut)
-    return 1 if failed else 0  # a wrong pose or a drop: a script must notice
+def _draw(report, path: Path) -> None:
+    from tools.hand_plots import hand_figure
+
+    hand_figure(report, path)
 
 
 def _servo_hand(args: argparse.Namespace, settings, budget: dict[str, float]):

@@ -5,7 +5,9 @@ from __future__ import annotations
 
 import functools
 import os
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 from service.errors import ConfigError
 
@@ -75,3 +77,31 @@ def _figure_formats() -> frozenset[str]:
     from matplotlib.figure import Figure
 
     return frozenset(Figure().canvas.get_supported_filetypes()) - {"pgf"}
+
+
+def write_episode(report: Any, json_path: Path | str | None, plot_path: Path | str | None,
+                  draw: Callable[[Any, Path | str], None], failed: bool) -> int:
+    """`haptic run`'s outputs and exit status for one episode (a finger's or a hand's):
+    `--json` written whole (a second Ctrl-C waits for it), the figure unless a signal cut
+    the run, and the status: 3 after a fault, 128 + the signal after an interrupt, 1 when
+    `failed` (a wrong pose, a drop: a script must notice), else 0."""
+    import json
+
+    from tools.signals import signals_held
+    from tools.words import EXIT_FAULT, command_record, interrupted_status
+
+    cut = report.result.interrupted
+    if json_path:
+        with signals_held():
+            Path(json_path).write_text(json.dumps(command_record(report), indent=1))
+        print(f"episode written to {json_path}")
+    if plot_path and cut is not None:
+        print(f"no figure: the run was interrupted ({plot_path} not written)")
+    elif plot_path:
+        draw(report, plot_path)
+        print(f"figure written to {plot_path}")
+    if report.result.fault is not None:
+        return EXIT_FAULT
+    if cut is not None:
+        return interrupted_status(cut)
+    return 1 if failed else 0

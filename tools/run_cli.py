@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import json
 import math
 from collections.abc import Callable
 from pathlib import Path
@@ -23,16 +22,13 @@ from service.localization.maps import load_map
 from service.localization.policies.base import MOVE_NAMES
 from service.registry import BACKENDS
 from tools.hand_cli import add_object_options, object_options_given, run_hand
-from tools.outputs import check_outputs
+from tools.outputs import check_outputs, write_episode
 from tools.scenario_options import add_scenario_options, settings_from_args
-from tools.signals import closed_whole, signals_held
+from tools.signals import closed_whole
 from tools.words import (
-    EXIT_FAULT,
     belief_text,
-    command_record,
     fault_result,
     interrupted_result,
-    interrupted_status,
     pose_text,
     steps_text,
     why_not_converged,
@@ -117,24 +113,14 @@ def run(args: argparse.Namespace) -> int:
                       snapshot_steps=FIGURE_STEPS if args.plot else (),
                       backend_factory=backend_factory, keep_on_interrupt=True)
     _print_summary(report)
-    failed = report.score.wrong_declaration
-    cut = report.result.interrupted
-    if args.json:
-        with signals_held():  # a second Ctrl-C waits for the file
-            args.json.write_text(json.dumps(command_record(report), indent=1))
-        print(f"episode written to {args.json}")
-    if args.plot and cut is not None:
-        print(f"no figure: the run was interrupted ({args.plot} not written)")
-    elif args.plot:
-        from tools.plots import episode_figure
+    return write_episode(report, args.json, args.plot, _draw,
+                         failed=report.score.wrong_declaration)
 
-        episode_figure(report, args.plot)
-        print(f"figure written to {args.plot}")
-    if report.result.fault is not None:
-        return EXIT_FAULT
-    if cut is not None:
-        return interrupted_status(cut)
-    return 1 if failed else 0  # a script must notice a wrong pose
+
+def _draw(report: EpisodeReport, path: Path) -> None:
+    from tools.plots import episode_figure
+
+    episode_figure(report, path)
 
 
 class StepPrinter:

@@ -7,8 +7,7 @@ torque released), also in a background job where the shell starts us with SIGINT
 callback. The state lives here, in one module: under `python -m tools.cli` the entry
 module is loaded twice (as __main__ and as tools.cli), and state kept there was two.
 
-SIGHUP is what a closing terminal sends its jobs: left to its default, it killed `haptic
-run --backend dynamixel` at once, its servos left with torque on (a held-out check).
+The signals are `service.signals.stop_signals`: SIGHUP too, unless under `nohup`.
 """
 
 from __future__ import annotations
@@ -19,10 +18,11 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from typing import TypeVar
 
+from service.signals import stop_signals
+
 T = TypeVar("T")
 
-STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
-"""The signals that end a command cleanly."""
+
 
 
 class Interrupted(KeyboardInterrupt):
@@ -64,7 +64,7 @@ def signals_interrupt() -> Iterator[None]:
     previous = {}
     _seen["signum"] = None
     try:  # a signal may land between the two installs: the first is restored all the same
-        for sig in STOP_SIGNALS:
+        for sig in stop_signals():
             previous[sig] = signal.signal(sig, _on_signal)
         yield
     finally:

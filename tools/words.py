@@ -52,8 +52,9 @@ def fault_result(fault: str, steps: int) -> str:
 
 def interrupted_result(signal_name: str, steps: int) -> str:
     """The result line of a run a signal cut (`runner.kept_on_interrupt`)."""
-    return (f"interrupted by {signal_name} during step {steps + 1}; the {steps_text(steps)} "
-            "before it stand")
+    if steps == 0:
+        return f"interrupted by {signal_name} before its first step"
+    return f"interrupted by {signal_name} after {steps_text(steps)}; what they found stands"
 
 
 def interrupted_status(signal_name: str) -> int:

@@ -4,8 +4,9 @@
     hapticd --config hapticd.toml  as configured (config/hapticd.toml is the sample)
 
 Logs are JSON lines on stderr (the first, `listening`, names the bound endpoints).
-SIGINT, SIGTERM and SIGHUP stop the loop; shutdown turns torque off, publishes a final `shutdown`
-event and closes the sockets. Exit status: 0 after a clean stop, 2 for a bad config.
+SIGINT, SIGTERM and SIGHUP (not under `nohup`: `service.signals`) stop the loop; shutdown
+turns torque off, publishes a final `shutdown` event and closes the sockets. Exit status:
+0 after a clean stop, 2 for a bad config.
 """
 
 from __future__ import annotations
@@ -23,6 +24,7 @@ from service.daemon.json_log import JsonFormatter
 from service.daemon.node import Node
 from service.daemon.quiet_files import lab_reads
 from service.errors import InputError
+from service.signals import stop_signals
 from service.wire.client import ENDPOINT_ENV
 
 
@@ -95,10 +97,7 @@ def main(argv: list[str] | None = None) -> int:
     def on_signal(signum: int, frame: object) -> None:
         node.stop()
 
-    # SIGHUP too: a closing terminal sends it, and by default it killed the daemon with
-    # the servos' torque on (a held-out check)
-    previous = {sig: signal.signal(sig, on_signal)
-                for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)}
+    previous = {sig: signal.signal(sig, on_signal) for sig in stop_signals()}
     try:
         node.serve()
     except (InputError, FirmwareError) as exc:

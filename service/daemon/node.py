@@ -158,7 +158,9 @@ class Node(CommandHandlers):
 
     def _configured_at_start(self, result: dict[str, Any] | None, error: Exception | None
                              ) -> None:
-        if error is not None:
+        if isinstance(error, ShuttingDown):  # stopped before it was done: no failure
+            _log("configure_abandoned", error=str(error))
+        elif error is not None:
             self.configure_error = str(error)
             _log("configure_failed", level=logging.ERROR, error=str(error))
         self.ready.set()
@@ -507,13 +509,12 @@ class Node(CommandHandlers):
         never came, and the last `state` it saw had torque on). A request under way is
         answered (a held-out client's `configure` and `start_exploration` got no reply)."""
         if self.reconf is not None:
-            self.reconf.abandon()
-            self.reconf.deferred.fail(_shutting_down("the configure ended with it, nothing "
-                                                     "was changed"))
-            self.reconf = None
+            self._end_reconfigure(_shutting_down("the configure ended with it, nothing was "
+                                                 "changed"))
         if self.resetting is not None:  # the bus is the reset's until it is done
             self.resetting.wait()
-            self.resetting.deferred.fail(_shutting_down("the reset ended with it, torque off"))
+            self.resetting.deferred.fail(_shutting_down("the reset ended with it, torque "
+                                                        "off"))
             self.resetting = None
         self._fail_start(_shutting_down("the episode ended before its first belief"))
         self._tell_fault(wait=True)
@@ -570,7 +571,9 @@ def _log(event: str, level: int = logging.INFO, **fields: Any) -> None:
     log.log(level, event, extra={"fields": fields})
 
 
-def _shutting_down(what: str) -> StateError:
+class ShuttingDown(StateError):
     """The reply to a request a shutdown cut short."""
-    return StateError(f"hapticd is shutting down (SIGINT, SIGTERM or SIGHUP): {what}; start "
-                      "hapticd again")
+
+
+def _shutting_down(what: str) -> ShuttingDown:
+    return ShuttingDown(f"hapticd is shutting down: {what}; start hapticd again")

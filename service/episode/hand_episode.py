@@ -93,6 +93,7 @@ def run_hand_episode(hand: Any, localizer: Any, policy: GraspGatedPolicy, parts:
     stepper = HandStepper(localizer, policy, parts, settings)
     result = HandEpisodeResult(start_centres=tuple(map(tuple, plane_centres(state).tolist())))
     stepper.start(state)
+    recorded = stepper.estimate  # the belief of the last step recorded (an interrupt keeps it)
     with kept_on_interrupt(result, keep_on_interrupt):
         for index in range(1, settings.max_steps + 1):
             if stepper.settled:
@@ -122,11 +123,14 @@ def run_hand_episode(hand: Any, localizer: Any, policy: GraspGatedPolicy, parts:
                                     settle_ms=settle_ms, quality=now, least_quality=least,
                                     truth=None if truth is None else truth())
             result.steps.append(record)
+            recorded = stepper.estimate
             if on_step:
                 on_step(record)
             if result.dropped:
                 break
-    result.estimate = stepper.estimate
+    # cut between a step's update and its record, the newer belief would stand beside
+    # steps that do not hold its reading
+    result.estimate = stepper.estimate if result.interrupted is None else recorded
     return result
 
 

@@ -97,6 +97,8 @@ def execute_step(backend: Backend, step: StepCommand, timeout_s: float = 10.0) -
 
 
 class Interruptible(Protocol):
+    """An episode's result that can say a signal cut it."""
+
     interrupted: str | None
 
 
@@ -131,6 +133,7 @@ def run_episode(backend: Backend, localizer: Localizer, policy: Policy, *,
         on_start()
     displacement = np.zeros(3)
     blocked_here: set[int] = set()
+    recorded = estimate  # the belief of the last step recorded (an interrupt keeps it)
     with kept_on_interrupt(result, keep_on_interrupt):
         for index in range(1, max_steps + 1):
             if estimate.converged or estimate.candidates == 0:
@@ -175,7 +178,10 @@ def run_episode(backend: Backend, localizer: Localizer, policy: Policy, *,
                                 position_sd=estimate.position_sd, heading_sd=estimate.heading_sd,
                                 mode_mass=estimate.mode_mass)
             result.steps.append(record)
+            recorded = estimate
             if on_step:
                 on_step(record)
-    result.estimate = estimate
+    # cut between a step's update and its record, the newer belief would stand beside
+    # steps that do not hold its reading
+    result.estimate = estimate if result.interrupted is None else recorded
     return result

@@ -126,7 +126,9 @@ def simulate(settings: RunSettings, height_map: HeightMap | None = None, *,
         snapshots[len(result.steps)] = localizer.hypotheses(limit=SNAPSHOT_LIMIT)
     return EpisodeReport(settings=settings, truth=truth, result=result, height_map=surface.map,
                          score=score(result.estimate, truth, settings.step),
-                         true_pose_eliminated=_truth_eliminated(localizer, truth, settings),
+                         # a localizer cut inside an update cannot say
+                         true_pose_eliminated=None if result.interrupted is not None
+                         else _truth_eliminated(localizer, truth, settings),
                          snapshots=snapshots)
 
 

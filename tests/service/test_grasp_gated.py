@@ -498,7 +498,6 @@ def test_three_fingers_turn_once_their_rolls_stop_telling_the_modes_apart():
     assert report.score.success and not report.result.dropped and turns >= 2
 
 
-
 @pytest.mark.xfail(strict=True, reason="a turn's quality falls off a cliff between the "
                    "gate's guards: not yet guarded")
 def test_three_fingers_hold_a_circle_with_a_small_bump_through_a_turn():

@@ -80,6 +80,8 @@ def test_a_shutdown_during_a_configure_answers_it() -> None:
         for _ in range(10_000):  # until the configure is under way
             if other.call("status")["configuring"]:
                 break
+        else:
+            pytest.fail("the configure was never seen under way")
         node.stop()  # what the SIGINT, SIGTERM and SIGHUP handlers call
         thread.join(60)
     assert out["error"].code == "bad_state"

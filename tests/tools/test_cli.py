@@ -15,8 +15,8 @@ import msgpack
 import pytest
 
 from service.daemon.harness import loopback_config, running_node
+from service.signals import STOP_SIGNALS
 from tools.cli import COMMANDS, build_parser, main
-from tools.signals import STOP_SIGNALS
 
 ROOT = Path(__file__).resolve().parents[2]
 HEAVY = ("numba", "scipy", "matplotlib", "asyncio")

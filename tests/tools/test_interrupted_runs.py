@@ -36,7 +36,7 @@ def test_an_interrupted_run_writes_what_it_found_and_exits_with_the_signal(
     assert [s["index"] for s in episode["steps"]] == [1, 2, 3]
     assert episode["estimate"] is not None and not episode["converged"]
     printed = capsys.readouterr().out
-    assert "interrupted by SIGTERM during step 4; the 3 steps before it stand" in printed
+    assert "interrupted by SIGTERM after 3 steps; what they found stands" in printed
     assert not (tmp_path / "run.png").exists() and "no figure" in printed
 
 
@@ -49,7 +49,7 @@ def test_an_interrupted_hand_run_writes_what_it_found(monkeypatch, tmp_path: Pat
     assert status == 128 + signal.SIGHUP
     episode = json.loads(out.read_text())
     assert episode["interrupted"] == "SIGHUP" and len(episode["steps"]) == 2
-    assert "interrupted by SIGHUP during step 3" in capsys.readouterr().out
+    assert "interrupted by SIGHUP after 2 steps" in capsys.readouterr().out
 
 
 def test_without_being_asked_an_episode_unwinds_on_ctrl_c() -> None:
@@ -75,3 +75,26 @@ def test_a_second_signal_waits_for_a_backend_to_close() -> None:
     with pytest.raises(Interrupted):  # it still ends the command, once torque is off
         servos.close()
     assert servos.torque_off
+
+
+def test_a_run_cut_while_a_step_is_recorded_keeps_the_belief_of_the_steps_it_holds(
+        monkeypatch) -> None:
+    """A review: a signal landing after step 4's update but before its record left step 4's
+    belief beside steps 1-3 (the JSON's estimate and score disagreed with its steps)."""
+    from service.episode import runner
+    from service.episode.scenario import RunSettings
+    from service.episode.simulate import simulate
+
+    record = runner.StepRecord
+
+    def cut_while_recording(**fields):
+        if fields["index"] == 4:
+            raise Interrupted(signal.SIGTERM)
+        return record(**fields)
+
+    monkeypatch.setattr(runner, "StepRecord", cut_while_recording)
+    report = simulate(RunSettings(noise=True, seed=1), keep_on_interrupt=True)
+    steps, estimate = report.result.steps, report.result.estimate
+    assert len(steps) == 3 and report.result.interrupted == "SIGTERM"
+    assert estimate.pose == steps[-1].estimate and estimate.candidates == steps[-1].candidates
+    assert report.true_pose_eliminated is None  # a localizer cut mid-update cannot say
