@@ -59,10 +59,14 @@ def test_without_being_asked_an_episode_unwinds_on_ctrl_c() -> None:
                       on_step=cut_at(1, signal.SIGINT))
 
 
-def test_a_second_signal_waits_for_a_backend_to_close() -> None:
+def test_a_second_signal_waits_for_a_backend_to_close(monkeypatch) -> None:
     """The first signal ends a run on servos and the runner closes the backend (torque off,
     then the port); a second landing inside that exchange could leave the servos on."""
+    from tools import signals
     from tools.signals import _on_signal, closed_whole
+
+    # the signal seen stays seen for this process: put it back for the tests after
+    monkeypatch.setitem(signals._seen, "signum", None)
 
     class Servos:
         torque_off = False

@@ -229,12 +229,15 @@ def test_explore_of_a_hand_out_of_steps_names_its_poses_in_the_hand_plane(capsys
     assert " z " in result and " y " not in result, result
 
 
-def test_a_second_signal_waits_for_explore_to_hand_the_finger_back() -> None:
+def test_a_second_signal_waits_for_explore_to_hand_the_finger_back(monkeypatch) -> None:
     """`timeout` sends its SIGTERM to `haptic explore` and again to its process group: the
     second landed inside the clean-up, and a held-out check's daemon explored on, lease
     and torque held, until the lease expired (2 of 3 runs on servos)."""
-    from tools import ctl_cli
+    from tools import ctl_cli, signals
     from tools.signals import Interrupted, _on_signal
+
+    # the signal seen stays seen for this process: put it back for the tests after
+    monkeypatch.setitem(signals._seen, "signum", None)
 
     class Daemon:
         def __init__(self) -> None:
