@@ -489,7 +489,7 @@ def test_rolls_stall_when_the_leading_share_stays_put(logits, stalled):
 
 
 def test_three_fingers_turn_once_their_rolls_stop_telling_the_modes_apart():
-    """rounded:5, seed 5, three fingers: the rolls promised 0.1-0.2 nats each but re-read
+    """rounded:5, seed 5, three fingers: the rolls promised 0.04-0.29 nats each but re-read
     felt contour, and the leader sat at 93 % from step 25 to step 60, undecided, while a
     safe turn was on offer throughout."""
     report = simulate_hand(HandSettings(object="rounded:5", hand="three-finger", seed=5,

@@ -127,11 +127,12 @@ apart if the leading mode's share (the localizer's, as log-odds) stayed within
 `STALL_LOGIT` across them: a safe turn is taken instead. A roll's predicted information
 counts its reading as its own, but the localizer weighs readings from a patch already felt
 as sharing the world's error: three fingers on rounded:5 (seed 5) rolled on at a predicted
-0.1-0.2 nats a roll, the leader held at 93 % from step 25 to the last, the 60th, and a
-turn was safe throughout. Only a leader holding half or more stalls: among many modes the
-rolls tell by striking them out, which the leader's share hardly shows (three fingers on a
-held-out near circle with one bump held it at 5-11 % for 25 rolls until the bump decided
-it, step 31; turned at step 12, they never reached it). (Asking instead for a new high of
+0.04-0.29 nats a roll, the leader held at 93 % from step 25 to the last, the 60th, and a
+safe turn was on offer at each decision a hook printed (steps 17 to 41). Only a leader
+holding half or more stalls: among many modes the rolls tell by striking them out, which
+the leader's share hardly shows (three fingers on a held-out near circle with one bump
+held it at 5-12 % from step 3 to 29, until the bump decided it, 99 % at step 31; turned
+at step 12, they ended undecided at step 60). (Asking instead for a new high of
 the share, on the localizer's or on the policy's own weights, turned three fingers on
 keyed:18 while its leader climbed from 87 to 95 % in seven rolls, and the run ended
 undecided, where it had localized.)"""
