@@ -169,17 +169,15 @@ def _silent_words(silent: list[int], servos: int, baud: int,
     check its cable and power")."""
     spoiled = [sid for sid in silent if sid in damaged]
     if spoiled:
+        one = len(spoiled) == 1
+        who = (f"servo {spoiled[0]} answers" if one
+               else f"servos {', '.join(map(str, spoiled))} answer")
+        cable, them = ("a noisy or loose cable or connector", "it") if one else (
+            "noisy or loose cables or connectors", "them")
         rest = [sid for sid in silent if sid not in damaged]
-        if len(spoiled) == 1:
-            words = (f"; servo {spoiled[0]} answers a ping only with damaged replies (bad "
-                     "checksums, or cut short): a noisy or loose cable or connector between "
-                     "it and the adapter, or a baud too fast for the cable")
-        else:
-            words = (f"; servos {', '.join(map(str, spoiled))} answer a ping only with damaged "
-                     "replies (bad checksums, or cut short): noisy or loose cables or "
-                     "connectors between them and the adapter, or a baud too fast for the "
-                     "cables")
-        return words + _silent_words(rest, servos, baud)
+        return (f"; {who} a ping only with damaged replies (bad checksums, or cut short): "
+                f"{cable} between {them} and the adapter, or a baud too fast for the "
+                f"cable{'' if one else 's'}" + _silent_words(rest, servos, baud))
     if not silent:
         return ""
     if len(silent) == servos:

@@ -4,12 +4,15 @@ written is a one-line error at the start, not a traceback after a long run."""
 from __future__ import annotations
 
 import functools
+import json
 import os
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 from service.errors import ConfigError
+from tools.signals import signals_held
+from tools.words import EXIT_FAULT, command_record, interrupted_status
 
 
 def check_outputs(*paths: Path | str | None, figures: tuple[Path | str | None, ...] = (),
@@ -85,11 +88,6 @@ def write_episode(report: Any, json_path: Path | str | None, plot_path: Path | s
     `--json` written whole (a second Ctrl-C waits for it), the figure unless a signal cut
     the run, and the status: 3 after a fault, 128 + the signal after an interrupt, 1 when
     `failed` (a wrong pose, a drop: a script must notice), else 0."""
-    import json
-
-    from tools.signals import signals_held
-    from tools.words import EXIT_FAULT, command_record, interrupted_status
-
     cut = report.result.interrupted
     if json_path:
         with signals_held():
